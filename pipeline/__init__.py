@@ -1,0 +1,1 @@
+"""crossfield core: hook specs, plugin manager, data types, config, runner, recorder."""

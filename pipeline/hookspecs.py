@@ -1,0 +1,137 @@
+"""Hook specifications: the contract between crossfield and its plugins.
+
+Two kinds of hook (``docs/plugins.md``):
+
+* **Registry hooks**, one per stage, ``register_<stage>s(register)``. pluggy
+  calls every implementation; each plugin calls ``register(name, factory,
+  description)`` once per implementation it offers. The config names the one
+  that runs. ``factory(**options)`` builds it; its keyword parameters are the
+  stage's options, so the config is validated against the signature.
+* **Observer hooks**, ``on_<event>(...)``. Every implementation is called with
+  each stage output as it is produced: the recorder, the Rerun logger and
+  the progress display are observers. An observer must not change what it
+  is given (the data classes are frozen and their arrays read-only).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any, Callable
+
+import pluggy
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .session import FrameResult, SessionInfo, SessionSummary
+    from .types import (
+        CameraPoints,
+        Measurement,
+        ReferenceData,
+        Registration,
+        StereoCentroids,
+        StereoFrame,
+    )
+
+PROJECT = "crossfield"
+hookspec = pluggy.HookspecMarker(PROJECT)
+hookimpl = pluggy.HookimplMarker(PROJECT)
+
+#: ``register(name, factory, description="")`` as passed to the registry hooks.
+Register = Callable[..., None]
+
+
+# ---- registry hooks -------------------------------------------------------
+
+
+@hookspec
+def register_acquires(register: Register) -> None:
+    """Offer acquisition sources. ``factory(**options)`` returns an
+    :class:`pipeline.stages.Acquisition`."""
+
+
+@hookspec
+def register_centroids(register: Register) -> None:
+    """Offer centroid extractors (:class:`pipeline.stages.CentroidExtractor`)."""
+
+
+@hookspec
+def register_triangulates(register: Register) -> None:
+    """Offer stereo matchers/triangulators (:class:`pipeline.stages.Triangulator`)."""
+
+
+@hookspec
+def register_references(register: Register) -> None:
+    """Offer CMM reference importers (:class:`pipeline.stages.ReferenceSource`)."""
+
+
+@hookspec
+def register_registers(register: Register) -> None:
+    """Offer rigid registration solvers (:class:`pipeline.stages.Registrar`)."""
+
+
+@hookspec
+def register_measures(register: Register) -> None:
+    """Offer characteristic evaluators (:class:`pipeline.stages.Measurer`)."""
+
+
+@hookspec
+def register_reports(register: Register) -> None:
+    """Offer report writers (:class:`pipeline.stages.Reporter`)."""
+
+
+# ---- observer hooks -------------------------------------------------------
+
+
+@hookspec
+def on_session_start(session: "SessionInfo") -> None:
+    """A session begins: resolved config, calibration, plan, plugin versions."""
+
+
+@hookspec
+def on_frame(frame: "StereoFrame") -> None:
+    """A stereo pair was acquired (raw input: recorded losslessly)."""
+
+
+@hookspec
+def on_serial_bytes(data: bytes, timestamp_ns: int, source: str) -> None:
+    """Bytes read from the CMM line (or file), before any parsing (raw input)."""
+
+
+@hookspec
+def on_reference(reference: "ReferenceData") -> None:
+    """The CMM reference points were imported and labelled."""
+
+
+@hookspec
+def on_centroids(centroids: "StereoCentroids") -> None:
+    """Centroids of one stereo pair."""
+
+
+@hookspec
+def on_camera_points(points: "CameraPoints") -> None:
+    """Triangulated camera-frame points of one stereo pair."""
+
+
+@hookspec
+def on_registration(registration: "Registration") -> None:
+    """``T_global_camera`` of one stereo pair."""
+
+
+@hookspec
+def on_measurement(measurement: "Measurement") -> None:
+    """Characteristics of one stereo pair."""
+
+
+@hookspec
+def on_frame_done(result: "FrameResult") -> None:
+    """All stages of one stereo pair have run (or one failed: see result.error)."""
+
+
+@hookspec
+def on_log(level: str, message: str, timestamp_ns: int) -> None:
+    """A log line (``level`` one of debug, info, warning, error)."""
+
+
+@hookspec
+def on_session_end(summary: "SessionSummary") -> None:
+    """The session is over; ``summary.report`` holds the aggregated results."""
+
+

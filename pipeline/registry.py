@@ -1,0 +1,173 @@
+"""Plugin manager factory and the per-stage registries.
+
+The registry pattern (as in simonw's ``llm``): pluggy calls every
+``register_<stage>s(register)`` implementation; each calls ``register(name,
+factory, description)``. The config names the implementation that runs.
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+from dataclasses import dataclass
+from importlib import metadata
+from typing import Any, Callable, Iterable
+
+import pluggy
+
+from . import hookspecs
+from .errors import ConfigError, PluginError
+
+STAGES: tuple[str, ...] = (
+    "acquire",
+    "centroid",
+    "triangulate",
+    "reference",
+    "register",
+    "measure",
+    "report",
+)
+
+#: Modules of the built-in plugins, loaded by every plugin manager.
+BUILTIN_PLUGINS: tuple[str, ...] = (
+    "plugins.acquire_simulator",
+    "plugins.acquire_folder",
+    "plugins.centroid_weighted",
+    "plugins.triangulate_epipolar",
+    "plugins.reference_romer_serial",
+    "plugins.reference_csv",
+    "plugins.register_svd",
+    "plugins.measure_plan",
+    "plugins.report_html",
+)
+
+
+@dataclass(frozen=True)
+class Implementation:
+    """One named implementation of a stage."""
+
+    stage: str
+    name: str
+    factory: Callable[..., Any]
+    description: str
+    plugin: str  # name of the pluggy plugin (module) that registered it
+    package: str  # distribution that ships it
+    version: str
+
+    def options(self) -> dict[str, Any]:
+        """Option name -> default (``inspect.Parameter.empty`` if required)."""
+        signature = inspect.signature(self.factory)
+        return {
+            p.name: p.default
+            for p in signature.parameters.values()
+            if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)
+        }
+
+    def create(self, options: dict[str, Any], where: str = "") -> Any:
+        """Build the implementation; unknown or missing options name the key."""
+        known = self.options()
+        prefix = f"{where}: " if where else ""
+        for key in options:
+            if key not in known:
+                allowed = ", ".join(sorted(known)) or "none"
+                raise ConfigError(
+                    f"{prefix}unknown option {key!r} for {self.stage} plugin {self.name!r}; "
+                    f"known options: {allowed}"
+                )
+        for key, default in known.items():
+            if default is inspect.Parameter.empty and key not in options:
+                raise ConfigError(f"{prefix}{self.stage} plugin {self.name!r} needs option {key!r}")
+        try:
+            return self.factory(**options)
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"{prefix}{self.stage} plugin {self.name!r}: {exc}") from None
+
+
+def _distribution_of(module_name: str) -> tuple[str, str]:
+    top = module_name.split(".")[0]
+    for dist_name in metadata.packages_distributions().get(top, []):
+        try:
+            return dist_name, metadata.version(dist_name)
+        except metadata.PackageNotFoundError:  # pragma: no cover
+            continue
+    if top in ("plugins", "pipeline"):
+        return "crossfield", _crossfield_version()
+    return top, "unknown"
+
+
+def _crossfield_version() -> str:
+    try:
+        return metadata.version("crossfield")
+    except metadata.PackageNotFoundError:  # running from a source tree
+        return "0+unknown"
+
+
+def make_plugin_manager(
+    *, entry_points: bool = False, builtins: bool = True, extra: Iterable[object] = ()
+) -> pluggy.PluginManager:
+    """A fresh plugin manager with the hook specs and the built-in plugins.
+
+    entry_points: also load third-party plugins from the ``crossfield``
+    entry-point group (the CLI does; tests do only when they test that).
+    extra: further plugin objects (modules or instances) to register.
+    """
+    pm = pluggy.PluginManager(hookspecs.PROJECT)
+    pm.add_hookspecs(hookspecs)
+    if builtins:
+        for module_name in BUILTIN_PLUGINS:
+            pm.register(importlib.import_module(module_name), name=module_name)
+    if entry_points:
+        pm.load_setuptools_entrypoints(hookspecs.PROJECT)
+    for plugin in extra:
+        pm.register(plugin)
+    return pm
+
+
+def implementations(pm: pluggy.PluginManager, stage: str) -> dict[str, Implementation]:
+    """All implementations of ``stage`` offered by the registered plugins."""
+    if stage not in STAGES:
+        raise PluginError(f"unknown stage {stage!r}; stages are {', '.join(STAGES)}")
+    found: dict[str, Implementation] = {}
+    hook = getattr(pm.hook, f"register_{stage}s")
+    for impl in hook.get_hookimpls():
+        plugin_name = pm.get_name(impl.plugin) or repr(impl.plugin)
+        module = getattr(impl.plugin, "__name__", type(impl.plugin).__module__)
+        package, version = _distribution_of(module)
+        entry = _entry_point_dist(pm, impl.plugin)
+        if entry is not None:
+            package, version = entry
+
+        def register(name: str, factory: Callable[..., Any], description: str = "") -> None:
+            if not isinstance(name, str) or not name:
+                raise PluginError(f"plugin {plugin_name} registered a {stage} with no name")
+            if name in found:
+                raise PluginError(
+                    f"duplicate {stage} implementation {name!r}: registered by "
+                    f"{found[name].plugin} and by {plugin_name}"
+                )
+            found[name] = Implementation(
+                stage, name, factory, description or (inspect.getdoc(factory) or "").split("\n")[0],
+                plugin_name, package, version,
+            )
+
+        impl.function(register=register)
+    return found
+
+
+def _entry_point_dist(pm: pluggy.PluginManager, plugin: object) -> tuple[str, str] | None:
+    for loaded, dist in pm.list_plugin_distinfo():
+        if loaded is plugin:
+            return dist.metadata["name"], dist.version
+    return None
+
+
+def get_implementation(pm: pluggy.PluginManager, stage: str, name: str) -> Implementation:
+    """The implementation ``name`` of ``stage``, or an error listing the choices."""
+    available = implementations(pm, stage)
+    if name not in available:
+        choices = ", ".join(sorted(available)) or "none"
+        raise PluginError(
+            f"no {stage} implementation named {name!r}; available: {choices}. "
+            f"If it comes from a third-party package, that package may not be installed."
+        )
+    return available[name]

@@ -1,0 +1,1 @@
+"""The station simulator: the oracle for the demo and the tests."""

@@ -1,0 +1,1 @@
+"""Built-in crossfield plugins, one module per implementation."""
