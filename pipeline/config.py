@@ -47,6 +47,7 @@ SESSION_DEFAULTS: dict[str, Any] = {
     "plan": "",
     "record": True,
     "rerun": True,
+    "match_tolerance_mm": 0.5,  # rigid-distance agreement for control-point matching
 }
 
 
@@ -90,6 +91,8 @@ def parse_config(data: Mapping[str, Any], source: str = "<config>") -> Config:
                 f"{source}: [session] unknown key {key!r}; allowed: {', '.join(SESSION_DEFAULTS)}"
             )
         want = type(SESSION_DEFAULTS[key])
+        if want is float and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
         if not isinstance(value, want):
             raise ConfigError(
                 f"{source}: [session] key {key!r} must be a {want.__name__}, got {value!r}"
