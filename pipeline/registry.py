@@ -37,6 +37,8 @@ BUILTIN_PLUGINS: tuple[str, ...] = (
     "plugins.reference_romer_serial",
     "plugins.reference_csv",
     "plugins.register_svd",
+    "plugins.register_umeyama",
+    "plugins.register_horn",
     "plugins.measure_plan",
     "plugins.report_html",
 )

@@ -1,0 +1,94 @@
+"""Register implementation "umeyama": Umeyama (1991), least-squares similarity/rigid fit.
+
+S. Umeyama, "Least-squares estimation of transformation parameters between
+two point patterns", IEEE TPAMI 13(4), 1991. With x_i the camera points and
+y_i the global points (weights w_i summing to 1):
+
+    mu_x = sum w_i x_i,  mu_y = sum w_i y_i                       Umeyama (34), (35)
+    sigma_x^2 = sum w_i |x_i - mu_x|^2                             (36)
+    Sigma_xy = sum w_i (y_i - mu_y)(x_i - mu_x)^T  (global first)  (38)
+    Sigma_xy = U D V^T
+    S = I, or diag(1, 1, -1) when det(U) det(V) < 0                (39), (43)
+    R = U S V^T                                                    (40)
+    c = trace(D S) / sigma_x^2   (only with with_scale=True)       (42)
+    t = mu_y - c R mu_x                                            (41)
+
+Note the orientation: Umeyama's Sigma_xy is the transpose of the paper's
+Formula (6) H, hence R = U S V^T here and R = V U^T there; both map camera
+into global (``y ~ c R x + t``). The improper alternative (S with the other
+sign) is also evaluated so that mirrored point sets raise a
+RegistrationError (criterion in :mod:`pipeline.rigid`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.hookspecs import hookimpl
+from pipeline.rigid import (
+    REFLECTION_RATIO,
+    check_ratio,
+    check_reflection,
+    point_set_size,
+    residual_rms,
+    validate_pairs,
+)
+from pipeline.types import RigidFit
+
+
+class UmeyamaRegistrar:
+    """Weighted least-squares rigid (or similarity) fit by Umeyama's method.
+
+    Options:
+        with_scale: also estimate a uniform scale c (``global ~ c R camera + t``);
+            off by default, the camera and CMM both measure in mm.
+        reflection_ratio: mirror-image threshold, as for "svd" (default 5).
+
+    ``fit(..., weights=w)`` takes per-point weights, typically the inverse
+    variance of each pair, ``1 / (sigma_camera^2 + sigma_cmm^2)``.
+    """
+
+    def __init__(self, *, with_scale: bool = False, reflection_ratio: float = REFLECTION_RATIO):
+        if not isinstance(with_scale, bool):
+            raise ValueError(f"with_scale must be true or false, got {with_scale!r}")
+        self.with_scale = with_scale
+        self.reflection_ratio = check_ratio(reflection_ratio)
+
+    def fit(self, camera_xyz: np.ndarray, global_xyz: np.ndarray, weights: np.ndarray | None = None) -> RigidFit:
+        """Transform with ``global ~ scale * R @ camera + t`` from (N, 3) mm pairs.
+
+        weights: (N,) non-negative per-point weights or None. Residuals (N, 3) mm
+        in the global frame: ``scale * R @ p_i + t - q_i``.
+        """
+        X, Y, w = validate_pairs(camera_xyz, global_xyz, weights)
+        mu_x, mu_y = w @ X, w @ Y  # (34), (35)
+        Xc, Yc = X - mu_x, Y - mu_y
+        sigma_x2 = float(w @ np.sum(Xc**2, axis=1))  # (36)
+        Sigma_xy = (Yc * w[:, None]).T @ Xc  # (38): global index first
+        U, D, Vt = np.linalg.svd(Sigma_xy)
+        sign = 1.0 if np.linalg.det(U) * np.linalg.det(Vt) > 0 else -1.0
+
+        def solve(last: float) -> tuple[np.ndarray, float, np.ndarray]:
+            S = np.array([1.0, 1.0, last])
+            R = U @ np.diag(S) @ Vt  # (40)
+            c = float(D @ S) / sigma_x2 if self.with_scale else 1.0  # (42)
+            t = mu_y - c * R @ mu_x  # (41)
+            return R, c, t
+
+        R, c, t = solve(sign)  # (39)/(43): det(R) = +1
+        R_m, c_m, t_m = solve(-sign)  # the best improper alternative
+        residuals = c * X @ R.T + t - Y
+        residuals_m = c_m * X @ R_m.T + t_m - Y
+        check_reflection(
+            float(np.sqrt(w @ np.sum(residuals**2, axis=1))),
+            float(np.sqrt(w @ np.sum(residuals_m**2, axis=1))),
+            point_set_size(Y, w),
+            self.reflection_ratio,
+            "umeyama",
+        )
+        return RigidFit(R=R, t=t, residuals=residuals, rms_mm=residual_rms(residuals), method="umeyama", scale=c)
+
+
+@hookimpl
+def register_registers(register):
+    register("umeyama", UmeyamaRegistrar, "Umeyama 1991 weighted rigid/similarity fit, reflections rejected")
