@@ -98,9 +98,13 @@ class SessionSummary:
 
     @property
     def passed(self) -> bool:
-        """True when every characteristic passed and no frame failed."""
-        return bool(self.characteristics) and all(c.passed for c in self.characteristics) and not any(
-            f.error for f in self.frames
+        """True when every characteristic passed, no frame failed and the session
+        ran to its end (``incomplete`` is None)."""
+        return (
+            bool(self.characteristics)
+            and all(c.passed for c in self.characteristics)
+            and not any(f.error for f in self.frames)
+            and self.incomplete is None
         )
 
     def rms_error_mm(self) -> float | None:
@@ -110,7 +114,12 @@ class SessionSummary:
 
 
 def summarise(frames: list[FrameResult] | tuple[FrameResult, ...], plan: MeasurementPlan) -> tuple[CharacteristicSummary, ...]:
-    """Aggregate per-frame characteristics in plan order."""
+    """Aggregate per-frame characteristics in plan order.
+
+    Only finite per-frame values count (a frame whose target was not found
+    may report NaN); a characteristic no frame measured gets n = 0, NaN
+    values and passed = False. See docs/report.md for the formulas.
+    """
     out = []
     for spec in plan.characteristics:
         results = [
@@ -118,7 +127,7 @@ def summarise(frames: list[FrameResult] | tuple[FrameResult, ...], plan: Measure
             for f in frames
             if f.measurement is not None
             for c in f.measurement.characteristics
-            if c.name == spec.name
+            if c.name == spec.name and math.isfinite(c.measured_mm)
         ]
         n = len(results)
         if n == 0:
