@@ -124,7 +124,9 @@ def rotation_angle(R_a: np.ndarray, R_b: np.ndarray) -> float:
 # --------------------------------------------------------------------------
 
 
-def _registration_section(registrations: list[Registration], truth: GroundTruth | None) -> dict[str, Any] | None:
+def _registration_section(
+    registrations: list[Registration], truth: GroundTruth | None
+) -> dict[str, Any] | None:
     """Session-mean T_global_camera, its spread, per-frame RMS, per-control residuals."""
     if not registrations:
         return None
@@ -292,7 +294,8 @@ def build_report(summary: SessionSummary) -> dict[str, Any]:
         "frames_processed": len(summary.frames),
         "frames_failed": len(failed),
         "frame_errors": [
-            {"sequence": int(f.sequence), "timestamp_ns": int(f.timestamp_ns), "error": f.error} for f in failed
+            {"sequence": int(f.sequence), "timestamp_ns": int(f.timestamp_ns), "error": f.error}
+            for f in failed
         ],
         "frames": [_frame_entry(f) for f in summary.frames],
         "registration": _registration_section(summary.registrations, info.ground_truth),

@@ -97,7 +97,7 @@ thead th { background: var(--band); border-top: 2px solid var(--ink); border-bot
 tbody tr:last-child td, tbody tr:last-child th { border-bottom: 2px solid var(--ink); }
 td.num, th.num { text-align: right; font-family: "DejaVu Sans Mono", Consolas, Menlo, monospace; }
 table.matrix td { min-width: 90px; }
-table.matrix tbody:first-child tr:first-child td, #table1-rotation tbody tr:first-child td { border-top: 2px solid var(--ink); }
+#table1-rotation tbody tr:first-child td { border-top: 2px solid var(--ink); }
 thead th { white-space: nowrap; }
 table.wide th, table.wide td { padding: 4px 7px; }
 table.wide { width: 100%; }
@@ -175,9 +175,10 @@ def _table3(report: Mapping[str, Any], decimals: int) -> str:
     head += ["Nominal", "Tol. &#177;", "Deviation", "Result"]
     rows = []
     for c in chars:
+        kind = KIND_LABELS.get(c["kind"], c["kind"])
         cells = [
             _td(esc(c["no"]), "num"),
-            _td(f'{esc(c["name"])}<br><span class="note">{esc(KIND_LABELS.get(c["kind"], c["kind"]))}</span>'),
+            _td(f'{esc(c["name"])}<br><span class="note">{esc(kind)}</span>'),
             _td(esc(" \u2192 ".join(c["elements"]))),
             _td(esc(c["n_frames"]), "num"),
             _num(c["measured_mm"], decimals),
@@ -246,7 +247,9 @@ def _frames_table(report: Mapping[str, Any], decimals: int) -> str:
                 _td(esc(f["n_controls"] if f["n_controls"] is not None else DASH), "num"),
                 _num(f["registration_rms_mm"], decimals),
                 _td(esc(", ".join(f["missing_targets"]) or DASH)),
-                _td(f'<span class="fail-text">failed:</span> {esc(f["error"])}') if f["error"] else _td('<span class="ok">ok</span>'),
+                _td(f'<span class="fail-text">failed:</span> {esc(f["error"])}')
+                if f["error"]
+                else _td('<span class="ok">ok</span>'),
             ]
         )
         for f in report["frames"]
@@ -281,6 +284,7 @@ def _provenance(report: Mapping[str, Any]) -> str:
         _row([_td(esc(name)), _td(esc(version))]) for name, version in sorted(report["packages"].items())
     )
     plan = report["plan"]
+    parent = report["session"]["parent"]
     facts = _dl(
         [
             ("Session", esc(report["session"]["id"])),
@@ -292,7 +296,7 @@ def _provenance(report: Mapping[str, Any]) -> str:
             ("CMM reference", esc(report["reference"]["source"] or DASH)),
             ("Config file", esc(report["config_source"])),
             ("Output folder", esc(report["session"]["out_dir"])),
-            ("Replay of", esc(json.dumps(report["session"]["parent"]) if report["session"]["parent"] else DASH)),
+            ("Replay of", esc(json.dumps(parent) if parent else DASH)),
         ]
     )
     return (
@@ -324,15 +328,16 @@ def render_html(report: Mapping[str, Any], decimals: int = 4) -> str:
         ("CMM points", esc(report["reference"]["n_points"])),
     ]
     if report["rms_error_mm"] is not None:
-        summary_facts.append(("RMS error vs ground truth", esc(f"{fixed(report['rms_error_mm'], decimals)} mm")))
+        rms_error = fixed(report["rms_error_mm"], decimals)
+        summary_facts.append(("RMS error vs ground truth", esc(f"{rms_error} mm")))
     if reg and reg["ground_truth"]:
         gt = reg["ground_truth"]
-        summary_facts.append(
-            ("Pose error vs ground truth",
-             esc(f"{gt['rotation_error_rad'] * 1e6:.1f} \u00b5rad, {fixed(gt['translation_error_norm_mm'], decimals)} mm"))
-        )
+        angle_urad = gt["rotation_error_rad"] * 1e6
+        shift = fixed(gt["translation_error_norm_mm"], decimals)
+        summary_facts.append(("Pose error vs ground truth", esc(f"{angle_urad:.1f} \u00b5rad, {shift} mm")))
     if report["incomplete"]:
-        summary_facts.append(("Session", f'<span class="fail-text">INCOMPLETE: {esc(report["incomplete_reason"])}</span>'))
+        reason = esc(report["incomplete_reason"])
+        summary_facts.append(("Session", f'<span class="fail-text">INCOMPLETE: {reason}</span>'))
 
     problems = report["problems"]
     problem_html = (
@@ -363,7 +368,8 @@ def render_html(report: Mapping[str, Any], decimals: int = 4) -> str:
 <header class="report">
 <div>
 <h1>Cross-field measurement report</h1>
-<p class="subtitle">Plan <strong>{esc(report["plan"]["name"])}</strong> &middot; session <code>{esc(report["session"]["id"])}</code>
+<p class="subtitle">Plan <strong>{esc(report["plan"]["name"])}</strong>
+&middot; session <code>{esc(report["session"]["id"])}</code>
 &middot; {esc(report["session"]["start_time_utc"] or "start time not recorded")}</p>
 </div>
 <div class="verdict {cls}" id="verdict">{"&#10003;" if passed else "&#10007;"} {verdict(passed)}</div>
@@ -445,7 +451,8 @@ def render_text(report: Mapping[str, Any], decimals: int = 4) -> str:
     for c in chars:
         line = f"{c['no']:>3}  {_printable(c['name']):<{width}}  {fixed(c['measured_mm'], decimals):>10}"
         if truth:
-            line += f"  {fixed(c.get('actual_mm'), decimals):>10}  {fixed(c.get('error_mm'), decimals, True):>8}"
+            actual, error = fixed(c.get("actual_mm"), decimals), fixed(c.get("error_mm"), decimals, True)
+            line += f"  {actual:>10}  {error:>8}"
         line += f"  {fixed(c['nominal_mm'], decimals):>10}  {fixed(c['deviation_mm'], decimals, True):>8}"
         line += f"  {verdict(c['passed'])}"
         lines.append(line)
@@ -455,7 +462,8 @@ def render_text(report: Mapping[str, Any], decimals: int = 4) -> str:
         lines.append(f"! {_printable(problem)}")
     if len(report["problems"]) > 5:
         lines.append(f"! ... and {len(report['problems']) - 5} more problems (see report.json)")
-    lines.append(f"Result: {verdict(report['passed'])}" + (" (session incomplete)" if report["incomplete"] else ""))
+    incomplete = " (session incomplete)" if report["incomplete"] else ""
+    lines.append(f"Result: {verdict(report['passed'])}{incomplete}")
     return "\n".join(lines)
 
 

@@ -6,6 +6,7 @@ Everything is built from synthetic data classes; no simulator, no other stage.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import math
 from html.parser import HTMLParser
@@ -99,6 +100,8 @@ MEASURED = {
     "P1-P2 <b>gap</b>": [5.523456789012345, 5.51987654321, 5.52011111111111],
 }
 CONTROLS = ("C1", "C2", "C3", "C4")
+FAILED_NS = 1_767_268_800_210_000_000
+FAILED_ERROR = "correspondence: only 2 <controls>"
 
 R_TRUE = Rotation.from_euler("zyx", [0.7, -0.3, 0.2]).as_matrix()
 T_TRUE = np.array([-93.4623, 44.8897, -312.5442])
@@ -166,8 +169,10 @@ def make_summary(
         calibration=calibration,
         plan=plan,
         plugins={
-            "report": {"name": "html", "plugin": "plugins.report_html", "package": "crossfield", "version": "0.1.0"},
-            "register": {"name": "svd", "plugin": "plugins.register_svd", "package": "crossfield", "version": "0.1.0"},
+            stage: {"name": name, "plugin": f"plugins.{module}", "package": "crossfield", "version": "0.1"}
+            for stage, name, module in (
+                ("report", "html", "report_html"), ("register", "svd", "register_svd")
+            )
         },
         packages={"numpy": np.__version__, "crossfield": "0.1.0"},
         acquisition={"scenario": "table3", "exposure_us": 1500.0},
@@ -190,7 +195,7 @@ def make_summary(
         )
     if failed_frame:
         frames.append(
-            FrameResult(sequence=3, timestamp_ns=1_767_268_800_210_000_000, error="correspondence: only 2 <controls>")
+            FrameResult(sequence=3, timestamp_ns=FAILED_NS, error=FAILED_ERROR)
         )
     reference = ReferenceData(points=(), problems=(EVIL_PROBLEM,), source="/dev/pts/7")
     return SessionSummary(
@@ -343,7 +348,8 @@ def test_ground_truth_columns_present_only_where_known(summary, report):
     assert "actual_mm" not in third and "error_mm" not in third
     errors = [first["error_mm"], second["error_mm"]]
     assert report["rms_error_mm"] == summary.rms_error_mm()
-    assert report["rms_error_mm"] == pytest.approx(math.sqrt((errors[0] ** 2 + errors[1] ** 2) / 2), rel=1e-15)
+    expected = math.sqrt((errors[0] ** 2 + errors[1] ** 2) / 2)
+    assert report["rms_error_mm"] == pytest.approx(expected, rel=1e-15)
     assert report["ground_truth_known"] is True
 
 
@@ -373,11 +379,14 @@ def test_frames_and_problems(report):
     assert report["frames_processed"] == 4
     assert report["frames_failed"] == 1
     assert report["frame_errors"] == [
-        {"sequence": 3, "timestamp_ns": 1_767_268_800_210_000_000, "error": "correspondence: only 2 <controls>"}
+        {"sequence": 3, "timestamp_ns": FAILED_NS, "error": FAILED_ERROR}
     ]
     assert [f["sequence"] for f in report["frames"]] == [0, 1, 2, 3]
     assert report["frames"][1]["characteristics"][0] == {
-        "name": "P1-L3", "measured_mm": MEASURED["P1-L3"][1], "uncertainty_mm": 0.012 + 0.001 * 1, "passed": True,
+        "name": "P1-L3",
+        "measured_mm": MEASURED["P1-L3"][1],
+        "uncertainty_mm": 0.012 + 0.001 * 1,
+        "passed": True,
     }
     assert report["frames"][2]["target_points_mm"]["P2"] == [15.0, 22.0, 31.0 + 2 / 3]
     assert report["frames"][3]["registration_rms_mm"] is None
@@ -440,7 +449,8 @@ def test_report_json_is_strict_json_when_nothing_was_measured(tmp_path):
     report = json.loads(text)
     report_document.validate(report)
     assert report["registration"] is None
-    assert all(c["measured_mm"] is None and c["n_frames"] == 0 and not c["passed"] for c in report["characteristics"])
+    for c in report["characteristics"]:
+        assert c["measured_mm"] is None and c["n_frames"] == 0 and not c["passed"]
     assert report["rms_error_mm"] is None and report["passed"] is False
     assert report["incomplete"] is True and report["incomplete_reason"] == "stopped by user"
     page = (tmp_path / "report.html").read_text(encoding="utf-8")
@@ -449,11 +459,11 @@ def test_report_json_is_strict_json_when_nothing_was_measured(tmp_path):
 
 def test_incomplete_session_does_not_pass():
     passing = make_summary(failed_frame=False)
-    # make every characteristic pass by widening the third tolerance
-    chars = tuple(c if c.passed else type(c)(**{**c.__dict__, "passed": True}) for c in passing.characteristics)
+    # make every characteristic pass
+    chars = tuple(dataclasses.replace(c, passed=True) for c in passing.characteristics)
     ok = SessionSummary(passing.info, passing.reference, passing.frames, chars)
     assert ok.passed
-    assert not SessionSummary(passing.info, passing.reference, passing.frames, chars, incomplete="crash").passed
+    assert not dataclasses.replace(ok, incomplete="crash").passed
 
 
 def test_nan_frames_are_not_averaged():
@@ -571,8 +581,8 @@ def test_summary_text_neutralises_control_characters():
     summary = make_summary()
     info = summary.info
     plan = parse_plan(PLAN_TOML.replace(f"'{PLAN_NAME}'", '"evil\\u001b[2J"'), "x.toml")
-    info = SessionInfo(**{**info.__dict__, "plan": plan})
-    text = report_html.summary_text(SessionSummary(info, summary.reference, summary.frames, summary.characteristics))
+    info = dataclasses.replace(info, plan=plan)
+    text = report_html.summary_text(dataclasses.replace(summary, info=info))
     assert "\x1b" not in text and "evil\\x1b[2J" in text
 
 
