@@ -1,1 +1,463 @@
-"""Placeholder: being written."""
+"""triangulate "epipolar": epipolar matching, linear triangulation, reprojection-error refinement.
+
+Method (``docs/triangulation.md``):
+
+1. Undistort both centroid sets (``cv2.undistortPoints``, tight iteration criteria).
+2. Match under the epipolar constraint ``q_lower^T F q_upper = 0`` with
+   ``F = K_lower^-T [t]x R K_upper^-1`` (Hartley & Zisserman 9.2, 9.6). A pair
+   is a *candidate* when the lower point lies within a threshold (pixels) of
+   the upper point's epipolar line and the pair triangulates to a depth inside
+   the working range [z_min_mm, z_max_mm] (and in front of the lower camera).
+   A pair is accepted only when each of its two centroids has exactly one
+   candidate; every other centroid is rejected with a reason (no match,
+   ambiguous). Nothing is guessed.
+3. Triangulate each accepted pair by the homogeneous linear method (H&Z 12.2)
+   in normalised coordinates, then refine by Gauss-Newton on the weighted
+   reprojection error in both (distorted) images, i.e. the maximum-likelihood
+   point for Gaussian centroid errors (H&Z 12.3, with OpenCV's lens model).
+4. Propagate the centroid uncertainties to first order:
+   ``cov(X) = (J^T W J)^-1`` with ``J`` the 4x3 Jacobian of the two
+   projections and ``W = diag(1 / sigma_uv^2)`` (H&Z 5.2.2, backward
+   propagation of covariance for an ML estimate).
+
+Units: pixels in the images (OpenCV convention), mm in the upper camera frame.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from pipeline.errors import ConfigError
+from pipeline.hookspecs import hookimpl
+from pipeline.types import CameraPoints, CentroidSet, StereoCalibration, StereoCentroids
+
+#: Termination of cv2.undistortPoints' fixed-point iteration (its default is only 5 iterations).
+_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-14)
+#: Gauss-Newton stops when no point moves by more than this (mm).
+_STEP_TOLERANCE_MM = 1e-10
+
+
+# --------------------------------------------------------------------------------------------------
+# Per-calibration precomputation
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Camera:
+    """One camera as seen from the upper frame: ``p_cam = R @ p_upper + t`` (mm)."""
+
+    K: np.ndarray  # (3, 3) pixels
+    dist: np.ndarray  # (k,) OpenCV order, as calibrated (for cv2 calls)
+    coeffs: tuple[float, ...]  # k1 k2 p1 p2 k3 k4 k5 k6 s1 s2 s3 s4, zero-padded
+    R: np.ndarray  # (3, 3)
+    t: np.ndarray  # (3,) mm
+
+
+@dataclass(frozen=True)
+class _Geometry:
+    upper: _Camera
+    lower: _Camera
+    F: np.ndarray  # (3, 3) fundamental matrix on undistorted pixels, q_lower^T F q_upper = 0
+    baseline_mm: float  # |t|, used to scale the DLT (H&Z 4.4 normalisation)
+    # Both cameras stacked (index 0 = upper, 1 = lower) for one vectorised projection:
+    R: np.ndarray  # (2, 3, 3)
+    t: np.ndarray  # (2, 1, 3) mm
+    K: np.ndarray  # (2, 3, 3) px
+    coeffs: np.ndarray  # (12, 2, 1) k1 k2 p1 p2 k3 k4 k5 k6 s1 s2 s3 s4 per camera
+
+
+def _camera(intrinsics, R: np.ndarray, t: np.ndarray, source: str, name: str) -> _Camera:
+    dist = np.asarray(intrinsics.dist_coeffs, dtype=np.float64).ravel()
+    padded = np.zeros(14)
+    padded[: dist.size] = dist
+    if np.any(padded[12:14] != 0.0):
+        raise ConfigError(
+            f"{source or 'calibration'}: the {name} camera uses OpenCV's tilted-sensor model "
+            f"(tauX, tauY), which triangulate 'epipolar' does not support"
+        )
+    return _Camera(
+        K=np.asarray(intrinsics.camera_matrix, dtype=np.float64),
+        dist=dist,
+        coeffs=tuple(float(c) for c in padded[:12]),
+        R=np.asarray(R, dtype=np.float64),
+        t=np.asarray(t, dtype=np.float64),
+    )
+
+
+def _geometry(calibration: StereoCalibration) -> _Geometry:
+    R = np.asarray(calibration.R_lower_upper, dtype=np.float64)
+    t = np.asarray(calibration.t_lower_upper, dtype=np.float64)
+    baseline = float(np.linalg.norm(t))
+    if not baseline > 0:
+        raise ConfigError(f"{calibration.source or 'calibration'}: zero stereo baseline (t_lower_upper = 0)")
+    upper = _camera(calibration.upper, np.eye(3), np.zeros(3), calibration.source, "upper")
+    lower = _camera(calibration.lower, R, t, calibration.source, "lower")
+    # Essential matrix E = [t]x R, fundamental F = K'^-T E K^-1 (H&Z 9.6). E is scaled by 1/|t|.
+    t_cross = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    E = t_cross @ R / baseline
+    F = np.linalg.inv(lower.K).T @ E @ np.linalg.inv(upper.K)
+    return _Geometry(
+        upper, lower, F, baseline,
+        R=np.stack([upper.R, lower.R]),
+        t=np.stack([upper.t, lower.t])[:, None, :],
+        K=np.stack([upper.K, lower.K]),
+        coeffs=np.array([upper.coeffs, lower.coeffs]).T[:, :, None],
+    )
+
+
+# --------------------------------------------------------------------------------------------------
+# Projection with OpenCV's lens model, and its Jacobian
+# --------------------------------------------------------------------------------------------------
+
+
+def project_pair(geometry: _Geometry, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Project upper-frame points into both cameras with lens distortion.
+
+    X: (N, 3) mm, upper camera frame. Returns uv (N, 4) pixels
+    ``[u_upper, v_upper, u_lower, v_lower]`` (as ``cv2.projectPoints`` gives
+    them) and J (N, 4, 3) = d(uv)/dX in px/mm. Lens model: OpenCV's rational
+    + thin-prism distortion (k1 k2 p1 p2 k3 k4 k5 k6 s1 s2 s3 s4); both
+    cameras are computed at once (leading axis 2) to keep the per-frame cost low.
+    """
+    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = geometry.coeffs  # each (2, 1)
+    n = len(X)
+    Xc = np.matmul(X, np.swapaxes(geometry.R, 1, 2)) + geometry.t  # (2, N, 3)
+    inv_z = 1.0 / Xc[:, :, 2]
+    x = Xc[:, :, 0] * inv_z
+    y = Xc[:, :, 1] * inv_z
+    xx, yy, xy = x * x, y * y, x * y
+    r2 = xx + yy
+    r4 = r2 * r2
+    num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    radial = num / den
+    # d(radial)/d(r2)
+    d_radial = ((k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)) * den - num * (k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2))) / (
+        den * den
+    )
+    xd = x * radial + 2.0 * p1 * xy + p2 * (r2 + 2.0 * xx) + s1 * r2 + s2 * r4
+    yd = y * radial + p1 * (r2 + 2.0 * yy) + 2.0 * p2 * xy + s3 * r2 + s4 * r4
+    K = geometry.K
+    fx, skew, cx = K[:, 0, 0:1], K[:, 0, 1:2], K[:, 0, 2:3]
+    fy, cy = K[:, 1, 1:2], K[:, 1, 2:3]
+    uv = np.empty((n, 2, 2))  # (N, camera, axis)
+    uv[:, :, 0] = (fx * xd + skew * yd + cx).T
+    uv[:, :, 1] = (fy * yd + cy).T
+    # d(xd, yd)/d(x, y)
+    prism_x = 2.0 * (s1 + 2.0 * s2 * r2)
+    prism_y = 2.0 * (s3 + 2.0 * s4 * r2)
+    a = 2.0 * d_radial
+    axy = a * xy
+    dxd_dx = radial + a * xx + 2.0 * p1 * y + 6.0 * p2 * x + prism_x * x
+    dxd_dy = axy + 2.0 * p1 * x + 2.0 * p2 * y + prism_x * y
+    dyd_dx = axy + 2.0 * p1 * x + 2.0 * p2 * y + prism_y * x
+    dyd_dy = radial + a * yy + 6.0 * p1 * y + 2.0 * p2 * x + prism_y * y
+    # d(u, v)/d(x, y) = K[:2, :2] @ d(xd, yd)/d(x, y), then d(x, y)/d(Xc) = [[1, 0, -x], [0, 1, -y]] / z
+    du_dx = (fx * dxd_dx + skew * dyd_dx) * inv_z
+    du_dy = (fx * dxd_dy + skew * dyd_dy) * inv_z
+    dv_dx = fy * dyd_dx * inv_z
+    dv_dy = fy * dyd_dy * inv_z
+    J_c = np.empty((2, n, 2, 3))
+    J_c[:, :, 0, 0] = du_dx
+    J_c[:, :, 0, 1] = du_dy
+    J_c[:, :, 0, 2] = -(du_dx * x + du_dy * y)
+    J_c[:, :, 1, 0] = dv_dx
+    J_c[:, :, 1, 1] = dv_dy
+    J_c[:, :, 1, 2] = -(dv_dx * x + dv_dy * y)
+    J = np.matmul(J_c, geometry.R[:, None, :, :])  # d(Xc)/dX = R, (2, N, 2, 3)
+    return uv.reshape(n, 4), np.swapaxes(J, 0, 1).reshape(n, 4, 3)
+
+
+def _undistort(uv: np.ndarray, camera: _Camera) -> np.ndarray:
+    """Distorted pixels (N, 2) -> normalised undistorted image coordinates (N, 2)."""
+    if len(uv) == 0:
+        return np.zeros((0, 2))
+    points = np.ascontiguousarray(uv, dtype=np.float64).reshape(-1, 1, 2)
+    return cv2.undistortPoints(points, camera.K, camera.dist, criteria=_UNDISTORT_CRITERIA).reshape(-1, 2)
+
+
+def linear_triangulation(xn_upper: np.ndarray, xn_lower: np.ndarray, geometry: _Geometry) -> np.ndarray:
+    """Linear triangulation (Hartley & Zisserman 12.2, inhomogeneous form).
+
+    xn_upper, xn_lower: (N, 2) normalised undistorted coordinates of paired
+    points. With camera matrices ``[I | 0]`` and ``[R | t/|t|]`` (translation
+    scaled to unit length, H&Z 4.4) each pair gives four equations
+    ``x P^3 - P^1 = 0``, ``y P^3 - P^2 = 0``; with ``X = (X, Y, Z, 1)`` they
+    are solved in the least-squares sense. Returns (N, 3) mm, upper frame
+    (non-finite or huge for rays that do not converge, i.e. points at infinity).
+    """
+    n = len(xn_upper)
+    P2 = np.hstack([geometry.lower.R, geometry.lower.t[:, None] / geometry.baseline_mm])
+    A = np.zeros((n, 4, 4))
+    A[:, 0, 0] = -1.0
+    A[:, 0, 2] = xn_upper[:, 0]
+    A[:, 1, 1] = -1.0
+    A[:, 1, 2] = xn_upper[:, 1]
+    A[:, 2, :] = xn_lower[:, 0:1] * P2[2] - P2[0]
+    A[:, 3, :] = xn_lower[:, 1:2] * P2[2] - P2[1]
+    M = A[:, :, :3]
+    MtM = np.matmul(np.swapaxes(M, 1, 2), M)
+    rhs = -np.matmul(np.swapaxes(M, 1, 2), A[:, :, 3:4])
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        try:
+            X = np.linalg.solve(MtM, rhs)[:, :, 0]
+        except np.linalg.LinAlgError:  # an exactly degenerate pair (parallel rays)
+            X = np.matmul(np.linalg.pinv(MtM), rhs)[:, :, 0]
+    return X * geometry.baseline_mm
+
+
+def _sigmas(centroids: CentroidSet, default_px: float) -> np.ndarray:
+    sigma = np.array(centroids.sigma_uv, dtype=np.float64)
+    bad = ~np.isfinite(sigma) | (sigma <= 0)
+    sigma[bad] = default_px
+    return sigma
+
+
+def _names(camera: str, indices) -> str:
+    return ", ".join(f"{camera}[{int(k)}]" for k in indices)
+
+
+# --------------------------------------------------------------------------------------------------
+# The implementation
+# --------------------------------------------------------------------------------------------------
+
+
+class EpipolarTriangulator:
+    """Epipolar matching with ambiguity rejection, DLT + Gauss-Newton triangulation.
+
+    Options (pixels / mm):
+
+    max_epipolar_px: fixed limit on the lower point's distance to the upper
+        point's epipolar line (undistorted lower image, px); 0 = derive it per
+        pair as ``epipolar_k * sqrt(sigma_line^2 + calibration_px^2)``, where
+        sigma_line is the standard deviation of that distance propagated from
+        both centroids' sigma_uv.
+    epipolar_k: coverage factor of the derived limit.
+    calibration_px: standard uncertainty (px) of the epipolar geometry itself
+        (calibration error), added to the derived limit.
+    z_min_mm, z_max_mm: working range of depth (upper camera z, mm); pairs
+        that triangulate outside it are not candidates.
+    refine: Gauss-Newton refinement of the reprojection error (else linear only).
+    max_iterations: Gauss-Newton iteration limit.
+    default_sigma_px: used where a centroid carries no valid sigma_uv.
+    """
+
+    def __init__(
+        self,
+        *,
+        max_epipolar_px: float = 0.0,
+        epipolar_k: float = 5.0,
+        calibration_px: float = 0.1,
+        z_min_mm: float = 100.0,
+        z_max_mm: float = 2000.0,
+        refine: bool = True,
+        max_iterations: int = 10,
+        default_sigma_px: float = 0.05,
+    ):
+        def number(name: str, value, minimum: float = 0.0, strict: bool = False) -> float:
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or math.isnan(value):
+                raise ValueError(f"option {name!r} must be a number, got {value!r}")
+            if value < minimum or (strict and value == minimum):
+                raise ValueError(f"option {name!r} must be {'>' if strict else '>='} {minimum}, got {value!r}")
+            return float(value)
+
+        self.max_epipolar_px = number("max_epipolar_px", max_epipolar_px)
+        self.epipolar_k = number("epipolar_k", epipolar_k, strict=True)
+        self.calibration_px = number("calibration_px", calibration_px)
+        self.z_min_mm = number("z_min_mm", z_min_mm)
+        self.z_max_mm = number("z_max_mm", z_max_mm)
+        if not self.z_max_mm > self.z_min_mm:
+            raise ValueError(f"option 'z_max_mm' ({z_max_mm}) must be greater than 'z_min_mm' ({z_min_mm})")
+        if not isinstance(refine, bool):
+            raise ValueError(f"option 'refine' must be true or false, got {refine!r}")
+        self.refine = refine
+        if isinstance(max_iterations, bool) or not isinstance(max_iterations, int) or max_iterations < 1:
+            raise ValueError(f"option 'max_iterations' must be an integer >= 1, got {max_iterations!r}")
+        self.max_iterations = max_iterations
+        self.default_sigma_px = number("default_sigma_px", default_sigma_px, strict=True)
+        self._cached_calibration: StereoCalibration | None = None
+        self._cached_geometry: _Geometry | None = None
+
+    def _geometry(self, calibration: StereoCalibration) -> _Geometry:
+        # Cache keyed on the calibration object's identity (holding a reference, so the id cannot be reused).
+        if calibration is not self._cached_calibration:
+            self._cached_geometry = _geometry(calibration)
+            self._cached_calibration = calibration
+        return self._cached_geometry
+
+    # ---- matching ------------------------------------------------------------------------------
+
+    def _limits(self, grad_lower, grad_upper, sigma_upper, sigma_lower) -> np.ndarray:
+        """(N, M) limit on the epipolar distance (px) of each pair.
+
+        grad_lower: (N, 2) de/dq_lower = (F q_upper)[:2] for each upper point;
+        grad_upper: (M, 2) de/dq_upper = (F^T q_lower)[:2] for each lower point.
+        """
+        n, m = len(grad_lower), len(grad_upper)
+        if self.max_epipolar_px > 0:
+            return np.full((n, m), self.max_epipolar_px)
+        # e = q_l^T F q_u, var(e) = grad_u^T S_u grad_u + grad_l^T S_l grad_l to first order (as in the
+        # Sampson error, H&Z 4.2.6, 11.4.3); the distance to the epipolar line is |e| / |grad_l|.
+        var_e = (sigma_upper**2) @ (grad_upper**2).T + (grad_lower**2) @ (sigma_lower**2).T
+        var_d = var_e / np.sum(grad_lower**2, axis=1)[:, None]
+        return self.epipolar_k * np.sqrt(var_d + self.calibration_px**2)
+
+    def triangulate(self, centroids: StereoCentroids, calibration: StereoCalibration) -> CameraPoints:
+        """Match and triangulate one stereo pair's centroids.
+
+        Returns points in the upper camera frame (mm) with sigma_xyz (mm),
+        reprojection residual (px) and the indices into both CentroidSets;
+        every centroid not triangulated is listed in ``rejected`` with its reason.
+        """
+        geometry = self._geometry(calibration)
+        upper, lower = centroids.upper, centroids.lower
+        n, m = len(upper), len(lower)
+        sigma_u = _sigmas(upper, self.default_sigma_px)
+        sigma_l = _sigmas(lower, self.default_sigma_px)
+        xn_u = _undistort(upper.uv, geometry.upper)
+        xn_l = _undistort(lower.uv, geometry.lower)
+
+        # Epipolar distances on undistorted pixels (H&Z 9.2): lines l_lower = F q_upper.
+        q_u = np.hstack([xn_u, np.ones((n, 1))]) @ geometry.upper.K.T
+        q_l = np.hstack([xn_l, np.ones((m, 1))]) @ geometry.lower.K.T
+        lines_in_lower = q_u @ geometry.F.T  # (N, 3)
+        lines_in_upper = q_l @ geometry.F  # (M, 3)
+        algebraic = lines_in_lower @ q_l.T  # (N, M), e_ij = q_l[j]^T F q_u[i]
+        grad_lower = lines_in_lower[:, :2]  # de/dq_lower, per upper point
+        grad_upper = lines_in_upper[:, :2]  # de/dq_upper, per lower point
+        with np.errstate(divide="ignore", invalid="ignore"):
+            distance = np.abs(algebraic) / np.linalg.norm(grad_lower, axis=1)[:, None]
+        limit = self._limits(grad_lower, grad_upper, sigma_u, sigma_l)
+        on_line = distance <= limit
+
+        # Working-range pruning: triangulate the epipolar-compatible pairs, keep those in range.
+        pi, pj = np.nonzero(on_line)
+        X_pairs = linear_triangulation(xn_u[pi], xn_l[pj], geometry)
+        z_upper = X_pairs[:, 2]
+        z_lower = X_pairs @ geometry.lower.R[2] + geometry.lower.t[2]
+        with np.errstate(invalid="ignore"):
+            in_range = (
+                np.isfinite(z_upper) & (z_upper >= self.z_min_mm) & (z_upper <= self.z_max_mm) & (z_lower > 0)
+            )
+        candidate = np.zeros((n, m), dtype=bool)
+        candidate[pi[in_range], pj[in_range]] = True
+        n_upper = candidate.sum(axis=1)
+        n_lower = candidate.sum(axis=0)
+        accepted = candidate & (n_upper == 1)[:, None] & (n_lower == 1)[None, :]
+        ai, aj = np.nonzero(accepted)  # row-major: sorted by upper index
+
+        rejected = self._reasons(candidate, n_upper, n_lower, distance, limit, pi, pj, z_upper, in_range)
+
+        # Initial points from the linear triangulation already done for the candidates.
+        pair_index = np.full((n, m), -1)
+        pair_index[pi, pj] = np.arange(len(pi))
+        X = X_pairs[pair_index[ai, aj]]
+        uv_obs = np.hstack([upper.uv[ai], lower.uv[aj]])  # (K, 4) px
+        weights = 1.0 / np.hstack([sigma_u[ai], sigma_l[aj]]) ** 2
+        X, residual, J = self._refine(X, uv_obs, weights, geometry)
+
+        # First-order propagation: cov(X) = (J^T W J)^-1 (ML estimate, H&Z 5.2.2).
+        information = np.einsum("kri,kr,krj->kij", J, weights, J)
+        covariance = np.linalg.inv(information) if len(X) else np.zeros((0, 3, 3))
+        sigma_xyz = np.sqrt(np.abs(np.diagonal(covariance, axis1=1, axis2=2)))
+        residual_px = np.sqrt(0.5 * np.sum(residual**2, axis=1))
+        return CameraPoints(
+            sequence=centroids.sequence,
+            xyz=X,
+            sigma_xyz=sigma_xyz,
+            upper_index=ai,
+            lower_index=aj,
+            residual_px=residual_px,
+            rejected=tuple(rejected),
+            method="epipolar",
+        )
+
+    # ---- refinement ----------------------------------------------------------------------------
+
+    def _evaluate(self, X: np.ndarray, uv_obs: np.ndarray, geometry: _Geometry):
+        uv, J = project_pair(geometry, X)
+        return uv - uv_obs, J  # (K, 4) px, (K, 4, 3) px/mm
+
+    def _refine(self, X: np.ndarray, uv_obs: np.ndarray, weights: np.ndarray, geometry: _Geometry):
+        """Gauss-Newton on sum(w * r^2) over both images (H&Z 12.3's cost; H&Z A6.1 iteration).
+
+        Returns the refined X (K, 3) mm, the residuals (K, 4) px and the Jacobian (K, 4, 3) at X.
+        """
+        residual, J = self._evaluate(X, uv_obs, geometry)
+        if not self.refine or len(X) == 0:
+            return X, residual, J
+        for _ in range(self.max_iterations):
+            JtW = np.swapaxes(J, 1, 2) * weights[:, None, :]  # (K, 3, 4)
+            gradient = np.matmul(JtW, residual[:, :, None])
+            try:
+                step = -np.linalg.solve(np.matmul(JtW, J), gradient)[:, :, 0]
+            except np.linalg.LinAlgError:
+                step = -np.matmul(np.linalg.pinv(np.matmul(JtW, J)), gradient)[:, :, 0]
+            X = X + step
+            if np.max(np.abs(step)) < _STEP_TOLERANCE_MM:
+                # Converged: the last step is below 1e-10 mm, so the linearised residual is exact to
+                # ~1e-15 px and J is unchanged to that order; skip one more projection.
+                residual = residual + np.matmul(J, step[:, :, None])[:, :, 0]
+                break
+            residual, J = self._evaluate(X, uv_obs, geometry)
+        return X, residual, J
+
+    # ---- reasons -------------------------------------------------------------------------------
+
+    def _reasons(self, candidate, n_upper, n_lower, distance, limit, pi, pj, z_upper, in_range) -> list[str]:
+        n, m = candidate.shape
+        z_range = f"{self.z_min_mm:g}..{self.z_max_mm:g} mm"
+        out_of_range: dict[tuple[str, int], tuple[int, float]] = {}
+        for i, j, z in zip(pi[~in_range].tolist(), pj[~in_range].tolist(), z_upper[~in_range].tolist()):
+            out_of_range.setdefault(("upper", i), (j, z))
+            out_of_range.setdefault(("lower", j), (i, z))
+        reasons: list[str] = []
+        for camera, other, count, other_count, table in (
+            ("upper", "lower", n_upper, n_lower, candidate),
+            ("lower", "upper", n_lower, n_upper, candidate.T),
+        ):
+            accepted = (count == 1) & (table @ (other_count == 1))
+            for k in np.nonzero(~accepted)[0]:
+                partners = np.nonzero(table[k])[0]
+                if count[k] == 1:
+                    (p,) = partners
+                    rivals = np.nonzero(table[:, p])[0]
+                    rivals = rivals[rivals != k]
+                    reasons.append(
+                        f"{camera}[{k}]: ambiguous (its candidate {other}[{p}] is also a candidate of "
+                        f"{_names(camera, rivals)})"
+                    )
+                elif count[k] >= 2:
+                    reasons.append(
+                        f"{camera}[{k}]: ambiguous ({count[k]} candidates: {_names(other, partners)})"
+                    )
+                elif (camera, k) in out_of_range:
+                    p, z = out_of_range[(camera, k)]
+                    reasons.append(
+                        f"{camera}[{k}]: no match ({other}[{p}] is on its epipolar line but triangulates to "
+                        f"z = {z:.1f} mm, outside {z_range})"
+                    )
+                elif (m if camera == "upper" else n) == 0:
+                    reasons.append(f"{camera}[{k}]: no match (no {other} centroids)")
+                else:
+                    d = distance[k] if camera == "upper" else distance[:, k]
+                    lim = limit[k] if camera == "upper" else limit[:, k]
+                    nearest = int(np.argmin(d))
+                    reasons.append(
+                        f"{camera}[{k}]: no match (nearest: {other}[{nearest}] at {d[nearest]:.2f} px from "
+                        f"the epipolar line, limit {lim[nearest]:.2f} px)"
+                    )
+        return reasons
+
+
+@hookimpl
+def register_triangulates(register) -> None:
+    register(
+        "epipolar",
+        EpipolarTriangulator,
+        "Epipolar matching (ambiguities rejected), linear + Gauss-Newton triangulation, first-order sigma",
+    )
