@@ -33,6 +33,7 @@ BUILTIN_PLUGINS: tuple[str, ...] = (
     "plugins.acquire_simulator",
     "plugins.acquire_folder",
     "plugins.centroid_weighted",
+    "plugins.centroid_ellipse",
     "plugins.triangulate_epipolar",
     "plugins.reference_romer_serial",
     "plugins.reference_csv",
