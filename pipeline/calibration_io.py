@@ -23,8 +23,8 @@ the key at fault.
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Iterable, Sequence
 
 import cv2
 import numpy as np
@@ -44,14 +44,14 @@ Size = tuple[int, int]
 class _Store:
     """Key lookup over one or more opened FileStorage objects, remembering where each key was found."""
 
-    def __init__(self, storages: list[tuple[str, "cv2.FileStorage"]]):
+    def __init__(self, storages: list[tuple[str, cv2.FileStorage]]):
         self.storages = storages
 
     @property
     def names(self) -> str:
         return ", ".join(name for name, _ in self.storages)
 
-    def node(self, key: str) -> tuple[str, "cv2.FileNode"] | None:
+    def node(self, key: str) -> tuple[str, cv2.FileNode] | None:
         for name, fs in self.storages:
             node = fs.getNode(key)
             if not node.empty() and not node.isNone():
@@ -81,7 +81,7 @@ class _Store:
         return name, int(node.real())
 
 
-def _open(text_or_path: str, source: str, memory: bool) -> "cv2.FileStorage":
+def _open(text_or_path: str, source: str, memory: bool) -> cv2.FileStorage:
     flags = cv2.FILE_STORAGE_READ | (cv2.FILE_STORAGE_MEMORY if memory else 0)
     try:
         fs = cv2.FileStorage(text_or_path, flags)
@@ -202,7 +202,7 @@ def stereo_calibration_from_yaml(
         fs.release()
 
 
-def _write(fs: "cv2.FileStorage", calibration: StereoCalibration, rectification: bool) -> None:
+def _write(fs: cv2.FileStorage, calibration: StereoCalibration, rectification: bool) -> None:
     fs.writeComment(
         "crossfield stereo calibration (OpenCV stereo_calib.cpp keys). Camera 1 = upper, camera 2 = lower; "
         "p_lower = R * p_upper + T, T in mm; pixel (0,0) = centre of the top-left pixel."

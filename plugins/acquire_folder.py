@@ -24,8 +24,9 @@ from __future__ import annotations
 
 import os
 import re
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import cv2
 import numpy as np
@@ -123,7 +124,8 @@ class FolderAcquisition:
                 if camera not in slot:
                     (present,) = slot.values()
                     match = regex.match(present.name)
-                    partner = present.name[: match.start("camera")] + camera + present.name[match.end("camera") :]
+                    name = present.name
+                    partner = name[: match.start("camera")] + camera + name[match.end("camera") :]
                     raise ConfigError(
                         f"{present}: no {camera} image to pair it with (expected a file like {partner} "
                         f"matching the pattern {self.pattern!r})"

@@ -68,6 +68,8 @@ class _Geometry:
     t: np.ndarray  # (2, 1, 3) mm
     K: np.ndarray  # (2, 3, 3) px
     coeffs: np.ndarray  # (12, 2, 1) k1 k2 p1 p2 k3 k4 k5 k6 s1 s2 s3 s4 per camera
+    rational: bool  # any of k4 k5 k6 non-zero (else those terms are skipped)
+    prism: bool  # any of s1..s4 non-zero
 
 
 def _camera(intrinsics, R: np.ndarray, t: np.ndarray, source: str, name: str) -> _Camera:
@@ -106,6 +108,8 @@ def _geometry(calibration: StereoCalibration) -> _Geometry:
         t=np.stack([upper.t, lower.t])[:, None, :],
         K=np.stack([upper.K, lower.K]),
         coeffs=np.array([upper.coeffs, lower.coeffs]).T[:, :, None],
+        rational=any(c != 0.0 for cam in (upper, lower) for c in cam.coeffs[5:8]),
+        prism=any(c != 0.0 for cam in (upper, lower) for c in cam.coeffs[8:12]),
     )
 
 
@@ -131,16 +135,19 @@ def project_pair(geometry: _Geometry, X: np.ndarray) -> tuple[np.ndarray, np.nda
     y = Xc[:, :, 1] * inv_z
     xx, yy, xy = x * x, y * y, x * y
     r2 = xx + yy
-    r4 = r2 * r2
     num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
-    radial = num / den
-    # d(radial)/d(r2)
-    d_radial = ((k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)) * den - num * (k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2))) / (
-        den * den
-    )
-    xd = x * radial + 2.0 * p1 * xy + p2 * (r2 + 2.0 * xx) + s1 * r2 + s2 * r4
-    yd = y * radial + p1 * (r2 + 2.0 * yy) + 2.0 * p2 * xy + s3 * r2 + s4 * r4
+    d_num = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+    if geometry.rational:
+        den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
+        radial = num / den
+        d_radial = (d_num * den - num * (k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2))) / (den * den)  # d/d(r2)
+    else:
+        radial, d_radial = num, d_num
+    xd = x * radial + 2.0 * p1 * xy + p2 * (r2 + 2.0 * xx)
+    yd = y * radial + p1 * (r2 + 2.0 * yy) + 2.0 * p2 * xy
+    if geometry.prism:
+        xd = xd + s1 * r2 + s2 * r2 * r2
+        yd = yd + s3 * r2 + s4 * r2 * r2
     K = geometry.K
     fx, skew, cx = K[:, 0, 0:1], K[:, 0, 1:2], K[:, 0, 2:3]
     fy, cy = K[:, 1, 1:2], K[:, 1, 2:3]
@@ -148,14 +155,19 @@ def project_pair(geometry: _Geometry, X: np.ndarray) -> tuple[np.ndarray, np.nda
     uv[:, :, 0] = (fx * xd + skew * yd + cx).T
     uv[:, :, 1] = (fy * yd + cy).T
     # d(xd, yd)/d(x, y)
-    prism_x = 2.0 * (s1 + 2.0 * s2 * r2)
-    prism_y = 2.0 * (s3 + 2.0 * s4 * r2)
     a = 2.0 * d_radial
-    axy = a * xy
-    dxd_dx = radial + a * xx + 2.0 * p1 * y + 6.0 * p2 * x + prism_x * x
-    dxd_dy = axy + 2.0 * p1 * x + 2.0 * p2 * y + prism_x * y
-    dyd_dx = axy + 2.0 * p1 * x + 2.0 * p2 * y + prism_y * x
-    dyd_dy = radial + a * yy + 6.0 * p1 * y + 2.0 * p2 * x + prism_y * y
+    cross = a * xy + 2.0 * p1 * x + 2.0 * p2 * y
+    dxd_dx = radial + a * xx + 2.0 * p1 * y + 6.0 * p2 * x
+    dxd_dy = cross
+    dyd_dx = cross
+    dyd_dy = radial + a * yy + 6.0 * p1 * y + 2.0 * p2 * x
+    if geometry.prism:
+        prism_x = 2.0 * (s1 + 2.0 * s2 * r2)
+        prism_y = 2.0 * (s3 + 2.0 * s4 * r2)
+        dxd_dx = dxd_dx + prism_x * x
+        dxd_dy = dxd_dy + prism_x * y
+        dyd_dx = dyd_dx + prism_y * x
+        dyd_dy = dyd_dy + prism_y * y
     # d(u, v)/d(x, y) = K[:2, :2] @ d(xd, yd)/d(x, y), then d(x, y)/d(Xc) = [[1, 0, -x], [0, 1, -y]] / z
     du_dx = (fx * dxd_dx + skew * dyd_dx) * inv_z
     du_dy = (fx * dxd_dy + skew * dyd_dy) * inv_z
@@ -202,11 +214,10 @@ def linear_triangulation(xn_upper: np.ndarray, xn_lower: np.ndarray, geometry: _
     M = A[:, :, :3]
     MtM = np.matmul(np.swapaxes(M, 1, 2), M)
     rhs = -np.matmul(np.swapaxes(M, 1, 2), A[:, :, 3:4])
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        try:
-            X = np.linalg.solve(MtM, rhs)[:, :, 0]
-        except np.linalg.LinAlgError:  # an exactly degenerate pair (parallel rays)
-            X = np.matmul(np.linalg.pinv(MtM), rhs)[:, :, 0]
+    try:
+        X = np.linalg.solve(MtM, rhs)[:, :, 0]
+    except np.linalg.LinAlgError:  # an exactly degenerate pair (parallel rays)
+        X = np.matmul(np.linalg.pinv(MtM), rhs)[:, :, 0]
     return X * geometry.baseline_mm
 
 
@@ -262,7 +273,8 @@ class EpipolarTriangulator:
             if isinstance(value, bool) or not isinstance(value, (int, float)) or math.isnan(value):
                 raise ValueError(f"option {name!r} must be a number, got {value!r}")
             if value < minimum or (strict and value == minimum):
-                raise ValueError(f"option {name!r} must be {'>' if strict else '>='} {minimum}, got {value!r}")
+                relation = ">" if strict else ">="
+                raise ValueError(f"option {name!r} must be {relation} {minimum}, got {value!r}")
             return float(value)
 
         self.max_epipolar_px = number("max_epipolar_px", max_epipolar_px)
@@ -329,8 +341,8 @@ class EpipolarTriangulator:
         algebraic = lines_in_lower @ q_l.T  # (N, M), e_ij = q_l[j]^T F q_u[i]
         grad_lower = lines_in_lower[:, :2]  # de/dq_lower, per upper point
         grad_upper = lines_in_upper[:, :2]  # de/dq_upper, per lower point
-        with np.errstate(divide="ignore", invalid="ignore"):
-            distance = np.abs(algebraic) / np.linalg.norm(grad_lower, axis=1)[:, None]
+        # |F q| > 0 for any finite image point of a rig with a baseline (the epipole is never at q).
+        distance = np.abs(algebraic) / np.sqrt(np.sum(grad_lower**2, axis=1))[:, None]
         limit = self._limits(grad_lower, grad_upper, sigma_u, sigma_l)
         on_line = distance <= limit
 
@@ -339,10 +351,9 @@ class EpipolarTriangulator:
         X_pairs = linear_triangulation(xn_u[pi], xn_l[pj], geometry)
         z_upper = X_pairs[:, 2]
         z_lower = X_pairs @ geometry.lower.R[2] + geometry.lower.t[2]
-        with np.errstate(invalid="ignore"):
-            in_range = (
-                np.isfinite(z_upper) & (z_upper >= self.z_min_mm) & (z_upper <= self.z_max_mm) & (z_lower > 0)
-            )
+        in_range = (
+            np.isfinite(z_upper) & (z_upper >= self.z_min_mm) & (z_upper <= self.z_max_mm) & (z_lower > 0)
+        )
         candidate = np.zeros((n, m), dtype=bool)
         candidate[pi[in_range], pj[in_range]] = True
         n_upper = candidate.sum(axis=1)
@@ -358,10 +369,11 @@ class EpipolarTriangulator:
         X = X_pairs[pair_index[ai, aj]]
         uv_obs = np.hstack([upper.uv[ai], lower.uv[aj]])  # (K, 4) px
         weights = 1.0 / np.hstack([sigma_u[ai], sigma_l[aj]]) ** 2
-        X, residual, J = self._refine(X, uv_obs, weights, geometry)
+        X, residual, J, information = self._refine(X, uv_obs, weights, geometry)
 
         # First-order propagation: cov(X) = (J^T W J)^-1 (ML estimate, H&Z 5.2.2).
-        information = np.einsum("kri,kr,krj->kij", J, weights, J)
+        if information is None:
+            information = np.matmul(np.swapaxes(J, 1, 2) * weights[:, None, :], J)
         covariance = np.linalg.inv(information) if len(X) else np.zeros((0, 3, 3))
         sigma_xyz = np.sqrt(np.abs(np.diagonal(covariance, axis1=1, axis2=2)))
         residual_px = np.sqrt(0.5 * np.sum(residual**2, axis=1))
@@ -385,26 +397,28 @@ class EpipolarTriangulator:
     def _refine(self, X: np.ndarray, uv_obs: np.ndarray, weights: np.ndarray, geometry: _Geometry):
         """Gauss-Newton on sum(w * r^2) over both images (H&Z 12.3's cost; H&Z A6.1 iteration).
 
-        Returns the refined X (K, 3) mm, the residuals (K, 4) px and the Jacobian (K, 4, 3) at X.
+        Returns the refined X (K, 3) mm, the residuals (K, 4) px and the Jacobian (K, 4, 3) at X,
+        and the normal matrix J^T W J (K, 3, 3) at X when the iteration converged (else None).
         """
         residual, J = self._evaluate(X, uv_obs, geometry)
         if not self.refine or len(X) == 0:
-            return X, residual, J
+            return X, residual, J, None
         for _ in range(self.max_iterations):
             JtW = np.swapaxes(J, 1, 2) * weights[:, None, :]  # (K, 3, 4)
+            normal = np.matmul(JtW, J)
             gradient = np.matmul(JtW, residual[:, :, None])
             try:
-                step = -np.linalg.solve(np.matmul(JtW, J), gradient)[:, :, 0]
+                step = -np.linalg.solve(normal, gradient)[:, :, 0]
             except np.linalg.LinAlgError:
-                step = -np.matmul(np.linalg.pinv(np.matmul(JtW, J)), gradient)[:, :, 0]
+                step = -np.matmul(np.linalg.pinv(normal), gradient)[:, :, 0]
             X = X + step
             if np.max(np.abs(step)) < _STEP_TOLERANCE_MM:
                 # Converged: the last step is below 1e-10 mm, so the linearised residual is exact to
-                # ~1e-15 px and J is unchanged to that order; skip one more projection.
+                # ~1e-15 px and J (hence J^T W J) is unchanged to that order; skip one more projection.
                 residual = residual + np.matmul(J, step[:, :, None])[:, :, 0]
-                break
+                return X, residual, J, normal
             residual, J = self._evaluate(X, uv_obs, geometry)
-        return X, residual, J
+        return X, residual, J, None
 
     # ---- reasons -------------------------------------------------------------------------------
 

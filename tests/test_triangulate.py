@@ -69,7 +69,7 @@ def centroid_set(camera: str, uv: np.ndarray, sigma, sequence: int = 7) -> Centr
         camera=camera,
         sequence=sequence,
         uv=uv,
-        sigma_uv=np.broadcast_to(np.asarray(sigma, dtype=np.float64), (n, 2)) if np.ndim(sigma) < 2 else sigma,
+        sigma_uv=np.broadcast_to(np.asarray(sigma, dtype=np.float64), (n, 2)),
         area_px=np.full(n, 80.0),
         roundness=np.full(n, 0.98),
         peak=np.full(n, 3000.0),
@@ -122,11 +122,9 @@ def test_projection_and_jacobian_match_opencv(dist):
     np.testing.assert_allclose(uv[:, :2], project(calibration, X, "upper"), atol=1e-9)
     np.testing.assert_allclose(uv[:, 2:], project(calibration, X, "lower"), atol=1e-9)
     h = 1e-4  # mm; central differences
-    numeric = np.stack(
-        [(epipolar.project_pair(geometry, X + h * e)[0] - epipolar.project_pair(geometry, X - h * e)[0]) / (2 * h)
-         for e in np.eye(3)],
-        axis=2,
-    )
+    plus = [epipolar.project_pair(geometry, X + h * e)[0] for e in np.eye(3)]
+    minus = [epipolar.project_pair(geometry, X - h * e)[0] for e in np.eye(3)]
+    numeric = np.stack([(p - m) / (2 * h) for p, m in zip(plus, minus)], axis=2)
     np.testing.assert_allclose(J, numeric, rtol=0, atol=1e-6)
 
 
@@ -336,16 +334,16 @@ def test_pairs_outside_the_working_range_are_not_matched(calibration):
     uv_u, uv_l = observe(calibration, X)
     points = triangulator(z_min_mm=300, z_max_mm=600).triangulate(stereo(uv_u, uv_l), calibration)
     np.testing.assert_array_equal(points.upper_index, [0])
-    assert any(r.startswith("upper[1]: no match (lower[1] is on its epipolar line but triangulates to z = 900.0 mm")
-               for r in points.rejected), points.rejected
+    expected = "upper[1]: no match (lower[1] is on its epipolar line but triangulates to z = 900.0 mm"
+    assert any(r.startswith(expected) for r in points.rejected), points.rejected
     # A pairing that puts the point behind the cameras is never a candidate, whatever the range:
     # the lower camera's image of -X lies on the upper image's epipolar line but on the wrong side.
     upper_view = project(calibration, X[:1], "upper")
     lower_view = project(calibration, -X[:1], "lower")
     behind = triangulator(z_min_mm=0, z_max_mm=1e9).triangulate(stereo(upper_view, lower_view), calibration)
     assert len(behind) == 0
-    assert behind.rejected[0].startswith("upper[0]: no match (lower[0] is on its epipolar line but triangulates "
-                                         "to z = -400.0 mm"), behind.rejected
+    expected = "upper[0]: no match (lower[0] is on its epipolar line but triangulates to z = -400.0 mm"
+    assert behind.rejected[0].startswith(expected), behind.rejected
 
 
 def test_fixed_epipolar_limit_and_no_match_reason(calibration):
@@ -371,7 +369,7 @@ def test_derived_limit_follows_centroid_sigma(calibration):
 
 
 def test_empty_and_one_sided_inputs(calibration):
-    uv_u, uv_l = observe(calibration, np.array([[0.0, 20.0, 400.0]]))
+    uv_u, _ = observe(calibration, np.array([[0.0, 20.0, 400.0]]))
     tri = triangulator()
     none = tri.triangulate(stereo(np.zeros((0, 2)), np.zeros((0, 2))), calibration)
     assert len(none) == 0 and none.xyz.shape == (0, 3) and none.rejected == ()
