@@ -154,6 +154,7 @@ class SimulatedArm:
         self._done = threading.Event()
         self._stop = threading.Event()
         self._lock = threading.Lock()
+        self._line_free_at = 0.0
 
     def sentence(self, index: int) -> bytes:
         """The clean sentence of probe ``index`` (before any fault)."""
@@ -254,16 +255,28 @@ class SimulatedArm:
     def _write(self, master: int, poller: select.poll, data: bytes) -> bool:
         """Write all of ``data`` (paced if baudrate is set); False if stopped."""
         step = 16 if self.baudrate else 4096
-        start = time.monotonic()
-        sent = 0
-        while sent < len(data):
+        for start in range(0, len(data), step):
+            chunk = data[start : start + step]
+            if self.baudrate and not self._pace(len(chunk)):
+                return False
+            if not self._write_all(master, poller, chunk):
+                return False
+        return True
+
+    def _pace(self, n: int) -> bool:
+        """Wait until ``n`` more bytes have crossed the line (10 bits each,
+        8N1); the line clock restarts after the line was idle for 5 ms."""
+        now = time.monotonic()
+        if self._line_free_at < now - 0.005:
+            self._line_free_at = now
+        self._line_free_at += n * 10.0 / self.baudrate
+        delay = self._line_free_at - time.monotonic()
+        return not (delay > 0 and self._stop.wait(delay))
+
+    def _write_all(self, master: int, poller: select.poll, chunk: bytes) -> bool:
+        while chunk:
             if self._stop.is_set():
                 return False
-            if self.baudrate:
-                due = start + sent * 10.0 / self.baudrate
-                delay = due - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
             if not poller.poll(50):
                 continue
             if not self._client_present(poller):
@@ -272,13 +285,13 @@ class SimulatedArm:
                     return False
                 continue
             try:
-                n = os.write(master, data[sent : sent + step])
+                n = os.write(master, chunk)
             except BlockingIOError:
                 continue
             except OSError as exc:
-                if exc.errno in (errno.EIO, errno.EAGAIN):
+                if exc.errno == errno.EIO:
                     continue
                 raise
-            self.written += data[sent : sent + n]
-            sent += n
+            self.written += chunk[:n]
+            chunk = chunk[n:]
         return True
