@@ -11,7 +11,7 @@ Method (``docs/triangulation.md``):
    A pair is accepted only when each of its two centroids has exactly one
    candidate; every other centroid is rejected with a reason (no match,
    ambiguous). Nothing is guessed.
-3. Triangulate each accepted pair by the homogeneous linear method (H&Z 12.2)
+3. Triangulate each accepted pair by the linear method (H&Z 12.2, inhomogeneous form)
    in normalised coordinates, then refine by Gauss-Newton on the weighted
    reprojection error in both (distorted) images, i.e. the maximum-likelihood
    point for Gaussian centroid errors (H&Z 12.3, with OpenCV's lens model).
