@@ -32,6 +32,8 @@ STAGES: tuple[str, ...] = (
 BUILTIN_PLUGINS: tuple[str, ...] = (
     "plugins.acquire_simulator",
     "plugins.acquire_folder",
+    "plugins.acquire_basler",
+    "plugins.acquire_opencv",
     "plugins.centroid_weighted",
     "plugins.centroid_ellipse",
     "plugins.triangulate_epipolar",
