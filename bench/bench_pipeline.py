@@ -1,0 +1,160 @@
+"""Pipeline throughput and memory: frames in memory -> report.
+
+Run on demand (never part of the tests)::
+
+    .venv/bin/python bench/bench_pipeline.py [--frames 300] [--repeat 3]
+
+Measures, in one run on this machine:
+
+* baseline: a plain write of the same image bytes to a file (pairs/s);
+* the pipeline without recording (pairs/s, target >= 150);
+* the pipeline with lossless MCAP recording (pairs/s, target >= 60);
+* peak RSS growth between a short and a long session (must not grow with length).
+
+Every figure is also given as a ratio to the baseline timed in the same run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import os
+import resource
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pipeline.config import parse_config  # noqa: E402
+from pipeline.hookspecs import hookimpl  # noqa: E402
+from pipeline.registry import make_plugin_manager  # noqa: E402
+from pipeline.runner import run_session  # noqa: E402
+from pipeline.simulator.scenarios import build_scene  # noqa: E402
+from pipeline.types import StereoFrame  # noqa: E402
+
+
+class MemorySource:
+    """Cycles through pre-rendered pairs held in memory."""
+
+    def __init__(self, scene, pairs, count: int) -> None:
+        self.calibration = scene.calibration
+        self.ground_truth = scene.ground_truth
+        self.default_plan = scene.plan
+        self.pairs = pairs
+        self.count = count
+
+    def frames(self):
+        for k in range(self.count):
+            f = self.pairs[k % len(self.pairs)]
+            yield StereoFrame(k, f.timestamp_ns + k, f.upper, f.lower, f.bit_depth)
+
+    def describe(self):
+        return {"source": "memory", "frames": self.count}
+
+    def close(self):
+        pass
+
+
+class MemoryPlugin:
+    def __init__(self, scene, pairs) -> None:
+        self.scene, self.pairs = scene, pairs
+
+    @hookimpl
+    def register_acquires(self, register):
+        def factory(*, frames: int = 100):
+            return MemorySource(self.scene, self.pairs, frames)
+
+        register("memory", factory, "pre-rendered pairs in memory (benchmark)")
+
+
+def write_reference_csv(scene, path: Path) -> None:
+    probes = scene.arm_probes(np.random.default_rng(2))
+    lines = ["id,x,y,z,sigma"]
+    lines += [f"{p.label},{p.xyz[0]!r},{p.xyz[1]!r},{p.xyz[2]!r},0.01" for p in probes]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def baseline_write(pairs, count: int, path: Path) -> float:
+    """Pairs/s of a plain write of the same image bytes to a file."""
+    start = time.perf_counter()
+    with open(path, "wb") as fh:
+        for k in range(count):
+            f = pairs[k % len(pairs)]
+            fh.write(f.upper.data)
+            fh.write(f.lower.data)
+        fh.flush()
+        os.fsync(fh.fileno())
+    elapsed = time.perf_counter() - start
+    path.unlink()
+    return count / elapsed
+
+
+def pipeline_rate(pm, csv: Path, out: Path, count: int, record: bool, name: str) -> tuple[float, object]:
+    config = parse_config(
+        {
+            "session": {"output_dir": str(out), "record": record, "rerun": False, "name": name},
+            "acquire": {"plugin": "memory", "frames": count},
+            "reference": {"plugin": "csv", "path": str(csv)},
+        },
+        "<bench>",
+    )
+    start = time.perf_counter()
+    summary = run_session(config, pm)
+    elapsed = time.perf_counter() - start
+    return count / elapsed, summary
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--frames", type=int, default=300)
+    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--scenario", default="table3")
+    args = parser.parse_args()
+
+    scene = build_scene(args.scenario)
+    rng = np.random.default_rng(0)
+    pairs = [scene.render_pair(k, rng, time.time_ns()) for k in range(8)]
+    pm = make_plugin_manager(extra=[MemoryPlugin(scene, pairs)])
+    with tempfile.TemporaryDirectory(dir=Path(__file__).resolve().parents[1] / "recordings") as tmp:
+        tmp = Path(tmp)
+        csv = tmp / "reference.csv"
+        write_reference_csv(scene, csv)
+        pipeline_rate(pm, csv, tmp, 5, False, "warmup")
+
+        rows = []
+        for r in range(args.repeat):
+            base = baseline_write(pairs, args.frames, tmp / "plain.bin")
+            plain, summary = pipeline_rate(pm, csv, tmp, args.frames, False, f"norec{r}")
+            rec, _ = pipeline_rate(pm, csv, tmp, args.frames, True, f"rec{r}")
+            rows.append((base, plain, rec))
+            print(
+                f"run {r + 1}: baseline write {base:7.1f} pairs/s | pipeline {plain:6.1f} pairs/s "
+                f"(x{plain / base:.3f}) | pipeline+MCAP {rec:6.1f} pairs/s (x{rec / base:.3f})"
+            )
+        base, plain, rec = np.median(np.array(rows), axis=0)
+        failed = sum(f.error is not None for f in summary.frames)
+        print(f"\nmedian of {args.repeat}: baseline {base:.1f} pairs/s")
+        print(f"  pipeline, no recording : {plain:6.1f} pairs/s  ratio {plain / base:.3f}  target >= 150: {'met' if plain >= 150 else 'NOT met'}")
+        print(f"  pipeline, MCAP recorded: {rec:6.1f} pairs/s  ratio {rec / base:.3f}  target >= 60:  {'met' if rec >= 60 else 'NOT met'}")
+        print(f"  frames failed in the last session: {failed} of {args.frames}")
+
+        gc.collect()
+        short_rss = peak_rss_mb()
+        pipeline_rate(pm, csv, tmp, args.frames * 4, True, "long")
+        long_rss = peak_rss_mb()
+        print(
+            f"  peak RSS after {args.frames}-pair sessions: {short_rss:.0f} MB; after a "
+            f"{args.frames * 4}-pair session: {long_rss:.0f} MB (growth {long_rss - short_rss:+.0f} MB)"
+        )
+
+
+if __name__ == "__main__":
+    main()
