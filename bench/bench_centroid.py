@@ -1,11 +1,12 @@
 """Time the centroid implementations on a realistic frame against an OpenCV baseline.
 
-Run: ``.venv/bin/python bench/bench_centroid.py [--runs N] [--targets N] [--threads N]``
+Run: ``.venv/bin/python bench/bench_centroid.py [--runs N] [--targets N] [--threads N] [--source S]``
 
 The frame: 1626 x 1236 uint16, 12-bit, background 150 DN with read noise
-4 DN and photon noise (2 e-/DN), ``--targets`` blurred ellipses 30-60 px
+3 DN and photon noise (2.86 e-/DN), ``--targets`` blurred ellipses 30-60 px
 across (peak 2400-3400 DN), plus the distractors of the tests (specks, an
 elongated reflection, a saturated blob, two blobs cut by the border).
+``--source station|table3`` uses the simulator's upper image instead.
 
 Baseline, on the same frame and the same (precomputed) threshold:
 ``cv2.threshold`` (16U, to 0/1) -> ``astype(uint8)`` -> ``cv2.findContours``
@@ -72,20 +73,31 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--targets", type=int, default=20, help="targets in the frame")
     parser.add_argument("--threads", type=int, default=-1, help="cv2.setNumThreads (-1: OpenCV's default)")
     parser.add_argument("--seed", type=int, default=2024)
+    parser.add_argument("--source", choices=("synthetic", "station", "table3"), default="synthetic",
+                        help="synthetic frame (default) or a simulator scenario's upper image")
     args = parser.parse_args(argv)
     if args.threads >= 0:
         cv2.setNumThreads(args.threads)
 
     rng = np.random.default_rng(args.seed)
-    targets = random_targets(rng, args.targets, shape=(1236, 1626))
-    # keep the targets clear of the distractors along the top rows
-    targets = [t for t in targets if t.v0 - t.a > 110] or targets
-    extra = [e for group in distractors().values() for e in group]
-    image = render(targets + extra, rng)
-    truth = np.array([[t.u0, t.v0] for t in targets])
+    if args.source == "synthetic":
+        targets = random_targets(rng, args.targets, shape=(1236, 1626))
+        # keep the targets clear of the distractors along the top rows
+        targets = [t for t in targets if t.v0 - t.a > 110] or targets
+        extra = [e for group in distractors().values() for e in group]
+        image = render(targets + extra, rng)
+        truth = np.array([[t.u0, t.v0] for t in targets])
+        content = f"{len(targets)} targets + {len(extra)} distractors"
+    else:  # the station simulator's upper image
+        from pipeline.simulator.scenarios import build_scene
+
+        scene = build_scene(args.source)
+        image = scene.render_pair(0, rng).upper
+        truth = np.array(list(scene.true_blob_centres("upper").values()))
+        content = f"simulator scenario {args.source!r}, {len(truth)} targets"
     threshold = estimate_background(image, 8.0).threshold_dn
 
-    print(f"frame {image.shape[1]}x{image.shape[0]} uint16, {len(targets)} targets + {len(extra)} distractors, "
+    print(f"frame {image.shape[1]}x{image.shape[0]} {image.dtype}, {content}, "
           f"OpenCV {cv2.__version__}, {cv2.getNumThreads()} OpenCV threads, {args.runs} runs")
     pm = make_plugin_manager()
     extractors = {name: impl.create({}) for name, impl in sorted(implementations(pm, "centroid").items())}

@@ -62,6 +62,8 @@ class Blob:
     component: (h, w) uint8 0/1, the blob: its outer contour, filled.
     window: (h, w) uint8 0/1, component dilated by ``dilate_px``, minus the
     pixels of other blobs: where the sub-pixel estimators may look.
+    window_count: pixels in ``window``. window_moments: ``cv2.moments`` of the
+    raw image (DN, not background-subtracted) times ``window``, ROI coordinates.
     background_dn: local background (mean of the ring), DN.
     ring_count: number of ring pixels the background is the mean of.
     area_px: pixels in ``component``. roundness: minor/major axis ratio from
@@ -75,6 +77,8 @@ class Blob:
     roi: np.ndarray
     component: np.ndarray
     window: np.ndarray
+    window_count: int
+    window_moments: dict
     background_dn: float
     ring_count: int
     area_px: int
@@ -207,7 +211,14 @@ class BlobDetector:
                 rejected.append(RejectedBlob(uv, "too_large"))
                 continue
             roi = image[y0:y1, x0:x1]
-            _, max_value, _, _ = cv2.minMaxLoc(roi, component)
+            mask_roi = mask[y0:y1, x0:x1]
+            # Pixels of other blobs in this ROI (above the threshold, outside
+            # the contour); usually none, which allows the short path below.
+            others = cv2.countNonZero(cv2.subtract(mask_roi, component))
+            if others:
+                _, max_value, _, _ = cv2.minMaxLoc(roi, component)
+            else:  # everything outside the blob is below the threshold
+                max_value = float(roi.max())
             saturated = max_value >= sat
             if saturated and opts.reject_saturated:
                 rejected.append(RejectedBlob(uv, "saturated"))
@@ -221,16 +232,27 @@ class BlobDetector:
             if roundness < opts.min_roundness:
                 rejected.append(RejectedBlob(uv, "not_round"))
                 continue
-            mask_roi = mask[y0:y1, x0:x1]
             dilated = cv2.dilate(component, self._kernel) if self._kernel is not None else component
-            window = cv2.bitwise_or(cv2.subtract(dilated, mask_roi), component)
-            ring = cv2.bitwise_or(dilated, mask_roi)
-            cv2.bitwise_xor(ring, 1, dst=ring)  # 1 where neither blob, nor dilation, nor other blob
-            ring_count = cv2.countNonZero(ring)
-            local = cv2.mean(roi, ring)[0] if ring_count else background.level_dn
+            if others:
+                window = cv2.bitwise_or(cv2.subtract(dilated, mask_roi), component)
+            else:
+                window = dilated
+            # Raw intensity moments over the window (float32 product is exact
+            # for integer DN; cv2.moments accumulates in double).
+            raw = cv2.moments(cv2.multiply(roi, window, dtype=cv2.CV_32F))
+            window_count = cv2.countNonZero(window)
+            if others:
+                ring = cv2.bitwise_or(dilated, mask_roi)
+                cv2.bitwise_xor(ring, 1, dst=ring)  # 1 where neither blob, nor dilation, nor other blob
+                ring_count = cv2.countNonZero(ring)
+                ring_sum = cv2.mean(roi, ring)[0] * ring_count
+            else:  # ring = ROI minus window: sums by difference
+                ring_count = roi.size - window_count
+                ring_sum = cv2.sumElems(roi)[0] - raw["m00"]
+            local = ring_sum / ring_count if ring_count else background.level_dn
             blobs.append(
-                Blob(x0, y0, roi, component, window, local, ring_count, int(area), roundness,
-                     float(max_value - local), bool(saturated), uv)
+                Blob(x0, y0, roi, component, window, window_count, raw, local, ring_count, int(area),
+                     roundness, float(max_value - local), bool(saturated), uv)
             )
         return blobs, rejected, background
 

@@ -25,8 +25,9 @@ background's own photon noise, measured as IQR/1.349 of a subsample), the
 second term of var_i the photon noise of the target signal (Poisson in
 electrons, gain in e-/DN), and var_b = sigma_n^2 / N_ring the variance of
 the local background mean, whose error moves the centroid by
--sum(u_i - u_c)/S per DN. Both sums come from ``cv2.moments`` of the weight
-image and of the window mask, so no per-pixel Python work is done.
+-sum(u_i - u_c)/S per DN. All sums come from ``cv2.moments`` of the raw
+image over the window and of the window mask, so no per-pixel Python work
+is done.
 Pixels in u, v; (0, 0) is the centre of the top-left pixel.
 """
 
@@ -47,27 +48,30 @@ def weighted_centroid(blob: Blob, background: Background, gain_e_per_dn: float) 
     """Intensity-weighted centroid of one blob and its standard uncertainty.
 
     Returns (u, v, sigma_u, sigma_v) in pixels, image coordinates. See the
-    module docstring for the formulas.
+    module docstring for the formulas. The sums over the window W of
+    w_i = I_i - b are taken from the raw moments M of I over W and the
+    moments N of W itself (ROI coordinates): sum(u^p w) = M_p - b N_p.
     """
-    weights = blob.roi.astype(np.float32)
-    weights -= np.float32(blob.background_dn)
-    weights *= blob.window  # zero outside the window (window is 0/1 uint8)
-    mw = cv2.moments(weights)
-    total = mw["m00"]
+    M = blob.window_moments
+    N = cv2.moments(blob.window)  # 0/1 mask: same as binaryImage=True, faster
+    b = blob.background_dn
+    total = M["m00"] - b * N["m00"]  # S = sum(w_i)
     if not total > 0:
         return float("nan"), float("nan"), float("nan"), float("nan")
-    uc, vc = mw["m10"] / total, mw["m01"] / total  # ROI coordinates
-    mm = cv2.moments(blob.window)  # 0/1 mask: same as binaryImage=True, faster
-    n_window = mm["m00"]
-    # sum over the window of (u_i - u_c) and (u_i - u_c)^2, from the mask's moments
-    du_sum = mm["m10"] - n_window * uc
-    dv_sum = mm["m01"] - n_window * vc
-    du2_sum = mm["mu20"] + du_sum * du_sum / n_window
-    dv2_sum = mm["mu02"] + dv_sum * dv_sum / n_window
+    su = M["m10"] - b * N["m10"]  # sum(u_i w_i)
+    sv = M["m01"] - b * N["m01"]
+    uc, vc = su / total, sv / total
+    # sum((u_i - u_c)^2 w_i), the photon-noise sums
+    photon_u = max(M["m20"] - b * N["m20"] - uc * su, 0.0) / gain_e_per_dn
+    photon_v = max(M["m02"] - b * N["m02"] - vc * sv, 0.0) / gain_e_per_dn
+    n_window = N["m00"]
+    # sums over the window of (u_i - u_c) and (u_i - u_c)^2
+    du_sum = N["m10"] - n_window * uc
+    dv_sum = N["m01"] - n_window * vc
+    du2_sum = N["mu20"] + du_sum * du_sum / n_window
+    dv2_sum = N["mu02"] + dv_sum * dv_sum / n_window
     noise_var = background.sigma_dn**2
     background_var = noise_var / blob.ring_count if blob.ring_count else noise_var
-    photon_u = max(mw["mu20"], 0.0) / gain_e_per_dn
-    photon_v = max(mw["mu02"], 0.0) / gain_e_per_dn
     var_u = (noise_var * du2_sum + photon_u) / total**2 + (du_sum / total) ** 2 * background_var
     var_v = (noise_var * dv2_sum + photon_v) / total**2 + (dv_sum / total) ** 2 * background_var
     return blob.x0 + uc, blob.y0 + vc, math.sqrt(var_u), math.sqrt(var_v)
@@ -90,7 +94,8 @@ class WeightedCentroids:
       taken from. background_stride: subsampling step of the global
       background/noise estimate.
     gain_e_per_dn: camera conversion gain (electrons per DN, EMVA 1288 1/K),
-      for the photon noise in the uncertainty.
+      for the photon noise in the uncertainty; the default is the simulator's
+      scA1600-14gm-like sensor (0.35 DN/e-).
     """
 
     method = "weighted"
@@ -108,7 +113,7 @@ class WeightedCentroids:
         dilate_px: int = 2,
         ring_px: int = 3,
         background_stride: int = 8,
-        gain_e_per_dn: float = 2.0,
+        gain_e_per_dn: float = 2.86,
     ) -> None:
         if not gain_e_per_dn > 0:
             raise ValueError(f"gain_e_per_dn must be > 0, got {gain_e_per_dn}")

@@ -70,8 +70,8 @@ def render(
     shape: tuple[int, int] = (HEIGHT, WIDTH),
     background_dn: float = 150.0,
     blur_sigma_px: float = 0.9,
-    read_noise_dn: float = 4.0,
-    gain_e_per_dn: float = 2.0,
+    read_noise_dn: float = 3.0,
+    gain_e_per_dn: float = 2.86,
     bit_depth: int = 12,
     extra: np.ndarray | None = None,
 ) -> np.ndarray:

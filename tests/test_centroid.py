@@ -113,13 +113,17 @@ def test_noisy_accuracy_and_error_within_uncertainty(name, seed):
 @pytest.mark.parametrize(
     "target, gain",
     [
-        (Ellipse(100.3, 90.7, 20.0, 16.0, 0.4, 3000.0), 2.0),  # typical bright target
-        (Ellipse(99.6, 91.2, 12.0, 9.0, 1.1, 300.0), 2.0),  # small, faint: read noise matters
+        (Ellipse(100.3, 90.7, 20.0, 16.0, 0.4, 3000.0), 2.86),  # typical bright target
+        (Ellipse(99.6, 91.2, 12.0, 9.0, 1.1, 300.0), 2.86),  # small, faint: read noise matters
+        (Ellipse(100.8, 90.1, 25.0, 24.0, 0.0, 3000.0), 0.5),  # low gain: photon noise dominates
     ],
-    ids=["bright", "faint"],
+    ids=["bright", "faint", "low-gain"],
 )
 def test_uncertainty_matches_scatter_over_noise_draws(name, target, gain):
-    extractor = make(name, min_area_px=20)
+    options = {"min_area_px": 20}
+    if "gain_e_per_dn" in IMPLEMENTATIONS[name].options():
+        options["gain_e_per_dn"] = gain
+    extractor = make(name, **options)
     uv, sigma = [], []
     for k in range(60):
         image = render([target], np.random.default_rng(100 + k), shape=(180, 200), gain_e_per_dn=gain)
@@ -141,7 +145,7 @@ def test_weighted_uncertainty_formula_matches_explicit_sum():
     image = render([Ellipse(70.2, 64.9, 18.0, 14.0, 0.7, 2500.0)], np.random.default_rng(9), shape=(140, 150))
     blobs, _, background = BlobDetector(DetectorOptions()).detect(image)
     (blob,) = blobs
-    gain = 2.0
+    gain = 2.86
     u, v, su, sv = weighted_centroid(blob, background, gain)
     rows, cols = np.nonzero(blob.window)
     w = blob.roi[rows, cols].astype(np.float64) - blob.background_dn
@@ -305,3 +309,22 @@ def test_reads_frozen_stereo_frame_images(name, noisy_frame):
     match(upper, truth)
     np.testing.assert_array_equal(stereo.upper, image)
     assert len(make(name).extract(stereo.lower, "lower", stereo.sequence)) == len(truth)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_close_neighbours_are_kept_apart(name):
+    """Two targets whose ROIs overlap (edges 8 px apart): each window excludes
+    the other blob's pixels and the ring excludes both."""
+    left = Ellipse(80.3, 90.2, 22.0, 20.0, 0.0, 3000.0)
+    right = Ellipse(80.3 + 22.0 + 8.0 + 18.0, 91.7, 18.0, 18.0, 0.0, 2500.0)
+    image = render([left, right], np.random.default_rng(21), shape=(180, 200))
+    blobs, _, background = BlobDetector(DetectorOptions()).detect(image)
+    assert len(blobs) == 2
+    for blob in blobs:  # the other blob reaches into each ROI
+        other = (blob.roi > background.threshold_dn) & (blob.component == 0)
+        assert other.sum() > 0 and not (other & (blob.window > 0)).any()
+    result = make(name).extract(image, "upper", 0)
+    truth = np.array([[left.u0, left.v0], [right.u0, right.v0]])
+    err = result.uv[match(result, truth)] - truth
+    assert np.abs(err).max() < 0.03, err
+    assert result.rejected == ()
