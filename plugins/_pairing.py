@@ -114,24 +114,35 @@ class BlockCounter:
     """Expected frame (block) ids of one camera under software triggering.
 
     Model: every trigger sent while the camera reports itself ready for a
-    frame trigger makes it expose one frame, which consumes one block id
-    even when the frame is then lost or arrives late. So after a trigger
-    the frame answering it must carry ``expected``; a smaller id is a late
-    frame of an earlier trigger, a larger one means ids were consumed that
-    we never saw (frames lost in transport) and the frame is not trusted.
+    frame trigger makes it expose one frame, which consumes the next block
+    id even when the frame is then lost or arrives late, and pylon delivers
+    the frames in order (grab strategy OneByOne). So the frame answering
+    trigger ``t`` (0-based) carries ``base + t``. The first frame received
+    answers the first trigger sent, whenever it arrives, which fixes
+    ``base``. After trigger ``t`` a frame carrying less than ``base + t`` is
+    a late frame of an earlier trigger; one carrying more means ids were
+    consumed by frames we never received, and it is not trusted (the counter
+    resynchronises on it).
 
     modulus: ids compare modulo this number (GigE Vision 1.x block ids are
     16 bit and skip 0 when they wrap, so they repeat every 65535); None =
     plain integers (USB3 Vision, camera emulation). Differences are taken
-    as signed, so a wrap between two consecutive frames is harmless.
+    as signed, so a wrap between two frames is harmless.
     """
 
     OK, STALE, AHEAD = "ok", "stale", "ahead"
 
     def __init__(self, modulus: int | None = None):
         self.modulus = modulus
-        self.expected: int | None = None  # id the latest trigger's frame must carry
-        self._next: int | None = None  # id the next trigger's frame will carry
+        self.triggers = 0  # triggers sent so far
+        self.base: int | None = None  # block id of the frame answering trigger 0
+
+    @property
+    def expected(self) -> int | None:
+        """Block id the frame answering the latest trigger must carry (None = not known yet)."""
+        if self.base is None or self.triggers == 0:
+            return None
+        return self.base + self.triggers - 1
 
     def difference(self, block_id: int, reference: int) -> int:
         """Signed ``block_id - reference`` (modulo ``modulus`` if set)."""
@@ -144,41 +155,39 @@ class BlockCounter:
 
     def trigger_sent(self) -> None:
         """A trigger was sent to the (ready) camera."""
-        self.expected = self._next
-        if self._next is not None:
-            self._next += 1
+        self.triggers += 1
 
     def classify(self, block_id: int) -> str:
-        """Classify a frame received after the latest trigger; update the counter.
+        """Classify a frame received after the latest trigger was sent.
 
         Returns :attr:`OK` (it answers the latest trigger), :attr:`STALE`
-        (it belongs to an earlier trigger) or :attr:`AHEAD` (ids were skipped:
+        (it answers an earlier trigger) or :attr:`AHEAD` (ids were skipped;
         the counter resynchronises on this frame, which is not trusted).
-        The first frame ever seen sets the counter and is OK.
         """
-        if self.expected is None:
-            self.expected = int(block_id)
-            self._next = int(block_id) + 1
-            return self.OK
+        if self.triggers == 0:
+            raise ValueError("classify() before any trigger was sent")
+        if self.base is None:
+            self.base = int(block_id)  # the first frame answers the first trigger
         d = self.difference(block_id, self.expected)
         if d == 0:
             return self.OK
         if d < 0:
             return self.STALE
-        self.expected = int(block_id)
-        self._next = int(block_id) + 1
+        self.base = int(block_id) - (self.triggers - 1)
         return self.AHEAD
 
     def unsolicited(self, block_id: int) -> bool:
-        """A frame arrived before any trigger could have asked for it (found
-        when draining before a trigger). Returns True if its id is at or past
-        the next expected one, i.e. the camera exposed without our trigger; the
-        counter then resynchronises past it. False = a late frame of an
-        earlier trigger."""
-        if self._next is None:
+        """A frame arrived before the next trigger was sent, so it cannot answer
+        that trigger. Returns False if it is a late frame of an earlier trigger,
+        True if the camera exposed without a trigger of ours (its id is at or
+        past the next trigger's); the counter then skips past it."""
+        if self.triggers == 0:
             return True
-        if self.difference(block_id, self._next) >= 0:
-            self._next = int(block_id) + 1
+        if self.base is None:
+            self.base = int(block_id)  # the first frame answers the first trigger
+            return False
+        if self.difference(block_id, self.base + self.triggers) >= 0:
+            self.base = int(block_id) + 1 - self.triggers
             return True
         return False
 
@@ -249,7 +258,6 @@ class ArrivalPairer:
         self.incidents = incidents
         self.pending: dict[str, deque[GrabbedFrame]] = {"upper": deque(), "lower": deque()}
         self.previous: tuple[GrabbedFrame, GrabbedFrame] | None = None
-        self._last_block: dict[str, int] = {}
 
     def push(self, frame: GrabbedFrame, now_ns: int) -> list[tuple[GrabbedFrame, GrabbedFrame]]:
         """Add an arrived frame; return the pairs that became complete."""
@@ -295,15 +303,16 @@ class ArrivalPairer:
         return pairs
 
     def _check_counters(self, u: GrabbedFrame, l: GrabbedFrame) -> None:
-        """Report frames lost between two accepted pairs (the pair itself is
-        vouched for by its time skew)."""
-        if self._last_block:
-            du = u.block_id - self._last_block["upper"]
-            dl = l.block_id - self._last_block["lower"]
-            if du != dl:
-                self.incidents.add(
-                    "counter_mismatch", "both", u.index,
-                    f"since the previous pair the upper frame counter advanced by {du}, the lower by {dl}: "
-                    f"frames were lost between the pairs (this pair matches in time and is kept)",
-                )
-        self._last_block = {"upper": u.block_id, "lower": l.block_id}
+        """Report frames a camera numbered but never delivered between two accepted
+        pairs (lost in transport). Frames that arrived and were dropped are already
+        reported; the pair itself is vouched for by its time skew."""
+        if self.previous is not None:
+            for now, before in ((u, self.previous[0]), (l, self.previous[1])):
+                unseen = (now.block_id - before.block_id) - (now.index - before.index)
+                if unseen:
+                    self.incidents.add(
+                        "counter_mismatch", now.camera, u.index,
+                        f"{now.camera}: the frame counter advanced by {now.block_id - before.block_id} since the "
+                        f"previous pair but {now.index - before.index} frames arrived: {unseen} frame(s) lost in "
+                        f"transport (this pair matches in time and is kept)",
+                    )

@@ -402,7 +402,9 @@ class BaslerStereoSource:
     pixel_format: Mono8, Mono10, Mono12 or Mono16; bit_depth: significant bits
     (0 = those of the pixel format).
     timeout_ms: how long to wait for a frame after a trigger (software) or
-    for the partner of a frame (hardware).
+    for the partner of a frame (hardware). ready_timeout_ms: how long to
+    wait for both cameras to be ready for a software trigger (a camera is
+    busy while it exposes and reads out the previous frame).
     max_skew_ms: largest time offset between the two frames of a pair
     (camera clocks when the cameras have them, else host arrival times).
     max_consecutive_drops: give up after this many refused pairs in a row
@@ -432,6 +434,7 @@ class BaslerStereoSource:
         pixel_format: str = "Mono12",
         bit_depth: int = 0,
         timeout_ms: float = 1000.0,
+        ready_timeout_ms: float = 1000.0,
         max_skew_ms: float = 20.0,
         max_consecutive_drops: int = 10,
         features: Mapping[str, Any] | None = None,
@@ -470,6 +473,7 @@ class BaslerStereoSource:
         self.pixel_format = pixel_format
         self.bit_depth = bit_depth or PIXEL_FORMAT_BITS[pixel_format]
         self.timeout_ms = _positive_number(timeout_ms, "timeout_ms")
+        self.ready_timeout_ms = _positive_number(ready_timeout_ms, "ready_timeout_ms")
         self.max_skew_ms = _positive_number(max_skew_ms, "max_skew_ms")
         self.max_consecutive_drops = max_consecutive_drops
         self.calibration_files = [str(Path(p).expanduser()) for p in calibration_files]
@@ -591,20 +595,21 @@ class BaslerStereoSource:
         drops = 0
         k = 0
         while not self._stop.is_set() and self._check_readers(inbox, k):
-            self._discard_unsolicited(inbox, k)
             if not self._ready_for_trigger(k):
                 drops += 1
                 k += 1
                 if self._give_up(drops, k - 1):
                     return
                 continue
+            for frame in inbox.drain():  # whatever came before this trigger does not answer it
+                self._discard_early(frame, k)
             trigger_ns = time.time_ns()
             for role in CAMERAS:
                 self.cameras[role].instant.ExecuteSoftwareTrigger()
                 self.cameras[role].counter.trigger_sent()
             self.triggers_sent += 1
             deadline = time.monotonic() + timeout_s
-            got = {role: self._frame_for_trigger(inbox, role, k, deadline) for role in CAMERAS}
+            got = {role: self._frame_for_trigger(inbox, role, k, trigger_ns, deadline) for role in CAMERAS}
             pair = self._accept(k, got, previous)
             if pair is None:
                 drops += 1
@@ -616,22 +621,22 @@ class BaslerStereoSource:
                 yield StereoFrame(k, trigger_ns, got["upper"].image, got["lower"].image, self.bit_depth)
             k += 1
 
-    def _discard_unsolicited(self, inbox: _Inbox, k: int) -> None:
-        """Frames waiting before trigger ``k`` is sent answer no trigger of this pair."""
-        for frame in inbox.drain():
-            counter = self.cameras[frame.camera].counter
-            if counter.unsolicited(frame.block_id):
-                self.incidents.add(
-                    "unexpected_frame", frame.camera, k,
-                    f"{frame.camera} frame (block {frame.block_id}) arrived before trigger {k} without a "
-                    f"trigger asking for it; discarded (is the camera free-running or triggered by another source?)",
-                )
-            else:
-                self.incidents.add(
-                    "late_frame", frame.camera, k - 1,
-                    f"{frame.camera} frame (block {frame.block_id}) of an earlier trigger arrived after its pair "
-                    f"was given up; discarded",
-                )
+    def _discard_early(self, frame: GrabbedFrame, k: int) -> None:
+        """A frame that arrived before trigger ``k`` was sent cannot answer it: it is a
+        late frame of an earlier trigger, or one no trigger of ours asked for."""
+        counter = self.cameras[frame.camera].counter
+        if counter.unsolicited(frame.block_id):
+            self.incidents.add(
+                "unexpected_frame", frame.camera, k,
+                f"{frame.camera} frame (block {frame.block_id}) arrived before trigger {k} without a trigger "
+                f"asking for it; discarded (is the camera free-running or triggered by another source?)",
+            )
+        else:
+            self.incidents.add(
+                "late_frame", frame.camera, k,
+                f"{frame.camera} frame (block {frame.block_id}) of an earlier trigger arrived after its pair was "
+                f"given up, before trigger {k}; discarded",
+            )
 
     def _ready_for_trigger(self, k: int) -> bool:
         pylon = self.pylon
@@ -639,20 +644,23 @@ class BaslerStereoSource:
         for role in CAMERAS:
             instant = self.cameras[role].instant
             if instant.CanWaitForFrameTriggerReady() and not instant.WaitForFrameTriggerReady(
-                int(self.timeout_ms), pylon.TimeoutHandling_Return
+                max(1, round(self.ready_timeout_ms)), pylon.TimeoutHandling_Return
             ):
                 not_ready.append(role)
         if not_ready:
             self.incidents.add(
                 "not_ready", "both" if len(not_ready) == 2 else not_ready[0], k,
-                f"{' and '.join(not_ready)} camera not ready for a frame trigger within timeout_ms "
-                f"{self.timeout_ms:g}; trigger {k} not sent",
+                f"{' and '.join(not_ready)} camera not ready for a frame trigger within ready_timeout_ms "
+                f"{self.ready_timeout_ms:g}; trigger {k} not sent",
             )
             return False
         return True
 
-    def _frame_for_trigger(self, inbox: _Inbox, role: str, k: int, deadline: float) -> GrabbedFrame | None:
-        """The frame answering trigger ``k`` from camera ``role``, or None (incident recorded)."""
+    def _frame_for_trigger(
+        self, inbox: _Inbox, role: str, k: int, trigger_ns: int, deadline: float
+    ) -> GrabbedFrame | None:
+        """The frame answering trigger ``k`` (sent at host time ``trigger_ns``) from
+        camera ``role``, or None (incident recorded)."""
         counter = self.cameras[role].counter
         while True:
             frame = inbox.get(role, deadline)
@@ -662,6 +670,9 @@ class BaslerStereoSource:
                     f"{role}: no frame within timeout_ms {self.timeout_ms:g} of trigger {k}; pair {k} dropped",
                 )
                 return None
+            if frame.host_ns < trigger_ns:  # arrived before the trigger was sent (causality)
+                self._discard_early(frame, k)
+                continue
             verdict = counter.classify(frame.block_id)
             if verdict == BlockCounter.STALE:
                 self.incidents.add(
@@ -738,6 +749,7 @@ class BaslerStereoSource:
             "bit_depth": self.bit_depth,
             "frames": self.n_frames,
             "timeout_ms": self.timeout_ms,
+            "ready_timeout_ms": self.ready_timeout_ms,
             "max_skew_ms": self.max_skew_ms,
             "max_consecutive_drops": self.max_consecutive_drops,
             "skew_basis": "camera clock intervals when both cameras give timestamps, else host arrival times",
