@@ -27,3 +27,7 @@ class ReferenceImportError(CrossfieldError):
 
 class RecordingError(CrossfieldError):
     """A recording is unreadable, not crossfield's, or damaged."""
+
+
+class MeasurementError(CrossfieldError):
+    """A characteristic cannot be evaluated (e.g. a reference line the probes do not determine)."""

@@ -1,0 +1,161 @@
+"""Reference-element fits (pipeline.geometry) against analytic cases."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.geometry import (
+    distance_point_line,
+    distance_point_point,
+    fit_cylinder_axis,
+    fit_line,
+    perpendicular_basis,
+    point_line_distance,
+)
+from pipeline.types import Line3D
+
+AXIS_DIR = np.array([0.25, -0.30, 0.92]) / np.linalg.norm([0.25, -0.30, 0.92])
+AXIS_POINT = np.array([612.0, -355.0, 140.0])
+
+
+def cylinder_probes(heights=(-25.0, 0.0, 25.0), angles_deg=(20.0, 80.0, 140.0, 200.0), radius=17.0):
+    e1, e2 = perpendicular_basis(AXIS_DIR)
+    return np.array(
+        [
+            AXIS_POINT + h * AXIS_DIR + radius * (np.cos(a) * e1 + np.sin(a) * e2)
+            for h in heights
+            for a in np.radians(angles_deg)
+        ]
+    )
+
+
+def test_perpendicular_basis_is_right_handed_orthonormal():
+    for d in (AXIS_DIR, np.array([0.0, 0, 1]), np.array([1.0, 0, 0]), np.array([-0.3, 0.9, 0.1])):
+        e1, e2 = perpendicular_basis(d)
+        d = d / np.linalg.norm(d)
+        B = np.column_stack([e1, e2, d])
+        np.testing.assert_allclose(B.T @ B, np.eye(3), atol=1e-12)
+        assert np.linalg.det(B) == pytest.approx(1.0)
+
+
+def test_distances():
+    assert distance_point_point([1, 2, 3], [4, 6, 3]) == pytest.approx(5.0)
+    line = Line3D(np.array([0.0, 0, 5]), np.array([0.0, 0, 2]))
+    assert distance_point_line(np.array([3.0, 4.0, -7.0]), line) == pytest.approx(5.0)
+
+
+def test_line_fit_exact_points():
+    points = AXIS_POINT + np.outer(np.linspace(-40, 60, 6), AXIS_DIR)
+    fit = fit_line(points)
+    assert abs(fit.line.direction @ AXIS_DIR) == pytest.approx(1.0, abs=1e-14)
+    assert fit.line.distance(AXIS_POINT) < 1e-12
+    np.testing.assert_allclose(fit.line.point, points.mean(axis=0), atol=1e-12)
+    assert fit.rms_mm < 1e-12 and fit.kind == "line" and fit.radius_mm is None
+
+
+def test_line_fit_is_orthogonal_regression():
+    """Direction = principal eigenvector of the scatter matrix (independent computation),
+    and it beats ordinary least squares in the orthogonal sum of squares."""
+    rng = np.random.default_rng(1)
+    points = AXIS_POINT + np.outer(rng.uniform(-50, 50, 30), AXIS_DIR) + rng.normal(0, 0.5, (30, 3))
+    fit = fit_line(points)
+    scatter = np.cov(points.T)
+    _, vectors = np.linalg.eigh(scatter)
+    assert abs(fit.line.direction @ vectors[:, -1]) == pytest.approx(1.0, abs=1e-12)
+    other = Line3D(fit.line.point, fit.line.direction + np.array([0.01, 0.0, 0.0]))
+    assert np.sum(fit.residuals_mm**2) < sum(other.distance(p) ** 2 for p in points)
+    np.testing.assert_allclose(fit.residuals_mm, [fit.line.distance(p) for p in points], atol=1e-12)
+
+
+def test_line_fit_uncertainty_matches_monte_carlo():
+    rng = np.random.default_rng(2)
+    s = np.linspace(-30, 30, 8)
+    clean = AXIS_POINT + np.outer(s, AXIS_DIR)
+    e1, _ = perpendicular_basis(AXIS_DIR)
+    far = AXIS_POINT + 300.0 * e1 + 20.0 * AXIS_DIR  # 300 mm from the axis, as in the paper
+    errors, sigmas = [], []
+    for _ in range(400):
+        fit = fit_line(clean + rng.normal(0, 0.01, clean.shape), sigma_mm=0.01)
+        d, sigma, _ = point_line_distance(far, fit)
+        errors.append(d - 300.0)
+        sigmas.append(sigma)
+    assert np.std(errors) == pytest.approx(np.mean(sigmas), rel=0.15)
+
+
+@pytest.mark.parametrize(
+    "heights, angles",
+    [((-25.0, 0.0, 25.0), (20.0, 80.0, 140.0, 200.0)), ((-25.0, 0.0, 25.0), (0.0, 120.0, 240.0)),
+     ((-40.0, -10.0, 15.0, 30.0), (0.0, 90.0, 180.0, 270.0))],
+)
+def test_cylinder_fit_exact_points(heights, angles):
+    points = cylinder_probes(heights, angles)
+    fit = fit_cylinder_axis(points)
+    assert fit.kind == "cylinder"
+    assert abs(fit.line.direction @ AXIS_DIR) == pytest.approx(1.0, abs=1e-12)
+    assert fit.line.distance(AXIS_POINT) < 1e-8
+    assert fit.radius_mm == pytest.approx(17.0, abs=1e-8)
+    assert np.abs(fit.residuals_mm).max() < 1e-8
+    # The axis point is the foot of the probes' centroid.
+    foot_offset = points.mean(axis=0) - fit.line.point
+    assert abs(foot_offset @ fit.line.direction) < 1e-8
+
+
+def test_cylinder_fit_noise_and_uncertainty():
+    rng = np.random.default_rng(3)
+    clean = cylinder_probes()
+    e1, _ = perpendicular_basis(AXIS_DIR)
+    far = AXIS_POINT + 300.0 * e1 + 10.0 * AXIS_DIR
+    errors, sigmas = [], []
+    for _ in range(40):
+        fit = fit_cylinder_axis(clean + rng.normal(0, 0.01, clean.shape), sigma_mm=0.01)
+        d, sigma, _ = point_line_distance(far, fit)
+        errors.append(d - 300.0)
+        sigmas.append(sigma)
+        assert fit.radius_mm == pytest.approx(17.0, abs=0.03)
+    errors = np.array(errors)
+    assert np.abs(errors).max() < 5 * np.mean(sigmas)
+    assert 0.5 < np.std(errors) / np.mean(sigmas) < 1.6  # 40 samples: loose band
+
+
+def test_cylinder_direction_hint_and_principal_axis_start():
+    """A short, wide probe pattern (the axis is not the longest spread) still fits."""
+    points = cylinder_probes(heights=(-4.0, 0.0, 4.0), angles_deg=(0, 50, 110, 170, 230, 290), radius=40.0)
+    fit = fit_cylinder_axis(points)
+    assert abs(fit.line.direction @ AXIS_DIR) == pytest.approx(1.0, abs=1e-10)
+    fit = fit_cylinder_axis(points, direction_hint=AXIS_DIR + 0.05)
+    assert fit.radius_mm == pytest.approx(40.0, abs=1e-8)
+
+
+@pytest.mark.parametrize(
+    "heights, angles",
+    [((-25.0, 25.0), (0.0, 90.0, 180.0, 270.0)),  # corners of a square prism: a family of cylinders
+     ((0.0,), (0.0, 45.0, 90.0, 135.0, 180.0, 225.0, 270.0, 315.0))],  # one ring: plane-like fits
+)
+def test_cylinder_fit_refuses_probe_patterns_that_do_not_determine_the_axis(heights, angles):
+    rng = np.random.default_rng(4)
+    points = cylinder_probes(heights, angles) + rng.normal(0, 0.01, (len(heights) * len(angles), 3))
+    with pytest.raises(ValueError, match="cylinder"):
+        fit_cylinder_axis(points, sigma_mm=0.01)
+
+
+def test_fit_input_errors():
+    with pytest.raises(ValueError, match="at least 5"):
+        fit_cylinder_axis(np.zeros((4, 3)))
+    with pytest.raises(ValueError, match="at least 2"):
+        fit_line(np.zeros((1, 3)))
+    with pytest.raises(ValueError, match=r"\(N, 3\)"):
+        fit_line(np.zeros((4, 2)))
+    with pytest.raises(ValueError, match="coincide"):
+        fit_line(np.ones((4, 3)))
+
+
+def test_point_line_distance_propagates_point_covariance():
+    fit = fit_line(AXIS_POINT + np.outer(np.linspace(-50, 50, 11), AXIS_DIR))  # exact: zero line covariance
+    e1, e2 = perpendicular_basis(AXIS_DIR)
+    p = AXIS_POINT + 100.0 * e1
+    cov = 0.04 * np.outer(e1, e1) + 9.0 * np.outer(e2, e2) + 9.0 * np.outer(AXIS_DIR, AXIS_DIR)
+    d, sigma, gradient = point_line_distance(p, fit, cov)
+    assert d == pytest.approx(100.0)
+    np.testing.assert_allclose(gradient, e1, atol=1e-12)
+    assert sigma == pytest.approx(0.2, rel=1e-6)  # only the radial variance counts
