@@ -23,7 +23,10 @@ devices), a pair whose timestamps differ by more than ``max_skew_ms`` is
 refused and the earlier frame dropped, so that the later one is paired with
 the other source's next frame (the streams resynchronise). Image sequences
 give no timestamps (-1): no skew check is possible, which
-:meth:`OpenCVStereoSource.describe` says. Every refusal is an incident
+:meth:`OpenCVStereoSource.describe` says. A pattern (a string with ``%``)
+is read with OpenCV's image-sequence backend (``CAP_IMAGES``) unless
+``backend`` says otherwise: left to ``CAP_ANY``, FFmpeg's image2 demuxer
+would take it and reduce 16-bit PNGs to 8 bits. Every refusal is an incident
 (:mod:`plugins._pairing`).
 """
 
@@ -151,14 +154,22 @@ class OpenCVStereoSource:
     # ---- set-up ------------------------------------------------------------------------------
 
     def _open(self, camera: str, spec: int | str) -> cv2.VideoCapture:
-        api = BACKENDS[self.backend]
         if isinstance(spec, bool) or not isinstance(spec, (int, str)) or spec == "":
             raise ValueError(f"option {camera!r} must be a device index (integer) or a file/URL (string), got {spec!r}")
+        api = BACKENDS[self.backend]
+        if self.backend == "any" and isinstance(spec, str) and "%" in spec:
+            # An image-sequence pattern: OpenCV's own reader (IMREAD_UNCHANGED). Left to
+            # CAP_ANY, FFmpeg's image2 demuxer takes it and reduces 16-bit PNGs to 8 bits.
+            api = cv2.CAP_IMAGES
         if isinstance(spec, int):
             capture = cv2.VideoCapture(spec, api)
         else:
-            # Keep single-channel 16-bit material as it is (no BGR conversion).
+            # Keep single-channel 16-bit material as it is (no BGR conversion). A backend
+            # that does not know the property refuses to open with it (CAP_IMAGES, which
+            # reads with IMREAD_UNCHANGED anyway): then open without it.
             capture = cv2.VideoCapture(spec, api, [cv2.CAP_PROP_CONVERT_RGB, 0])
+            if not capture.isOpened():
+                capture = cv2.VideoCapture(spec, api)
         if not capture.isOpened():
             hint = ""
             if isinstance(spec, str) and "://" not in spec and "%" not in spec and not Path(spec).exists():
@@ -277,7 +288,7 @@ class OpenCVStereoSource:
         other_has_more = other in heads or bool(grabbed.get(other))
         if other_has_more:
             self.incidents.add(
-                "stream_ended", camera, self.frames_read["upper"],
+                "stream_ended", camera, heads["upper"].index if "upper" in heads else self.frames_read["upper"],
                 f"the {camera} source {self.specs[camera]!r} ended after {self.frames_read[camera]} frames while "
                 f"the {other} source still delivers (read {self.frames_read[other]}); acquisition stopped",
             )

@@ -297,3 +297,75 @@ def test_options_are_checked_before_touching_a_camera():
         BaslerStereoSource(upper="a", lower="b", calibration="c.yml", pixel_format="Mono12p")
     with pytest.raises(ValueError, match="name the same camera"):
         BaslerStereoSource(upper="a", lower="a", calibration="c.yml")
+
+
+# ---- the whole pipeline over the emulated cameras ------------------------------------------------
+
+GROUND_TRUTH_KEYS = {"actual_mm", "error_mm", "ground_truth"}  # only the simulator knows the truth
+
+
+def _without(value, drop):
+    """``value`` with the keys in ``drop`` removed at every level."""
+    if isinstance(value, dict):
+        return {k: _without(v, drop) for k, v in value.items() if k not in drop}
+    if isinstance(value, list):
+        return [_without(v, drop) for v in value]
+    return value
+
+
+def test_session_over_emulated_cameras_reports_what_the_simulator_source_reports(emulation, station, tmp_path):
+    """Same frames -> same numbers: run_session with acquire = basler (emulated
+    cameras streaming the simulator's station frames, calibration from a YAML
+    file, plan from a TOML file, the simulated arm on a pseudo-terminal) and with
+    acquire = simulator; the reports agree in every measured number."""
+    import json
+
+    from pipeline.config import parse_config
+    from pipeline.runner import run_session
+
+    root, frames, simulator = station
+    common = {"record": False, "rerun": False, "output_dir": str(tmp_path)}
+    simulated = run_session(
+        parse_config({
+            "session": common | {"name": "simulator"},
+            "acquire": {"plugin": "simulator", "scenario": "station", "frames": N_FRAMES, "seed": SEED},
+            "reference": {"plugin": "romer-serial", "port": "simulator"},
+        }, "<simulator>"),
+        make_plugin_manager(),
+    )
+    with simulator.serve_arm() as port:  # the same arm points (same seed) on a fresh pty
+        basler = run_session(
+            parse_config({
+                "session": common | {"name": "basler", "plan": str(root / "plan.toml")},
+                "acquire": {
+                    "plugin": "basler", "upper": UPPER, "lower": LOWER, "frames": N_FRAMES,
+                    "calibration": str(root / "calibration.yml"), "max_skew_ms": 250.0,
+                    "upper_features": emulated_features(root, "upper"),
+                    "lower_features": emulated_features(root, "lower"),
+                },
+                "reference": {"plugin": "romer-serial", "port": port},
+            }, "<basler>"),
+            make_plugin_manager(),
+        )
+    assert basler.info.acquisition["source"] == "basler"
+    assert basler.info.acquisition["cameras"]["upper"]["serial"] == UPPER
+    assert basler.info.ground_truth is None and simulated.info.ground_truth is not None
+    assert [f.sequence for f in basler.frames] == [f.sequence for f in simulated.frames] == list(range(N_FRAMES))
+    assert not any(f.error for f in basler.frames + simulated.frames)
+    for b, s in zip(basler.frames, simulated.frames):
+        np.testing.assert_array_equal(b.centroids.upper.uv, s.centroids.upper.uv)
+        np.testing.assert_array_equal(b.points.xyz, s.points.xyz)
+        np.testing.assert_array_equal(b.registration.fit.R, s.registration.fit.R)
+        assert [c.measured_mm for c in b.measurement.characteristics] == [
+            c.measured_mm for c in s.measurement.characteristics
+        ]
+
+    reports = {
+        name: json.loads(next(p for p in summary.report_files if p.name == "report.json").read_text())
+        for name, summary in (("basler", basler), ("simulator", simulated))
+    }
+    for key in ("frames", "registration", "characteristics", "frames_processed", "frames_failed", "passed"):
+        ours, theirs = (_without(reports[n][key], GROUND_TRUTH_KEYS | {"timestamp_ns"}) for n in ("basler", "simulator"))
+        assert ours == theirs, key
+    assert reports["simulator"]["ground_truth_known"] and not reports["basler"]["ground_truth_known"]
+    assert reports["basler"]["characteristics"][0]["measured_mm"] == simulated.characteristics[0].measured_mm
