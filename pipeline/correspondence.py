@@ -28,10 +28,14 @@ Computer", ch. 4):
    every point's residual must be within the tolerance. Distances do not
    change under a reflection, so this step also rejects the mirrored
    assignment of a mirror-symmetric control layout.
-5. The largest verified clique wins. If two different assignments of that
-   size verify, the control layout is (near) symmetric as seen by the
-   cameras and :class:`CorrespondenceError` is raised naming the controls
-   whose assignment is ambiguous.
+5. The largest verified clique wins. If several different assignments of
+   that size verify, the pairs they all share are kept and the contested
+   controls are left unmatched (a stray point lies within the tolerance of a
+   control: that control cannot be trusted in this frame). A rigid motion
+   that keeps 3 non-collinear points in place is the identity, so when the
+   layout itself is symmetric (a rectangle, an isosceles triangle) fewer
+   than 3 pairs are shared and :class:`CorrespondenceError` is raised naming
+   the controls whose assignment is ambiguous.
 
 Tolerance: ``tolerance_mm`` (default 0.5 mm) bounds the disagreement of a
 camera distance with the CMM distance, and each point's residual after the
@@ -75,8 +79,10 @@ def match_control_points(
 
     Returns the correspondence with pairs in the order of ``control_ids``;
     camera points left over and controls not seen are listed as unmatched.
-    Raises CorrespondenceError when fewer than 3 controls can be matched or
-    when the match is not unique (symmetric layout).
+    Raises CorrespondenceError when fewer than 3 controls can be matched,
+    when the match is not unique (symmetric layout) or when the camera points
+    fit the controls only as a mirror image. Controls whose camera point is
+    contested by a stray within the tolerance are left unmatched.
     """
     C = np.asarray(camera_xyz, dtype=np.float64).reshape(-1, 3)
     G = np.asarray(control_xyz, dtype=np.float64).reshape(-1, 3)
@@ -148,10 +154,17 @@ def match_control_points(
         )
     if not verified:
         raise CorrespondenceError(_none_found(n, m, tol))
+    chosen = set(verified[0])
     if len(verified) > 1:
-        raise CorrespondenceError(_ambiguity(verified, ids, m))
+        # Pairs common to every best assignment are certain; the others are contested
+        # (a stray point within the tolerance of a control). A rigid motion that keeps
+        # 3 non-collinear points in place is the identity, so a symmetric layout
+        # leaves fewer than 3 common pairs: then nothing is certain.
+        chosen = set.intersection(*(set(v) for v in verified))
+        if len(chosen) < 3:
+            raise CorrespondenceError(_ambiguity(verified, ids, m))
 
-    nodes = sorted(verified[0], key=lambda node: node % m)  # control order
+    nodes = sorted(chosen, key=lambda node: node % m)  # control order
     camera_index = [node // m for node in nodes]
     matched_controls = [ids[node % m] for node in nodes]
     return Correspondence(

@@ -121,11 +121,22 @@ def test_mirrored_camera_points_are_an_error():
         match_control_points(mirrored, G, IDS)
 
 
-def test_stray_point_at_a_control_position_is_ambiguous():
+def test_stray_point_at_a_control_position_leaves_that_control_out():
+    """Two camera points within the tolerance of C3: C3 is contested, the other 7 are certain."""
     rng, G, camera_controls, extra = scene(105)
-    points = np.vstack([camera_controls, camera_controls[2] + [0.2, 0.0, 0.0]])
-    with pytest.raises(CorrespondenceError, match="ambiguous.*C3"):
-        match_control_points(points, G, IDS)
+    points = np.vstack([camera_controls, camera_controls[2] + [0.2, 0.0, 0.0], extra[:3]])
+    corr = match_control_points(points, G, IDS)
+    assert as_dict(corr) == {cid: k for k, cid in enumerate(IDS) if cid != "C3"}
+    assert corr.unmatched_control == ("C3",)
+    assert {2, 8} <= set(corr.unmatched_camera)
+
+
+def test_stray_points_at_too_many_controls_is_an_error():
+    """Only three controls, one contested: fewer than 3 certain pairs remain."""
+    rng, G, camera_controls, extra = scene(108)
+    points = np.vstack([camera_controls[:3], camera_controls[0] + [0.0, 0.15, 0.0]])
+    with pytest.raises(CorrespondenceError, match="ambiguous.*C1"):
+        match_control_points(points, G[:3], IDS[:3])
 
 
 def test_unrelated_points_are_an_error():
