@@ -17,11 +17,13 @@ Steps (all full-frame work is on integer data; nothing full-frame is float):
    OpenCV 5 this is several times faster than ``connectedComponentsWithStats``
    on a 2-Mpixel frame; each contour, filled, is one blob.
 4. Per blob, in an ROI = bounding box + ``dilate_px`` + ``ring_px``:
-   rejection tests (border, area, saturation, roundness), then the masks the
-   centroid plugins need: ``window`` (blob dilated by ``dilate_px`` to take in
-   the blurred edge below the threshold, minus other blobs' pixels) and the
+   rejection tests (border, area, saturation), then the masks the centroid
+   plugins need: ``window`` (blob dilated by ``dilate_px`` to take in the
+   blurred edge below the threshold, minus other blobs' pixels) and the
    background ``ring`` (the rest of the ROI, minus any pixel above the
-   threshold); the local background is the mean of the ring.
+   threshold); the local background is the mean of the ring. The raw
+   moments of the image over the window and of the window itself give the
+   background-subtracted second moments, hence the roundness test.
 
 Pixel coordinates: (0, 0) is the centre of the top-left pixel (OpenCV), u to
 the right (column), v down (row).
@@ -38,7 +40,7 @@ import numpy as np
 from pipeline.types import RejectedBlob
 
 #: Rejection reasons, in the order the tests are applied.
-REASONS: tuple[str, ...] = ("touches_border", "too_small", "too_large", "saturated", "not_round")
+REASONS: tuple[str, ...] = ("touches_border", "too_small", "too_large", "saturated", "no_signal", "not_round")
 
 _IQR_TO_SIGMA = 1.0 / 1.3489795  # IQR of a unit Gaussian
 _QUANTISATION_SIGMA = 1.0 / math.sqrt(12.0)  # noise floor: 1-DN rounding
@@ -63,13 +65,15 @@ class Blob:
     window: (h, w) uint8 0/1, component dilated by ``dilate_px``, minus the
     pixels of other blobs: where the sub-pixel estimators may look.
     window_count: pixels in ``window``. window_moments: ``cv2.moments`` of the
-    raw image (DN, not background-subtracted) times ``window``, ROI coordinates.
+    raw image (DN, not background-subtracted) times ``window``; mask_moments:
+    ``cv2.moments`` of ``window``; both in ROI coordinates.
     background_dn: local background (mean of the ring), DN.
     ring_count: number of ring pixels the background is the mean of.
     area_px: pixels in ``component``. roundness: minor/major axis ratio from
-    the second moments of the blob's outer contour polygon. peak_dn: highest raw value in the
-    component minus ``background_dn``. saturated: a component pixel is at
-    the saturation level. uv: binary centroid (u, v) of the component, px.
+    the second central moments of the background-subtracted intensity over
+    the window. peak_dn: highest raw value in the component minus
+    ``background_dn``. saturated: a component pixel is at the saturation
+    level. uv: intensity-weighted centroid (u, v), image pixels.
     """
 
     x0: int
@@ -79,6 +83,7 @@ class Blob:
     window: np.ndarray
     window_count: int
     window_moments: dict
+    mask_moments: dict
     background_dn: float
     ring_count: int
     area_px: int
@@ -182,65 +187,52 @@ class BlobDetector:
         height, width = image.shape
         margin = opts.dilate_px + opts.ring_px
         sat = opts.saturation_dn
+        min_area, max_area, min_roundness = opts.min_area_px, opts.max_area_px, opts.min_roundness
+        reject_border, reject_saturated = opts.reject_border, opts.reject_saturated
+        kernel = self._kernel
         blobs: list[Blob] = []
         rejected: list[RejectedBlob] = []
         for contour in contours:
             x, y, w, h = cv2.boundingRect(contour)
-            if opts.reject_border and (x == 0 or y == 0 or x + w == width or y + h == height):
-                rejected.append(RejectedBlob((x + (w - 1) / 2, y + (h - 1) / 2), "touches_border"))
+            box_uv = (x + (w - 1) / 2, y + (h - 1) / 2)
+            if reject_border and (x == 0 or y == 0 or x + w == width or y + h == height):
+                rejected.append(RejectedBlob(box_uv, "touches_border"))
                 continue
-            if w * h < opts.min_area_px:  # fewer pixels than its box: surely too small
-                rejected.append(RejectedBlob((x + (w - 1) / 2, y + (h - 1) / 2), "too_small"))
+            if w * h < min_area:  # fewer pixels than its box: surely too small
+                rejected.append(RejectedBlob(box_uv, "too_small"))
                 continue
             x0, y0 = max(x - margin, 0), max(y - margin, 0)
             x1, y1 = min(x + w + margin, width), min(y + h + margin, height)
             component = np.zeros((y1 - y0, x1 - x0), np.uint8)
             cv2.drawContours(component, (contour,), -1, 1, thickness=-1, offset=(-x0, -y0))
             area = cv2.countNonZero(component)
-            # Shape from the contour polygon's moments (Green's theorem; cheaper
-            # than the pixel moments, the same to a fraction of a pixel in size).
-            m = cv2.moments(contour)
-            if m["m00"] > 0:
-                uv = (m["m10"] / m["m00"], m["m01"] / m["m00"])
-            else:  # a one-pixel-wide blob: its polygon has no area
-                uv = (x + (w - 1) / 2, y + (h - 1) / 2)
-            if area < opts.min_area_px:
-                rejected.append(RejectedBlob(uv, "too_small"))
+            if area < min_area:
+                rejected.append(RejectedBlob(box_uv, "too_small"))
                 continue
-            if area > opts.max_area_px:
-                rejected.append(RejectedBlob(uv, "too_large"))
+            if area > max_area:
+                rejected.append(RejectedBlob(box_uv, "too_large"))
                 continue
             roi = image[y0:y1, x0:x1]
             mask_roi = mask[y0:y1, x0:x1]
             # Pixels of other blobs in this ROI (above the threshold, outside
-            # the contour); usually none, which allows the short path below.
+            # the contour); usually none, which allows the short paths below.
             others = cv2.countNonZero(cv2.subtract(mask_roi, component))
             if others:
-                _, max_value, _, _ = cv2.minMaxLoc(roi, component)
+                max_value = cv2.minMaxLoc(roi, component)[1]
             else:  # everything outside the blob is below the threshold
                 max_value = float(roi.max())
             saturated = max_value >= sat
-            if saturated and opts.reject_saturated:
-                rejected.append(RejectedBlob(uv, "saturated"))
+            if saturated and reject_saturated:
+                rejected.append(RejectedBlob(box_uv, "saturated"))
                 continue
-            # Second central moments -> axis ratio (eigenvalues of the 2x2
-            # covariance; axes scale with the square roots).
-            a, b, c = m["mu20"], m["mu11"], m["mu02"]
-            root = math.sqrt((a - c) ** 2 + 4.0 * b * b)
-            major, minor = a + c + root, a + c - root
-            roundness = math.sqrt(max(minor, 0.0) / major) if major > 0 else 0.0
-            if roundness < opts.min_roundness:
-                rejected.append(RejectedBlob(uv, "not_round"))
-                continue
-            dilated = cv2.dilate(component, self._kernel) if self._kernel is not None else component
-            if others:
-                window = cv2.bitwise_or(cv2.subtract(dilated, mask_roi), component)
-            else:
-                window = dilated
-            # Raw intensity moments over the window (float32 product is exact
-            # for integer DN; cv2.moments accumulates in double).
-            raw = cv2.moments(cv2.multiply(roi, window, dtype=cv2.CV_32F))
-            window_count = cv2.countNonZero(window)
+            dilated = cv2.dilate(component, kernel) if kernel is not None else component
+            window = cv2.bitwise_or(cv2.subtract(dilated, mask_roi), component) if others else dilated
+            # Raw intensity moments M over the window (the float32 product is
+            # exact for integer DN; cv2.moments accumulates in double) and the
+            # moments N of the window mask: sum(u^p v^q (I - b)) = M_pq - b N_pq.
+            M = cv2.moments(cv2.multiply(roi, window, dtype=cv2.CV_32F))
+            N = cv2.moments(window)  # 0/1 mask: as binaryImage=True, faster
+            window_count = int(N["m00"])
             if others:
                 ring = cv2.bitwise_or(dilated, mask_roi)
                 cv2.bitwise_xor(ring, 1, dst=ring)  # 1 where neither blob, nor dilation, nor other blob
@@ -248,11 +240,29 @@ class BlobDetector:
                 ring_sum = cv2.mean(roi, ring)[0] * ring_count
             else:  # ring = ROI minus window: sums by difference
                 ring_count = roi.size - window_count
-                ring_sum = cv2.sumElems(roi)[0] - raw["m00"]
-            local = ring_sum / ring_count if ring_count else background.level_dn
+                ring_sum = cv2.sumElems(roi)[0] - M["m00"]
+            b = ring_sum / ring_count if ring_count else background.level_dn
+            total = M["m00"] - b * N["m00"]
+            if not total > 0:
+                rejected.append(RejectedBlob(box_uv, "no_signal"))
+                continue
+            su, sv = M["m10"] - b * N["m10"], M["m01"] - b * N["m01"]
+            uc, vc = su / total, sv / total
+            uv = (x0 + uc, y0 + vc)
+            # Second central moments of the background-subtracted intensity ->
+            # axis ratio (eigenvalues of the 2x2 covariance; axes ~ square roots).
+            c20 = M["m20"] - b * N["m20"] - uc * su
+            c02 = M["m02"] - b * N["m02"] - vc * sv
+            c11 = M["m11"] - b * N["m11"] - uc * sv
+            root = math.sqrt((c20 - c02) ** 2 + 4.0 * c11 * c11)
+            major, minor = c20 + c02 + root, c20 + c02 - root
+            roundness = math.sqrt(max(minor, 0.0) / major) if major > 0 else 0.0
+            if roundness < min_roundness:
+                rejected.append(RejectedBlob(uv, "not_round"))
+                continue
             blobs.append(
-                Blob(x0, y0, roi, component, window, window_count, raw, local, ring_count, int(area),
-                     roundness, float(max_value - local), bool(saturated), uv)
+                Blob(x0, y0, roi, component, window, window_count, M, N, b, ring_count, int(area),
+                     roundness, float(max_value - b), bool(saturated), uv)
             )
         return blobs, rejected, background
 

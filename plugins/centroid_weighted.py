@@ -52,8 +52,7 @@ def weighted_centroid(blob: Blob, background: Background, gain_e_per_dn: float) 
     w_i = I_i - b are taken from the raw moments M of I over W and the
     moments N of W itself (ROI coordinates): sum(u^p w) = M_p - b N_p.
     """
-    M = blob.window_moments
-    N = cv2.moments(blob.window)  # 0/1 mask: same as binaryImage=True, faster
+    M, N = blob.window_moments, blob.mask_moments
     b = blob.background_dn
     total = M["m00"] - b * N["m00"]  # S = sum(w_i)
     if not total > 0:
