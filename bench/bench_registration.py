@@ -45,14 +45,17 @@ def scene(rng: np.random.Generator, n_extra: int):
     controls_c = np.column_stack([rng.uniform(-80, 80, 8), rng.uniform(-20, 70, 8), rng.uniform(382, 418, 8)])
     R = Rotation.random(random_state=rng).as_matrix()
     t = rng.uniform(-800, 800, 3)
-    extra = np.column_stack([rng.uniform(-80, 80, n_extra), rng.uniform(-20, 70, n_extra), rng.uniform(380, 420, n_extra)])
+    extra = np.column_stack(
+        [rng.uniform(-80, 80, n_extra), rng.uniform(-20, 70, n_extra), rng.uniform(380, 420, n_extra)]
+    )
     camera = np.vstack([controls_c, extra]) + rng.normal(0, 0.05, (8 + n_extra, 3))
     return camera[rng.permutation(len(camera))], controls_c @ R.T + t
 
 
 def report(label: str, seconds: list[float]) -> None:
     ms = np.array(seconds) * 1e3
-    print(f"{label:52s} median {np.median(ms):7.3f} ms   p90 {np.percentile(ms, 90):7.3f}   max {ms.max():7.3f}")
+    p90 = np.percentile(ms, 90)
+    print(f"{label:52s} median {np.median(ms):7.3f} ms   p90 {p90:7.3f}   max {ms.max():7.3f}")
 
 
 def main() -> None:
@@ -87,7 +90,9 @@ def main() -> None:
              for _ in range(20)]
     report("fit_cylinder_axis: 12 probes (once per session)", times)
     line = np.outer(np.linspace(-40, 40, 8), d)
-    times = [best_of(lambda: fit_line(line + rng.normal(0, 0.01, line.shape)), args.repeat) for _ in range(50)]
+    times = [
+        best_of(lambda: fit_line(line + rng.normal(0, 0.01, line.shape)), args.repeat) for _ in range(50)
+    ]
     report("fit_line: 8 probes", times)
 
 

@@ -147,13 +147,23 @@ def _circle_fit_2d(xy: np.ndarray) -> tuple[np.ndarray, float]:
     return centre, float(np.sqrt(max(r2, 0.0)))
 
 
+def _tilted(d0: np.ndarray, e1: np.ndarray, e2: np.ndarray, a: float, b: float) -> np.ndarray:
+    """Unit d0 turned by the angle theta = |(a, b)| towards a e1 + b e2 (exponential map;
+    to first order d0 + a e1 + b e2, and able to reach any direction, which a
+    normalised d0 + a e1 + b e2 cannot beyond 90 degrees)."""
+    theta = float(np.hypot(a, b))
+    if theta < 1e-12:
+        return d0 + a * e1 + b * e2
+    return np.cos(theta) * d0 + np.sin(theta) * (a * e1 + b * e2) / theta
+
+
 def _cylinder_residuals(params: np.ndarray, P: np.ndarray, origin: np.ndarray, d0: np.ndarray,
                         e1: np.ndarray, e2: np.ndarray) -> np.ndarray:
-    """d_i = |(p_i - x0) x a| - r with x0 = origin + x e1 + y e2, a ~ d0 + a e1 + b e2."""
+    """d_i = |(p_i - x0) x a| - r with x0 = origin + x e1 + y e2 and the axis direction
+    d0 turned by the angle |(a, b)| towards a e1 + b e2 (:func:`_tilted`)."""
     x, y, a, b, r = params
     axis_point = origin + x * e1 + y * e2
-    direction = d0 + a * e1 + b * e2
-    direction = direction / np.linalg.norm(direction)
+    direction = _tilted(d0, e1, e2, a, b)
     v = P - axis_point
     perp = v - np.outer(v @ direction, direction)
     return np.linalg.norm(perp, axis=1) - r
@@ -180,7 +190,8 @@ def fit_cylinder_axis(
     freedom) and the radius (Forbes 1989, sec. 7). Starts: each principal
     axis of the point scatter and the four diagonals between them (and first
     ``direction_hint`` if given), each with the circle fitted to the points
-    projected on the perpendicular plane. Of the converged solutions the best (smallest sum of squares) is returned, but when another start
+    projected on the perpendicular plane. Of the converged solutions the best
+    (smallest sum of squares) is returned, but when another start
     converged to a clearly different cylinder that fits about as well, the
     probe pattern cannot determine the axis and ValueError is raised
     (:func:`_check_unique_cylinder`). Probe at three or more heights, at
@@ -210,12 +221,21 @@ def fit_cylinder_axis(
         origin, e1, e2, r0 = _cylinder_from(d0, P)
         if not np.isfinite(r0) or r0 <= 0:
             continue
-        result = least_squares(
-            _cylinder_residuals, np.array([0.0, 0.0, 0.0, 0.0, r0]), args=(P, origin, d0, e1, e2),
-            method="lm", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=300,
-        )
-        if result.status > 0:  # converged (0: evaluation budget exhausted)
-            solutions.append((float(result.fun @ result.fun), result.x, origin, d0, e1, e2))
+        params = np.array([0.0, 0.0, 0.0, 0.0, r0])
+        for _ in range(8):
+            result = least_squares(
+                _cylinder_residuals, params, args=(P, origin, d0, e1, e2),
+                method="lm", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=60,
+            )
+            if result.status > 0:  # converged (0: evaluation budget used up)
+                solutions.append((float(result.fun @ result.fun), result.x, origin, d0, e1, e2))
+                break
+            # Re-centre the parametrisation on the current axis: after a large turn the
+            # axis point's offsets (x, y) include a slide along the axis, a flat direction
+            # that stalls Levenberg-Marquardt.
+            line, radius, e1, e2 = _axis_line(*result.x, origin, d0, e1, e2, P)
+            origin, d0 = line.point, line.direction
+            params = np.array([0.0, 0.0, 0.0, 0.0, radius])
     if not solutions:
         raise ValueError(f"cylinder fit: no start converged for these {len(P)} points (degenerate?)")
     best = min(solutions, key=lambda sol: sol[0])
@@ -231,7 +251,9 @@ def fit_cylinder_axis(
     )
     JtJ = J.T @ J
     if not np.isfinite(JtJ).all() or np.linalg.cond(JtJ) > 1e14:
-        raise ValueError(f"cylinder fit: the axis is undetermined by these {n} points (singular normal equations)")
+        raise ValueError(
+            f"cylinder fit: the axis is undetermined by these {n} points (singular normal equations)"
+        )
     full = sigma**2 * np.linalg.inv(JtJ)
     _check_unique_cylinder(solutions, best[0], sigma, line, radius, f1, f2, full, P)
     return AxisFit(
@@ -248,8 +270,7 @@ def fit_cylinder_axis(
 
 def _axis_line(x, y, a, b, r, origin, d0, e1, e2, P):
     """The solution as a Line3D with its point at the foot of the data centroid, radius, basis."""
-    direction = d0 + a * e1 + b * e2
-    direction = direction / np.linalg.norm(direction)
+    direction = _tilted(d0, e1, e2, a, b)
     axis_point = origin + x * e1 + y * e2
     foot = axis_point + ((P.mean(axis=0) - axis_point) @ direction) * direction
     line = Line3D(foot, direction)

@@ -79,7 +79,9 @@ class PlanMeasurer:
 
     def __init__(self, *, registration_uncertainty: bool = True):
         if not isinstance(registration_uncertainty, bool):
-            raise ValueError(f"registration_uncertainty must be true or false, got {registration_uncertainty!r}")
+            raise ValueError(
+                f"registration_uncertainty must be true or false, got {registration_uncertainty!r}"
+            )
         self.registration_uncertainty = registration_uncertainty
         self._lines_for: ReferenceData | None = None
         self._lines: dict[str, AxisFit | str] = {}
@@ -238,7 +240,8 @@ class PlanMeasurer:
             J = a.J_reg - b.J_reg  # shared registration: correlated, propagate the difference
             var = u @ (a.cov + b.cov + J @ C_reg @ J.T) @ u
             if truth is not None and spec.a in truth.points_global and spec.b in truth.points_global:
-                actual = float(np.linalg.norm(np.asarray(truth.points_global[spec.a]) - truth.points_global[spec.b]))
+                true_a, true_b = truth.points_global[spec.a], truth.points_global[spec.b]
+                actual = float(np.linalg.norm(np.asarray(true_a) - np.asarray(true_b)))
         elif spec.kind == "point_line":
             line = self.reference_line(plan, reference, spec.b)
             point_cov = a.cov + a.J_reg @ C_reg @ a.J_reg.T

@@ -65,7 +65,9 @@ class HornRegistrar:
     def __init__(self, *, reflection_ratio: float = REFLECTION_RATIO):
         self.reflection_ratio = check_ratio(reflection_ratio)
 
-    def fit(self, camera_xyz: np.ndarray, global_xyz: np.ndarray, weights: np.ndarray | None = None) -> RigidFit:
+    def fit(
+        self, camera_xyz: np.ndarray, global_xyz: np.ndarray, weights: np.ndarray | None = None
+    ) -> RigidFit:
         """R, t with ``global ~ R @ camera + t`` from (N, 3) mm corresponding points."""
         P, Q, w = validate_pairs(camera_xyz, global_xyz, weights)
         p_bar, q_bar = w @ P, w @ Q

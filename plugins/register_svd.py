@@ -50,7 +50,9 @@ class SvdRegistrar:
     def __init__(self, *, reflection_ratio: float = REFLECTION_RATIO):
         self.reflection_ratio = check_ratio(reflection_ratio)
 
-    def fit(self, camera_xyz: np.ndarray, global_xyz: np.ndarray, weights: np.ndarray | None = None) -> RigidFit:
+    def fit(
+        self, camera_xyz: np.ndarray, global_xyz: np.ndarray, weights: np.ndarray | None = None
+    ) -> RigidFit:
         """R, t with ``global ~ R @ camera + t`` from (N, 3) mm corresponding points.
 
         weights: (N,) non-negative per-point weights (e.g. 1 / variance), or None.

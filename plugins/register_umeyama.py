@@ -54,7 +54,9 @@ class UmeyamaRegistrar:
         self.with_scale = with_scale
         self.reflection_ratio = check_ratio(reflection_ratio)
 
-    def fit(self, camera_xyz: np.ndarray, global_xyz: np.ndarray, weights: np.ndarray | None = None) -> RigidFit:
+    def fit(
+        self, camera_xyz: np.ndarray, global_xyz: np.ndarray, weights: np.ndarray | None = None
+    ) -> RigidFit:
         """Transform with ``global ~ scale * R @ camera + t`` from (N, 3) mm pairs.
 
         weights: (N,) non-negative per-point weights or None. Residuals (N, 3) mm
@@ -86,7 +88,9 @@ class UmeyamaRegistrar:
             self.reflection_ratio,
             "umeyama",
         )
-        return RigidFit(R=R, t=t, residuals=residuals, rms_mm=residual_rms(residuals), method="umeyama", scale=c)
+        return RigidFit(
+            R=R, t=t, residuals=residuals, rms_mm=residual_rms(residuals), method="umeyama", scale=c
+        )
 
 
 @hookimpl

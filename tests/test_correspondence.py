@@ -16,12 +16,18 @@ def scene(seed: int, n_controls: int = 8, n_extra: int = 10):
     """Controls (global, mm), their camera-frame positions, and extra camera points."""
     rng = np.random.default_rng(seed)
     camera_controls = np.column_stack(
-        [rng.uniform(-80, 80, n_controls), rng.uniform(-20, 70, n_controls), rng.uniform(382, 418, n_controls)]
+        [
+            rng.uniform(-80, 80, n_controls),
+            rng.uniform(-20, 70, n_controls),
+            rng.uniform(382, 418, n_controls),
+        ]
     )
     R = Rotation.random(random_state=rng).as_matrix()
     t = rng.uniform(-800, 800, 3)
     global_controls = camera_controls @ R.T + t
-    extra = np.column_stack([rng.uniform(-80, 80, n_extra), rng.uniform(-20, 70, n_extra), rng.uniform(380, 420, n_extra)])
+    extra = np.column_stack(
+        [rng.uniform(-80, 80, n_extra), rng.uniform(-20, 70, n_extra), rng.uniform(380, 420, n_extra)]
+    )
     return rng, global_controls, camera_controls, extra
 
 

@@ -131,7 +131,8 @@ tolerance = 0.1
             xyz = xyz + rng.normal(0, 1, xyz.shape) * CAMERA_SIGMA
             xyz = xyz[rng.permutation(len(xyz))]
         n = len(xyz)
-        return CameraPoints(sequence, xyz, np.tile(CAMERA_SIGMA, (n, 1)), np.arange(n), np.arange(n), np.zeros(n))
+        sigma = np.tile(CAMERA_SIGMA, (n, 1))
+        return CameraPoints(sequence, xyz, sigma, np.arange(n), np.arange(n), np.zeros(n))
 
 
 def register(points: CameraPoints, reference: ReferenceData, plan) -> Registration:
@@ -156,7 +157,8 @@ def test_noise_free_station_measures_the_truth(fit):
     station = Station(fit)
     reference = station.reference()
     points = station.camera_points()
-    m = measurer().measure(station.plan, reference, points, register(points, reference, station.plan), station.truth)
+    registration = register(points, reference, station.plan)
+    m = measurer().measure(station.plan, reference, points, registration, station.truth)
     assert m.missing_targets == ()
     for tid in ("P1", "P2"):
         np.testing.assert_allclose(m.target_points[tid], station.points_g[tid], atol=1e-9)
@@ -199,7 +201,8 @@ def test_missing_and_ambiguous_targets():
     reference = station.reference()
     # P1 not seen; a second point 1 mm from P2 makes P2 ambiguous.
     points = station.camera_points(targets=("P2",), extra=([station.targets_c["P2"] + [1.0, 0, 0]],))
-    m = measurer().measure(station.plan, reference, points, register(points, reference, station.plan), station.truth)
+    registration = register(points, reference, station.plan)
+    m = measurer().measure(station.plan, reference, points, registration, station.truth)
     assert m.missing_targets == ("P1", "P2")
     assert dict(m.target_points) == {}
     assert set(by_name(m)) == {"C3-L3"}  # only the characteristic that needs no target
@@ -247,7 +250,8 @@ def test_uncertainty_agrees_with_monte_carlo():
     for k in range(150):
         reference = station.reference(rng)
         points = station.camera_points(k, rng)
-        m = impl.measure(station.plan, reference, points, register(points, reference, station.plan), station.truth)
+        registration = register(points, reference, station.plan)
+        m = impl.measure(station.plan, reference, points, registration, station.truth)
         for r in m.characteristics:
             errors.setdefault(r.name, []).append(r.error_mm)
             sigmas.setdefault(r.name, []).append(r.uncertainty_mm)
@@ -264,7 +268,9 @@ def test_registration_uncertainty_option():
     points = station.camera_points(rng=rng)
     registration = register(points, reference, station.plan)
     with_reg = by_name(measurer().measure(station.plan, reference, points, registration, None))
-    without = by_name(measurer(registration_uncertainty=False).measure(station.plan, reference, points, registration, None))
+    without = by_name(
+        measurer(registration_uncertainty=False).measure(station.plan, reference, points, registration, None)
+    )
     assert with_reg["P1-R1"].uncertainty_mm > without["P1-R1"].uncertainty_mm
     assert with_reg["C3-L3"].uncertainty_mm == pytest.approx(without["C3-L3"].uncertainty_mm)  # CMM only
     assert with_reg["P1-R1"].measured_mm == without["P1-R1"].measured_mm

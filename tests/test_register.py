@@ -113,7 +113,8 @@ def test_coplanar_points_with_noise_are_not_called_mirrored(name):
         flips += np.linalg.det(Vt.T @ U.T) < 0
         fit = make(name).fit(camera_noisy, global_)
         assert np.linalg.det(fit.R) == pytest.approx(1.0)
-        assert Rotation.from_matrix(fit.R @ R.T).magnitude() < 5e-3  # a wrongly flipped fit would be off by ~pi
+        # A wrongly flipped fit would be off by ~pi.
+        assert Rotation.from_matrix(fit.R @ R.T).magnitude() < 5e-3
     assert flips > 20  # the test does exercise the determinant correction
 
 
