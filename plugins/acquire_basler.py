@@ -548,16 +548,21 @@ class BaslerStereoSource:
         self._stop.clear()
         inbox = _Inbox()
         for role in CAMERAS:
-            self.cameras[role].instant.StartGrabbing(self.pylon.GrabStrategy_OneByOne)
-            self._readers[role] = _Reader(self.cameras[role], inbox)
+            camera = self.cameras[role]
+            # Block ids restart with every grab (stream) start, so the counter does too.
+            camera.counter = BlockCounter(camera.counter.modulus)
+            camera.instant.StartGrabbing(self.pylon.GrabStrategy_OneByOne)
+            self._readers[role] = _Reader(camera, inbox)
         for reader in self._readers.values():
             reader.start()
         try:
             pairs = self._software_pairs(inbox) if self.trigger == "software" else self._hardware_pairs(inbox)
+            delivered = 0
             for frame in pairs:
+                delivered += 1
                 self.pairs_delivered += 1
                 yield frame
-                if self.n_frames and self.pairs_delivered >= self.n_frames:
+                if self.n_frames and delivered >= self.n_frames:
                     return
         finally:
             self._stop_readers()
