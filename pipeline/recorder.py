@@ -96,6 +96,12 @@ JSON_SCHEMAS: dict[str, str] = {
 #: Message encoding of ``/cmm/raw`` (schema-less: the bytes as read).
 RAW_ENCODING = "application/octet-stream"
 
+#: Chunk compression by name. "none" is the default: lz4 costs ~9 ms and zstd
+#: ~11 ms of CPU per 4 MB image (ratio 0.68 and 0.44 on simulated 12-bit
+#: images), more than a 2-core station can spare at 60 pairs/s; compression
+#: pays only where the disk, not the CPU, is the limit.
+COMPRESSIONS = {"none": CompressionType.NONE, "lz4": CompressionType.LZ4, "zstd": CompressionType.ZSTD}
+
 #: Each image (4 MB for 1626 x 1236 mono16) is larger than this, so it closes
 #: its chunk: chunks stay small (crash safety) and the writer never re-grows a
 #: multi-image buffer (measured: 16 MiB chunks cost 2x the CPU of 1 MiB ones).
@@ -639,9 +645,9 @@ def _metadata_record(doc: Mapping[str, Any], flat: Mapping[str, Any] | None = No
 class _McapSink:
     """Owns the ``mcap`` Writer; every method is called from one thread."""
 
-    def __init__(self, stream: Any, chunk_size: int, flush_interval_s: float, library: str):
+    def __init__(self, stream: Any, chunk_size: int, flush_interval_s: float, library: str, compression: CompressionType):
         self.stream = stream
-        self.writer = Writer(stream, chunk_size=chunk_size, compression=CompressionType.NONE)
+        self.writer = Writer(stream, chunk_size=chunk_size, compression=compression)
         self.writer.start(profile="", library=library)
         self.schemas: dict[SchemaSpec, int] = {}
         self.channels: dict[ChannelSpec, int] = {}
@@ -699,7 +705,8 @@ class McapRecorder:
     the MCAP writer in a background thread (the hooks only build message
     bytes and queue them). queue_size: messages the queue holds before the
     hooks wait for the writer. flush_interval_s: longest time a message
-    stays in the open chunk.
+    stays in the open chunk. compression: chunk compression, one of
+    :data:`COMPRESSIONS` (lossless in every case).
 
     An error writing the file is raised as :class:`RecordingError` from the
     next hook call (and from :meth:`close`).
@@ -712,10 +719,13 @@ class McapRecorder:
         overwrite: bool = False,
         chunk_size: int = DEFAULT_CHUNK_SIZE,
         writer_thread: bool = True,
-        queue_size: int = 16,
+        queue_size: int = 8,
         flush_interval_s: float = 1.0,
+        compression: str = "none",
     ):
         self.path = Path(path)
+        if compression not in COMPRESSIONS:
+            raise ValueError(f"compression must be one of {', '.join(COMPRESSIONS)}, got {compression!r}")
         try:
             self._stream = open(self.path, "wb" if overwrite else "xb")
         except FileExistsError:
@@ -723,7 +733,7 @@ class McapRecorder:
         except OSError as exc:
             raise RecordingError(f"{self.path}: cannot create the recording: {exc.strerror}") from None
         library = f"crossfield/{_crossfield_version({})} {RECORDING_FORMAT} mcap-python/{metadata.version('mcap')}"
-        self._sink = _McapSink(self._stream, chunk_size, flush_interval_s, library)
+        self._sink = _McapSink(self._stream, chunk_size, flush_interval_s, library, COMPRESSIONS[compression])
         self._closed = False
         self._error: BaseException | None = None
         self._lock = threading.Lock()

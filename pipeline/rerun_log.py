@@ -10,7 +10,7 @@ MCAP recording; values in labels and scalars in mm)::
 
     world                          the global (CMM) frame
       camera                       upper camera frame; Transform3D = T_global_camera once registered
-        upper/image                Pinhole + Image (raw, 16-bit) + centroids (Points2D)
+        upper/image                Pinhole + Image (16-bit) + centroids (Points2D), blobs (rings), rejected
         lower                      Transform3D: the lower camera's pose in the upper frame (static)
           image                    Pinhole + Image + centroids
         points                     triangulated camera points (Points3D)
@@ -18,13 +18,19 @@ MCAP recording; values in labels and scalars in mm)::
       registration/controls        the control points used by the registration, labelled with |residual|
       targets                      measured target points (Points3D, labelled)
     registration/rms_mm            Scalars; registration/residual_mm/<control id>: Scalars
-    measurement/<characteristic>   Scalars: measured_mm, deviation_mm, error_mm (simulator)
+    measurement/deviation_mm/<characteristic>   Scalars (measured - nominal); likewise
+    measurement/error_mm/<characteristic>       (measured - simulator truth) and measured_mm
     log                            TextLog
     session, report                TextDocument (markdown)
 
 Timelines: ``frame`` (the stereo pair's sequence number) and
 ``capture_time`` (its timestamp). Session-level data (calibration,
 reference points, session facts, report) is static.
+
+Images: Rerun shows a 16-bit image over the full 0..65535 range, so a
+12-bit image would look black; the logged copy is scaled by
+2**(16 - bit_depth) (an exact bit shift: divide the values Rerun shows by
+16 for 12-bit DN). The MCAP recording keeps the raw values.
 
 Pixels: Rerun puts the centre of the top-left pixel at (0.5, 0.5)
 (rerun-io/rerun#3896), OpenCV at (0, 0); centroids and the pinholes'
@@ -90,7 +96,11 @@ def default_blueprint() -> rrb.Blueprint:
             ),
             rrb.Horizontal(
                 rrb.TimeSeriesView(origin=RMS.split("/")[0], name="Registration (mm)"),
-                rrb.TimeSeriesView(origin=MEASUREMENT, name="Characteristics (mm)"),
+                rrb.TimeSeriesView(
+                    origin=MEASUREMENT,
+                    contents=["$origin/deviation_mm/**", "$origin/error_mm/**"],
+                    name="Characteristics: deviation, error (mm)",
+                ),
                 rrb.Tabs(
                     rrb.TextDocumentView(origin=REPORT, name="Report"),
                     rrb.TextDocumentView(origin=SESSION, name="Session"),
@@ -146,15 +156,24 @@ class RerunLogger:
     """Observer plugin: logs the session into a Rerun recording saved at ``rrd_path``.
 
     image_every: log the images of every n-th stereo pair (1 = all, 0 = none;
-    the MCAP recording keeps every image regardless). application_id: the
-    Rerun application id.
+    the MCAP recording keeps every image regardless). scale_images: shift
+    images of ``bit_depth`` < 16 to the 16-bit range for display.
+    application_id: the Rerun application id.
     """
 
-    def __init__(self, rrd_path: str | Path, *, image_every: int = 1, application_id: str = APPLICATION_ID):
+    def __init__(
+        self,
+        rrd_path: str | Path,
+        *,
+        image_every: int = 1,
+        scale_images: bool = True,
+        application_id: str = APPLICATION_ID,
+    ):
         self.path = Path(rrd_path)
         if image_every < 0:
             raise ValueError(f"image_every must be >= 0, got {image_every}")
         self.image_every = int(image_every)
+        self.scale_images = bool(scale_images)
         self.rec = rr.RecordingStream(application_id)
         try:
             self.rec.save(self.path, default_blueprint=default_blueprint())
@@ -163,7 +182,6 @@ class RerunLogger:
         self._closed = False
         self._frame_times: dict[int, int] = {}
         self._reference: Any = None
-        self._characteristics: dict[str, Any] = {}
 
     # ---- time ----------------------------------------------------------
 
@@ -204,8 +222,12 @@ class RerunLogger:
             self._frame_times.pop(next(iter(self._frame_times)))
         if self.image_every and seq % self.image_every == 0:
             self._at_frame(seq, frame.timestamp_ns)
+            shift = 16 - int(frame.bit_depth)
             for camera in CAMERAS:
-                self.rec.log(IMAGE[camera], rr.Image(frame.image(camera)))
+                image = frame.image(camera)
+                if self.scale_images and image.dtype == np.uint16 and 0 < shift < 16:
+                    image = np.left_shift(image, shift)  # exact: DN * 2**shift
+                self.rec.log(IMAGE[camera], rr.Image(image))
 
     @hookimpl
     def on_reference(self, reference: Any) -> None:
@@ -225,13 +247,21 @@ class RerunLogger:
             cs = getattr(centroids, camera)
             uv = np.asarray(cs.uv, dtype=np.float64).reshape(-1, 2)
             keep = np.isfinite(uv).all(axis=1)
+            labels = [str(i) for i in np.flatnonzero(keep)]
             self.rec.log(
                 f"{IMAGE[camera]}/centroids",
-                rr.Points2D(
-                    uv[keep] + PIXEL_OFFSET,
-                    labels=[str(i) for i in np.flatnonzero(keep)],
+                rr.Points2D(uv[keep] + PIXEL_OFFSET, labels=labels, colors=_CENTROID_COLOUR, radii=rr.Radius.ui_points(1.5)),
+            )
+            # A ring around each blob (twice its equivalent radius) that leaves the target visible.
+            area = np.nan_to_num(np.asarray(cs.area_px, dtype=np.float64)[keep], nan=0.0)
+            ring = np.maximum(2.0 * np.sqrt(np.maximum(area, 0.0) / np.pi), 6.0)
+            self.rec.log(
+                f"{IMAGE[camera]}/blobs",
+                rr.Ellipses2D(
+                    centers=uv[keep] + PIXEL_OFFSET,
+                    half_sizes=np.column_stack([ring, ring]),
                     colors=_CENTROID_COLOUR,
-                    radii=rr.Radius.ui_points(4.0),
+                    line_radii=rr.Radius.ui_points(1.0),
                 ),
             )
             rejected = np.array([b.uv for b in cs.rejected], dtype=np.float64).reshape(-1, 2)
@@ -253,12 +283,7 @@ class RerunLogger:
         keep = _finite_rows(xyz)
         self.rec.log(
             CAMERA_POINTS,
-            rr.Points3D(
-                xyz[keep] * _M_PER_MM,
-                labels=[str(i) for i in np.flatnonzero(keep)],
-                colors=_CAMERA_POINT_COLOUR,
-                radii=0.0015,
-            ),
+            rr.Points3D(xyz[keep] * _M_PER_MM, colors=_CAMERA_POINT_COLOUR, radii=0.0015),
         )
 
     @hookimpl
@@ -297,12 +322,10 @@ class RerunLogger:
     def on_measurement(self, measurement: Any) -> None:
         self._at_frame(measurement.sequence)
         for c in measurement.characteristics:
-            self._characteristics[c.name] = c
-            base = f"{MEASUREMENT}/{_entity_part(c.name)}"
             for field in ("measured_mm", "deviation_mm", "error_mm"):
                 value = getattr(c, field)
                 if value is not None and math.isfinite(float(value)):
-                    self.rec.log(f"{base}/{field}", rr.Scalars(float(value)))
+                    self.rec.log(f"{MEASUREMENT}/{field}/{_entity_part(c.name)}", rr.Scalars(float(value)))
         ids = list(measurement.target_points)
         xyz = np.array([measurement.target_points[i] for i in ids], dtype=np.float64).reshape(-1, 3)
         keep = _finite_rows(xyz)

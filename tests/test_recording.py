@@ -740,6 +740,29 @@ def test_rerun_logger_writes_a_valid_recording(session):
     assert cols["/world/reference/points"]["Points3D:labels"][0] == synthetic.plan.probing_order()
     assert "Points3D:positions" in cols["/world/registration/controls"]
     assert "Scalars:scalars" in cols["/registration/rms_mm"]
-    assert "Scalars:scalars" in cols["/measurement/P1-L3/measured_mm"]
+    assert cols["/measurement/error_mm/P1-L3"]["Scalars:scalars"] == [[0.008], [0.008]]
+    # 12-bit images are shown scaled to 16 bits (an exact shift by 4).
+    shown = np.array(cols["/world/camera/upper/image"]["Image:buffer"][0][0], dtype=np.uint8).view("<u2")
+    assert np.array_equal(shown.reshape(SIZE[1], SIZE[0]), synthetic.frames[0].upper << 4)
     assert "TextDocument:text" in cols["/report"] and "TextLog:text" in cols["/log"]
     assert "PASS" in cols["/report"]["TextDocument:text"][0][0] or "FAIL" in cols["/report"]["TextDocument:text"][0][0]
+
+
+@pytest.mark.parametrize("compression", ["lz4", "zstd"])
+def test_compressed_chunks_stay_lossless(tmp_path, compression):
+    synthetic = Synthetic(tmp_path, seed=5)
+    path = tmp_path / f"{compression}.mcap"
+    recorder = McapRecorder(path, compression=compression)
+    pm = make_plugin_manager(builtins=False, extra=[recorder])
+    pm.hook.on_session_start(session=synthetic.info)
+    pm.hook.on_frame(frame=synthetic.frames[0])
+    recorder.close()
+    (m,) = messages(path, "/camera/lower/image")
+    assert np.array_equal(np.frombuffer(m.decoded.data, "<u2").reshape(SIZE[1], SIZE[0]), synthetic.frames[0].lower)
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    assert {c.compression for c in chunks} == {compression}
+    with pytest.raises(ValueError, match="compression"):
+        McapRecorder(tmp_path / "x.mcap", compression="gzip")
