@@ -65,7 +65,10 @@ class CharacteristicSummary:
     measured_mm: mean over the n frames that measured it; std_mm: their
     sample standard deviation (repeatability, 0 for n = 1);
     uncertainty_mm: standard uncertainty of the mean, the larger of
-    std/sqrt(n) and the mean per-frame propagated uncertainty / sqrt(n).
+    std/sqrt(n) and the mean per-frame propagated uncertainty. The latter is
+    *not* divided by sqrt(n): most of it comes from the CMM data (control
+    points, reference fits), imported once and shared by every frame, so it
+    does not average down. This is conservative for the camera part.
     """
 
     name: str
@@ -144,7 +147,7 @@ def summarise(frames: list[FrameResult] | tuple[FrameResult, ...], plan: Measure
         per_frame = [c.uncertainty_mm for c in results if c.uncertainty_mm is not None]
         u_candidates = [std / math.sqrt(n)] if n > 1 else []
         if per_frame:
-            u_candidates.append(float(np.mean(per_frame)) / math.sqrt(n))
+            u_candidates.append(float(np.mean(per_frame)))
         uncertainty = max(u_candidates) if u_candidates else None
         deviation = mean - spec.nominal_mm
         actual = results[0].actual_mm
