@@ -148,6 +148,8 @@ def with_overrides(
     """A copy of ``config`` with stage plugins replaced and ``stage.key=value``
     options set. Replacing a stage's plugin drops that stage's options (they
     belonged to the old implementation) unless given again."""
+    if not options and not any(plugins.values() if plugins else ()):
+        return config
     data = copy.deepcopy(config.to_dict())
     for stage, plugin in (plugins or {}).items():
         if plugin and plugin != data[stage]["plugin"]:
