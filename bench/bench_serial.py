@@ -66,7 +66,8 @@ def main() -> None:
     args = parser.parse_args()
     rng = np.random.default_rng(1)
     for baud in args.baud:
-        n = args.points if baud == 0 else max(10, min(args.points, baud // 400))  # ~0.25 s of line time per paced run
+        # paced runs: about 0.25 s of line time each
+        n = args.points if baud == 0 else max(10, min(args.points, baud // 400))
         plan = make_plan(n)
         probes = probes_from_points(plan.probing_order(), rng.uniform(-500, 500, (n, 3)), rng)
         runs = [one_run(plan, probes, baud or None) for _ in range(args.runs)]

@@ -150,19 +150,27 @@ class SerialTransport:
         import serial  # pyserial
 
         self.name = url
+        self._lost: str | None = None  # a disconnect seen after some bytes were read
         self._serial_exception = serial.SerialException
         self._serial = serial.serial_for_url(url, baudrate=baudrate, timeout=poll_s, write_timeout=poll_s)
 
     def read(self, max_bytes: int = 4096) -> bytes:
+        if self._lost is not None:
+            raise LinkLost(self._lost)
+        data = b""
         try:
             data = self._serial.read(1)
-            if data:
+            while data and len(data) < max_bytes:
+                # in_waiting is the byte count for a UART/pty, 1 for "some" on socket://
                 waiting = self._serial.in_waiting
-                if waiting:
-                    data += self._serial.read(min(waiting, max_bytes - 1))
+                if not waiting:
+                    break
+                data += self._serial.read(min(waiting, max_bytes - len(data)))
         except (self._serial_exception, OSError) as exc:
-            raise LinkLost(f"{self.name}: {exc}") from None
-        return bytes(data)
+            self._lost = f"{self.name}: {exc}"
+            if not data:
+                raise LinkLost(self._lost) from None
+        return bytes(data)  # the disconnect, if any, is raised by the next read
 
     def write(self, data: bytes) -> None:
         try:

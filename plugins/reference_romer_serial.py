@@ -1,12 +1,21 @@
 """Reference stage "romer-serial": CMM points from the arm's serial line.
 
-Reads CFP sentences (``pipeline.romer_protocol``, ``docs/serial-protocol.md``)
-from a pyserial port until every point of the plan's probing order has
-arrived, handing every raw byte to the recorder's sink before parsing.
-Points are labelled by their sequence number: the press with
+Reads points from a pyserial port (or any pyserial URL: ``socket://`` for
+TCP) until every point of the plan's probing order has arrived, handing
+every raw byte to the recorder's sink before parsing. Line formats
+(``docs/serial-protocol.md``): ``cfp`` (crossfield's CFP sentences, the
+default), ``pcdmis`` (PC-DMIS generic ``X..,Y..,Z..`` lines, mm or inch),
+``ippdme`` (I++ DME manual-point events over TCP).
+
+CFP points are labelled by their sequence number: the press with
 ``seq = first_seq + k`` is ``plan.probing_order()[k]``, so a lost or
 rejected line leaves a hole at its own label instead of shifting every
-later label onto the wrong element.
+later label onto the wrong element. Formats without a sequence number are
+labelled in arrival order.
+
+Production behaviour: a held probe button (a burst of repeats of one
+press) gives one point; points resent after a reconnect are recognised and
+dropped; a lost link is reopened until the idle timeout.
 """
 
 from __future__ import annotations
@@ -16,11 +25,11 @@ import time
 
 import numpy as np
 
+from pipeline.cmm_formats import FORMATS, UNITS, LineFormat
 from pipeline.errors import ReferenceImportError
 from pipeline.hookspecs import hookimpl
 from pipeline.plan import MeasurementPlan
 from pipeline.romer_protocol import (
-    CfpDecoder,
     Decoder,
     LineDecoder,
     LinkLost,
@@ -34,12 +43,44 @@ from pipeline.types import ProbedPoint, ReferenceData
 
 
 def _label_list(labels: list[str], indices: list[int], first_seq: int | None) -> str:
+    """'C3 (seq 3), R1 (seq 4)'; without first_seq: 'C3, R1'."""
     shown = []
     for k in indices[:12]:
         seq = f" (seq {first_seq + k})" if first_seq is not None else ""
         shown.append(f"{labels[k]}{seq}")
     more = f" and {len(indices) - 12} more" if len(indices) > 12 else ""
     return ", ".join(shown) + more
+
+
+def _lines(first: int, last: int) -> str:
+    return f"line {first}" if first == last else f"lines {first}-{last}"
+
+
+def _distance(a: ProbeRecord, b: ProbeRecord) -> float:
+    return math.dist(a.xyz, b.xyz)
+
+
+class _Run:
+    """Consecutive ignored repeats of one kind, reported as one problem."""
+
+    def __init__(self, kind: str, label: str, item: ProbeRecord):
+        self.kind, self.label = kind, label
+        self.first_line = self.last_line = item.line
+        self.count = 1
+        self.labels = [label]
+
+    def extend(self, label: str, item: ProbeRecord) -> None:
+        self.last_line = item.line
+        self.count += 1
+        if label not in self.labels:
+            self.labels.append(label)
+
+    def __str__(self) -> str:
+        where = _lines(self.first_line, self.last_line)
+        if self.kind == "held":
+            return f"{where}: held button: {self.count} repeat(s) of {self.label} ignored, first point kept"
+        shown = ", ".join(self.labels[:12]) + (" ..." if len(self.labels) > 12 else "")
+        return f"{where}: {self.count} resent point(s) already received ({shown}), ignored"
 
 
 class PointCollector:
@@ -49,19 +90,38 @@ class PointCollector:
     uncertainty (mm) given to every point. first_seq: the seq of the first
     planned press, or None to take it from the first valid point (refused
     if a sentence was rejected before it: its label would be unknown).
-    Records without a seq (formats that have none) are labelled in arrival
-    order.
+    burst_radius_mm: repeats of a press within this distance of its first
+    point are a held button (mm). numbered: the format has sequence
+    numbers (else labels are named without seq in messages).
+
+    With seq: a repeat of a received seq is *resent* if identical, *held*
+    if within ``burst_radius_mm``, else a conflict. Without seq (arrival
+    order): a point identical to a received one is *resent*; a point within
+    ``burst_radius_mm`` of the last accepted one is *held*. Either way the
+    first point is kept.
     """
 
-    def __init__(self, labels: list[str], sigma_mm: float, first_seq: int | None = 1):
+    def __init__(
+        self,
+        labels: list[str],
+        sigma_mm: float,
+        first_seq: int | None = 1,
+        burst_radius_mm: float = 0.5,
+        numbered: bool = True,
+    ):
         self.labels = list(labels)
+        self.numbered = numbered
         self.sigma_mm = float(sigma_mm)
         self.first_seq = first_seq
+        self.burst_radius_mm = float(burst_radius_mm)
         self.problems: list[str] = []
         self.points: list[ProbedPoint] = []
         self._records: dict[int, ProbeRecord] = {}  # label index -> record
+        self._by_content: dict[tuple, int] = {}  # (xyz, probe_vector) -> label index
+        self._last: tuple[int, ProbeRecord] | None = None  # last accepted (index, record)
         self._highest = -1  # highest label index received
         self._sentence_rejected_before_first = False
+        self._run: _Run | None = None
 
     @property
     def complete(self) -> bool:
@@ -71,48 +131,52 @@ class PointCollector:
 
     def add(self, item: ProbeRecord | Rejection) -> None:
         if isinstance(item, Rejection):
+            self._flush_run()
             self.problems.append(str(item))
             if not self._records and item.text.startswith(b"$"):
                 self._sentence_rejected_before_first = True
             return
         if item.seq is None:
-            index = len(self._records)
-            if index >= len(self.labels):
-                self._problem(item, f"point beyond the plan's {len(self.labels)} points, ignored")
-                return
+            self._add_unnumbered(item)
         else:
-            if self.first_seq is None:
-                if self._sentence_rejected_before_first:
-                    raise ReferenceImportError(
-                        f"line {item.line}: cannot label the points: a sentence was rejected before the "
-                        f"first valid point (seq {item.seq}), so its label is unknown; set the option "
-                        f"first_seq to the seq of the plan's first point ({self.labels[0]}). "
-                        f"Problems: {'; '.join(self.problems)}"
-                    )
-                self.first_seq = item.seq
-            index = item.seq - self.first_seq
-            if index < 0:
-                self._problem(item, f"seq {item.seq} is before first_seq {self.first_seq}, ignored")
-                return
-            if index >= len(self.labels):
-                self._problem(
-                    item,
-                    f"seq {item.seq} is beyond the plan's {len(self.labels)} points "
-                    f"(last is {self.labels[-1]} = seq {self.first_seq + len(self.labels) - 1}), ignored",
+            self._add_numbered(item)
+
+    def _add_numbered(self, item: ProbeRecord) -> None:
+        assert item.seq is not None
+        if self.first_seq is None:
+            if self._sentence_rejected_before_first:
+                raise ReferenceImportError(
+                    f"line {item.line}: cannot label the points: a sentence was rejected before the "
+                    f"first valid point (seq {item.seq}), so its label is unknown; set the option "
+                    f"first_seq to the seq of the plan's first point ({self.labels[0]}). "
+                    f"Problems: {'; '.join(self.problems)}"
                 )
-                return
+            self.first_seq = item.seq
+        index = item.seq - self.first_seq
+        if index < 0:
+            self._problem(item, f"seq {item.seq} is before first_seq {self.first_seq}, ignored")
+            return
+        if index >= len(self.labels):
+            self._problem(
+                item,
+                f"seq {item.seq} is beyond the plan's {len(self.labels)} points "
+                f"(last is {self.labels[-1]} = seq {self.first_seq + len(self.labels) - 1}), ignored",
+            )
+            return
         if index in self._records:
             first = self._records[index]
             if item.same_point(first):
-                self._problem(item, f"duplicate of seq {item.seq} (line {first.line}), ignored")
+                self._repeat("resent", index, item)
+            elif _distance(item, first) <= self.burst_radius_mm:
+                self._repeat("held", index, item)
             else:
                 self._problem(
                     item,
-                    f"seq {item.seq} repeated with different data (first on line {first.line}, "
-                    f"kept as {self.labels[index]}), ignored",
+                    f"seq {item.seq} repeated {_distance(item, first):.3f} mm away from its first point "
+                    f"(line {first.line}, kept as {self.labels[index]}), ignored",
                 )
             return
-        if index > self._highest + 1 and item.seq is not None:
+        if index > self._highest + 1:
             lost = list(range(self._highest + 1, index))
             self._problem(
                 item,
@@ -122,20 +186,59 @@ class PointCollector:
         elif index < self._highest:
             after = self.first_seq + self._highest
             self._problem(item, f"seq {item.seq} arrived out of order (after seq {after})")
+        self._accept(index, item)
+
+    def _add_unnumbered(self, item: ProbeRecord) -> None:
+        known = self._by_content.get((item.xyz, item.probe_vector))
+        if known is not None:
+            self._repeat("resent", known, item)
+            return
+        if self._last is not None and _distance(item, self._last[1]) <= self.burst_radius_mm:
+            self._repeat("held", self._last[0], item)
+            return
+        index = len(self._records)
+        if index >= len(self.labels):
+            self._problem(item, f"point beyond the plan's {len(self.labels)} points, ignored")
+            return
+        self._accept(index, item)
+
+    def _accept(self, index: int, item: ProbeRecord) -> None:
+        self._flush_run()
         self._records[index] = item
+        self._by_content.setdefault((item.xyz, item.probe_vector), index)
+        self._last = (index, item)
         self._highest = max(self._highest, index)
         self.points.append(self._point(self.labels[index], item))
+
+    def _repeat(self, kind: str, index: int, item: ProbeRecord) -> None:
+        label = self.labels[index]
+        run = self._run
+        if run is not None and run.kind == kind and (kind == "resent" or run.label == label):
+            run.extend(label, item)
+        else:
+            self._flush_run()
+            self._run = _Run(kind, label, item)
+
+    def _flush_run(self) -> None:
+        if self._run is not None:
+            self.problems.append(str(self._run))
+            self._run = None
+
+    @property
+    def _seq_base(self) -> int | None:
+        return self.first_seq if self.numbered else None
 
     def missing(self) -> list[int]:
         """Label indices without a point."""
         return [k for k in range(len(self.labels)) if k not in self._records]
 
     def finish(self) -> None:
-        """Add a problem naming the holes left in the probing order."""
+        """Report a pending run and the holes left in the probing order."""
+        self._flush_run()
         holes = [k for k in self.missing() if k < self._highest]
         if holes:
             self.problems.append(
-                f"no valid point for {len(holes)} label(s): {_label_list(self.labels, holes, self.first_seq)}"
+                f"no valid point for {len(holes)} label(s): {_label_list(self.labels, holes, self._seq_base)}"
             )
 
     def result(self, source: str) -> ReferenceData:
@@ -146,7 +249,7 @@ class PointCollector:
         missing = self.missing()
         text = f"{len(self._records)} of {len(self.labels)} points arrived"
         if missing:
-            text += f" (missing {_label_list(self.labels, missing, self.first_seq)})"
+            text += f" (missing {_label_list(self.labels, missing, self._seq_base)})"
         if self.problems:
             text += "; problems: " + "; ".join(self.problems[:10])
             if len(self.problems) > 10:
@@ -154,6 +257,7 @@ class PointCollector:
         return text
 
     def _problem(self, item: ProbeRecord, reason: str) -> None:
+        self._flush_run()
         self.problems.append(str(Rejection(item.line, reason, item.text)))
 
     def _point(self, label: str, record: ProbeRecord) -> ProbedPoint:
@@ -168,18 +272,30 @@ class PointCollector:
         )
 
 
+def _positive(value, name: str, unit: str) -> float:
+    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if not (number and math.isfinite(value) and value > 0):
+        raise ValueError(f"option {name!r} must be a positive number of {unit}, got {value!r}")
+    return float(value)
+
+
 class RomerSerialReference:
-    """CMM points from a ROMER-style arm speaking CFP sentences over a serial line.
+    """CMM points from a ROMER-style arm over a serial line (or TCP).
 
     port: device path (``/dev/ttyUSB0``, ``COM3``, a pty) or pyserial URL
     (``socket://host:port``, ``rfc2217://host:port``).
     baudrate: line speed, bits per second (8N1).
     timeout_s: idle timeout in seconds. The import ends as soon as the plan's
     last point has arrived; if no new point arrives for ``timeout_s`` before
-    that, the import fails naming how many of how many points arrived.
+    that (the link may drop and come back meanwhile), the import fails
+    naming how many of how many points arrived.
     sigma_mm: stated standard uncertainty of each coordinate of the arm, mm.
     first_seq: seq number of the plan's first point (the arm counts presses
     from 1 each session); ``"auto"`` takes it from the first valid point.
+    format: ``"cfp"``, ``"pcdmis"`` or ``"ippdme"``.
+    units: ``"mm"`` or ``"inch"`` (``pcdmis`` only; converted to mm).
+    burst_radius_mm: repeats of one press within this distance are a held
+    button and give one point (mm).
     """
 
     def __init__(
@@ -190,37 +306,47 @@ class RomerSerialReference:
         timeout_s: float = 60.0,
         sigma_mm: float = 0.01,
         first_seq: int | str = 1,
+        format: str = "cfp",
+        units: str = "mm",
+        burst_radius_mm: float = 0.5,
     ):
         if not isinstance(port, str) or not port:
             raise ValueError(f"option 'port' must be a device path or pyserial URL, got {port!r}")
         if isinstance(baudrate, bool) or not isinstance(baudrate, int) or baudrate <= 0:
             raise ValueError(f"option 'baudrate' must be a positive integer, got {baudrate!r}")
-        if not (isinstance(timeout_s, (int, float)) and math.isfinite(timeout_s) and timeout_s > 0):
-            raise ValueError(f"option 'timeout_s' must be a positive number of seconds, got {timeout_s!r}")
-        if not (isinstance(sigma_mm, (int, float)) and math.isfinite(sigma_mm) and sigma_mm > 0):
-            raise ValueError(f"option 'sigma_mm' must be a positive number of mm, got {sigma_mm!r}")
         if first_seq is None or first_seq == "auto":
             first_seq = None
         elif isinstance(first_seq, bool) or not isinstance(first_seq, int) or first_seq < 0:
             raise ValueError(f"option 'first_seq' must be an integer >= 0 or \"auto\", got {first_seq!r}")
+        if format not in FORMATS:
+            raise ValueError(f"option 'format' must be one of {', '.join(FORMATS)}, got {format!r}")
+        if units not in UNITS:
+            raise ValueError(f"option 'units' must be one of {', '.join(UNITS)}, got {units!r}")
         self.port = port
         self.baudrate = baudrate
-        self.timeout_s = float(timeout_s)
-        self.sigma_mm = float(sigma_mm)
+        self.timeout_s = _positive(timeout_s, "timeout_s", "seconds")
+        self.sigma_mm = _positive(sigma_mm, "sigma_mm", "mm")
         self.first_seq = first_seq
+        self.format: LineFormat = FORMATS[format]
+        self.units = units
+        self.burst_radius_mm = _positive(burst_radius_mm, "burst_radius_mm", "mm")
+        try:
+            self.make_decoder()
+        except ValueError as exc:
+            raise ValueError(f"option 'units': {exc}") from None
 
-    # -- layers (override to swap one) -------------------------------------
+    # -- layers (override one to swap it) ------------------------------------
 
     def open_transport(self) -> Transport:
-        """Layer 1: open the port; errors name it."""
-        try:
-            return SerialTransport(self.port, baudrate=self.baudrate, poll_s=min(0.05, self.timeout_s))
-        except (OSError, ValueError) as exc:
-            raise ReferenceImportError(f"romer-serial: cannot open port {self.port!r}: {exc}") from None
+        """Layer 1: open the port (``OSError`` if it cannot)."""
+        return SerialTransport(self.port, baudrate=self.baudrate, poll_s=min(0.05, self.timeout_s))
+
+    def make_stream(self) -> LineDecoder:
+        """Layers 2 and 3: the format's framer and decoder."""
+        return LineDecoder(self.make_decoder(), self.format.framer())
 
     def make_decoder(self) -> Decoder:
-        """Layer 3: the sentence decoder."""
-        return CfpDecoder()
+        return self.format.decoder(self.units)
 
     # -- ReferenceSource ----------------------------------------------------
 
@@ -229,44 +355,87 @@ class RomerSerialReference:
         if not labels:
             name = plan.source or plan.name
             raise ReferenceImportError(f"romer-serial: plan {name!r} has nothing to probe")
-        return PointCollector(labels, self.sigma_mm, self.first_seq)
+        return PointCollector(
+            labels, self.sigma_mm, self.first_seq, self.burst_radius_mm, numbered=self.format.has_seq
+        )
 
     @staticmethod
     def _feed(collector: PointCollector, results: list[ProbeRecord | Rejection]) -> None:
         for item in results:
             collector.add(item)
 
+    def _connect(self) -> Transport:
+        """Open the port and start the format's session (I++ DME)."""
+        transport = self.open_transport()
+        if self.format.session:
+            try:
+                transport.write(self.format.session)
+            except LinkLost:
+                transport.close()
+                raise
+        return transport
+
+    def _close(self, transport: Transport) -> None:
+        if self.format.end:
+            try:
+                transport.write(self.format.end)
+            except LinkLost:
+                pass
+        transport.close()
+
     def acquire(self, plan: MeasurementPlan, sink: BytesSink) -> ReferenceData:
         """Read points until the plan's probing order is complete.
 
-        Every chunk read goes to ``sink`` before it is parsed. Raises
-        :class:`ReferenceImportError` if the port cannot be opened, is lost,
-        or stays without a new point for ``timeout_s`` before the plan's last
-        point arrived.
+        Every chunk read goes to ``sink`` before it is parsed. A lost link is
+        reopened (every 0.1 s) until the idle timeout. Raises
+        :class:`ReferenceImportError` if the port cannot be opened at the
+        start, or no new point arrives for ``timeout_s`` before the plan's
+        last point.
         """
         collector = self._collector(plan)
-        stream = LineDecoder(self.make_decoder())
-        transport = self.open_transport()
-        ended = ""
+        stream = self.make_stream()
         try:
-            last_progress = time.monotonic()
+            transport: Transport | None = self._connect()
+        except (OSError, ValueError, LinkLost) as exc:
+            raise ReferenceImportError(f"romer-serial: cannot open port {self.port!r}: {exc}") from None
+        ended = ""
+        lost = ""
+        last_progress = time.monotonic()
+        try:
             while not collector.complete:
+                idle = time.monotonic() - last_progress > self.timeout_s
+                if transport is None:
+                    if idle:
+                        ended = (
+                            f"lost the connection ({lost}) and it did not come back "
+                            f"within {self.timeout_s:g} s"
+                        )
+                        break
+                    time.sleep(0.1)
+                    try:
+                        transport = self._connect()
+                    except (OSError, ValueError, LinkLost):
+                        transport = None
+                    continue
                 try:
                     data = transport.read(4096)
                 except LinkLost as exc:
-                    ended = f"lost the connection ({exc})"
-                    break
+                    lost = str(exc)
+                    transport.close()
+                    transport = None
+                    continue
                 if data:
                     sink(data)
                     before = len(collector.points)
                     self._feed(collector, stream.feed(data))
                     if len(collector.points) > before:
                         last_progress = time.monotonic()
-                elif time.monotonic() - last_progress > self.timeout_s:
+                elif idle:
                     ended = f"no new point for {self.timeout_s:g} s"
                     break
         finally:
-            transport.close()
+            if transport is not None:
+                self._close(transport)
         self._feed(collector, stream.finish())
         collector.finish()
         if not collector.complete:
@@ -276,7 +445,7 @@ class RomerSerialReference:
     def decode(self, raw: bytes, plan: MeasurementPlan) -> ReferenceData:
         """Decode recorded bytes exactly as :meth:`acquire` did (replay)."""
         collector = self._collector(plan)
-        stream = LineDecoder(self.make_decoder())
+        stream = self.make_stream()
         self._feed(collector, stream.feed(bytes(raw)))
         self._feed(collector, stream.finish())
         collector.finish()
@@ -290,4 +459,8 @@ class RomerSerialReference:
 
 @hookimpl
 def register_references(register):
-    register("romer-serial", RomerSerialReference, "ROMER-style CMM arm over a serial line (CFP sentences)")
+    register(
+        "romer-serial",
+        RomerSerialReference,
+        "CMM arm over a serial line or TCP (CFP sentences, PC-DMIS generic lines, I++ DME events)",
+    )
