@@ -16,6 +16,9 @@ gives one line::
   hexadecimal digits. Check value: ``crc16(b"123456789") == 0x29B1``.
 
 Numbers are plain decimals (``-?digits[.digits]``): no exponent, no NaN.
+While the button is held the arm repeats the press's sentence with the
+same seq; when a reader (re)connects it resends the session's sentences
+(readers drop what they already have, by seq).
 
 Layers, each replaceable on its own:
 

@@ -125,8 +125,8 @@ class PointCollector:
 
     @property
     def complete(self) -> bool:
-        """The last planned point has arrived (earlier holes cannot be filled:
-        the arm does not resend) or every label has its point."""
+        """The last planned point has arrived (earlier holes are not waited
+        for) or every label has its point."""
         return self._highest == len(self.labels) - 1 or len(self._records) == len(self.labels)
 
     def add(self, item: ProbeRecord | Rejection) -> None:
