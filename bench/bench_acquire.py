@@ -71,7 +71,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--pairs", type=int, default=20, help="pairs per source per round")
     parser.add_argument("--rounds", type=int, default=5)
-    parser.add_argument("--frames-in-folder", type=int, default=5, help="distinct pairs the emulated cameras cycle through")
+    parser.add_argument(
+        "--frames-in-folder", type=int, default=5, help="distinct pairs the emulated cameras cycle through"
+    )
     args = parser.parse_args(argv)
 
     simulator_template = SimulatorSource(scenario="station", frames=args.frames_in_folder, seed=1)
@@ -89,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
             rates: dict[str, list[float]] = {"simulator": [], **{name: [] for name in sources}}
             for _ in range(args.rounds):
                 simulator = SimulatorSource(scenario="station", frames=args.pairs, seed=1)
-                simulator.scene.clean_images  # the noise-free images are computed once per scene, outside the timing
+                simulator.scene.clean_images  # noise-free images: computed once per scene, not timed
                 t0 = time.perf_counter()
                 n = take(simulator.frames(), args.pairs)
                 rates["simulator"].append(n / (time.perf_counter() - t0))

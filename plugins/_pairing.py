@@ -231,7 +231,7 @@ def pair_skew_ns(
     compares exposure times. Otherwise it is the difference of the host
     arrival times (which also contains transfer time differences).
     """
-    if previous is not None and upper.camera_ns and lower.camera_ns and previous[0].camera_ns and previous[1].camera_ns:
+    if previous is not None and all(f.camera_ns for f in (upper, lower, *previous)):
         du = upper.camera_ns - previous[0].camera_ns
         dl = lower.camera_ns - previous[1].camera_ns
         return du - dl, "camera clock"
@@ -288,8 +288,8 @@ class ArrivalPairer:
             dropped = older.popleft()
             self.incidents.add(
                 "no_partner", dropped.camera, dropped.index,
-                f"{dropped.camera} frame {dropped.index} (block {dropped.block_id}) has no partner: the other "
-                f"camera's next frame is {abs(skew) / 1e6:.3f} ms away by {basis} (max_skew_ms "
+                f"{dropped.camera} frame {dropped.index} (block {dropped.block_id}) has no partner: "
+                f"the other camera's next frame is {abs(skew) / 1e6:.3f} ms away by {basis} (max_skew_ms "
                 f"{self.max_skew_ns / 1e6:g}); dropped",
             )
         for queue in (upper, lower):
@@ -312,7 +312,7 @@ class ArrivalPairer:
                 if unseen:
                     self.incidents.add(
                         "counter_mismatch", now.camera, u.index,
-                        f"{now.camera}: the frame counter advanced by {now.block_id - before.block_id} since the "
-                        f"previous pair but {now.index - before.index} frames arrived: {unseen} frame(s) lost in "
-                        f"transport (this pair matches in time and is kept)",
+                        f"{now.camera}: the frame counter advanced by {now.block_id - before.block_id} "
+                        f"since the previous pair but {now.index - before.index} frames arrived: "
+                        f"{unseen} frame(s) lost in transport (this pair matches in time and is kept)",
                     )

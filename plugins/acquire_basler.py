@@ -65,7 +65,9 @@ def import_pylon():
     try:
         from pypylon import genicam, pylon
     except ImportError as exc:  # pragma: no cover - pypylon is installed in the dev venv
-        raise PluginError(f"acquire plugin 'basler' needs pypylon, which is not installed: {INSTALL_HINT} ({exc})") from None
+        raise PluginError(
+            f"acquire plugin 'basler' needs pypylon, which is not installed: {INSTALL_HINT} ({exc})"
+        ) from None
     return pylon, genicam
 
 
@@ -93,8 +95,8 @@ def select_device(devices: list[Any], wanted: str, role: str) -> Any:
         )
     if len(matches) > 1:
         raise ConfigError(
-            f"option {role!r}: {wanted!r} matches {len(matches)} cameras ({'; '.join(map(device_label, matches))}); "
-            f"use a serial number"
+            f"option {role!r}: {wanted!r} matches {len(matches)} cameras "
+            f"({'; '.join(map(device_label, matches))}); use a serial number"
         )
     return matches[0]
 
@@ -151,7 +153,9 @@ class _Camera:
                 node.Value = value
         except self.genicam.GenericException as exc:
             detail = str(exc).split(" : ")[0]
-            raise ConfigError(f"option {option!r}: cannot set {name} = {value!r} on the {self.name}: {detail}") from None
+            raise ConfigError(
+                f"option {option!r}: cannot set {name} = {value!r} on the {self.name}: {detail}"
+            ) from None
         self.features_set[name] = value
 
     def write_first(self, names: tuple[str, ...], value: Any, option: str) -> str:
@@ -237,8 +241,11 @@ class _Camera:
             "trigger_source": self.read("TriggerSource"),
             "trigger_activation": self.read("TriggerActivation"),
             "timestamp_tick_ns": self.tick_ns,
-            "camera_timestamps": "unknown (no frame yet)" if self.last_timestamp is None
-            else ("yes" if self.last_timestamp else "no (the camera reports 0; skew from host arrival times)"),
+            "camera_timestamps": (
+                "unknown (no frame yet)" if self.last_timestamp is None
+                else "yes" if self.last_timestamp
+                else "no (the camera reports 0; skew from host arrival times)"
+            ),
             "features_set": {k: v for k, v in self.features_set.items()},
         }
 
@@ -339,7 +346,7 @@ class _Reader(threading.Thread):
                 finally:
                     result.Release()
                 self.count += 1
-        except Exception as exc:  # noqa: BLE001 - reported through the inbox, the thread must not die silently
+        except Exception as exc:  # noqa: BLE001 - reported through the inbox; never die silently
             if not self.stop.is_set():
                 self.inbox.fail(f"{self.camera.name}: reading results failed: {type(exc).__name__}: {exc}")
 
@@ -383,7 +390,9 @@ def _features(value: Any, option: str) -> dict[str, Any]:
         raise ValueError(f"option {option!r} must be a table of GenICam feature = value, got {value!r}")
     for name, v in value.items():
         if not isinstance(v, (bool, int, float, str)):
-            raise ValueError(f"option {option!r}: feature {name!r} must be a bool, number or string, got {v!r}")
+            raise ValueError(
+                f"option {option!r}: feature {name!r} must be a bool, number or string, got {v!r}"
+            )
     return dict(value)
 
 
@@ -443,7 +452,9 @@ class BaslerStereoSource:
     ):
         for option, value in (("upper", upper), ("lower", lower)):
             if not isinstance(value, str) or not value:
-                raise ValueError(f"option {option!r} must be a camera serial number or user id, got {value!r}")
+                raise ValueError(
+                    f"option {option!r} must be a camera serial number or user id, got {value!r}"
+                )
         if upper == lower:
             raise ValueError(f"options 'upper' and 'lower' name the same camera {upper!r}")
         if isinstance(frames, bool) or not isinstance(frames, int) or frames < 0:
@@ -451,14 +462,18 @@ class BaslerStereoSource:
         if trigger not in TRIGGERS:
             raise ValueError(f"option 'trigger' must be one of {', '.join(TRIGGERS)}, got {trigger!r}")
         if pixel_format not in PIXEL_FORMAT_BITS:
-            raise ValueError(f"option 'pixel_format' must be one of {', '.join(PIXEL_FORMAT_BITS)}, got {pixel_format!r}")
-        if isinstance(bit_depth, bool) or not isinstance(bit_depth, int) or not 0 <= bit_depth <= PIXEL_FORMAT_BITS[pixel_format]:
             raise ValueError(
-                f"option 'bit_depth' must be 0 (from the pixel format) or 1..{PIXEL_FORMAT_BITS[pixel_format]} "
-                f"for {pixel_format}, got {bit_depth!r}"
+                f"option 'pixel_format' must be one of {', '.join(PIXEL_FORMAT_BITS)}, got {pixel_format!r}"
             )
-        if isinstance(max_consecutive_drops, bool) or not isinstance(max_consecutive_drops, int) or max_consecutive_drops < 0:
-            raise ValueError(f"option 'max_consecutive_drops' must be an integer >= 0, got {max_consecutive_drops!r}")
+        bits = PIXEL_FORMAT_BITS[pixel_format]
+        if isinstance(bit_depth, bool) or not isinstance(bit_depth, int) or not 0 <= bit_depth <= bits:
+            raise ValueError(
+                f"option 'bit_depth' must be 0 (from the pixel format) or 1..{bits} for {pixel_format}, "
+                f"got {bit_depth!r}"
+            )
+        drops = max_consecutive_drops
+        if isinstance(drops, bool) or not isinstance(drops, int) or drops < 0:
+            raise ValueError(f"option 'max_consecutive_drops' must be an integer >= 0, got {drops!r}")
         if isinstance(calibration, str):
             calibration_files = [calibration] if calibration else []
         elif isinstance(calibration, (list, tuple)) and all(isinstance(c, str) and c for c in calibration):
@@ -466,7 +481,9 @@ class BaslerStereoSource:
         else:
             calibration_files = []
         if not calibration_files:
-            raise ValueError(f"option 'calibration' must be a calibration file or a list of files, got {calibration!r}")
+            raise ValueError(
+                f"option 'calibration' must be a calibration file or a list of files, got {calibration!r}"
+            )
         self.n_frames = frames
         self.trigger = trigger
         self.trigger_source = trigger_source
@@ -495,14 +512,16 @@ class BaslerStereoSource:
         try:
             self._open(upper, lower, trigger_source, trigger_activation)
             sizes = [self.cameras[c].image_size() for c in CAMERAS]
-            self.calibration: StereoCalibration = read_stereo_calibration(self.calibration_files, image_sizes=sizes)
+            self.calibration: StereoCalibration = read_stereo_calibration(
+                self.calibration_files, image_sizes=sizes
+            )
             for camera, size in zip(CAMERAS, sizes):
                 want = self.calibration.camera(camera).image_size
                 if tuple(want) != tuple(size):
                     raise ConfigError(
-                        f"the {self.cameras[camera].name} delivers {size[0]}x{size[1]} px, the {camera} camera's "
-                        f"calibration ({self.calibration.source}) is for {want[0]}x{want[1]} px; set Width/Height "
-                        f"(option '{camera}_features') or use the matching calibration"
+                        f"the {self.cameras[camera].name} delivers {size[0]}x{size[1]} px, the {camera} "
+                        f"camera's calibration ({self.calibration.source}) is for {want[0]}x{want[1]} px; "
+                        f"set Width/Height (option '{camera}_features') or use the matching calibration"
                     )
         except BaseException:
             self.close()
@@ -513,14 +532,17 @@ class BaslerStereoSource:
     def _open(self, upper: str, lower: str, trigger_source: str, trigger_activation: str) -> None:
         pylon = self.pylon
         devices = list(pylon.TlFactory.GetInstance().EnumerateDevices())
-        infos = {"upper": select_device(devices, upper, "upper"), "lower": select_device(devices, lower, "lower")}
+        wanted = {"upper": upper, "lower": lower}
+        infos = {role: select_device(devices, wanted[role], role) for role in CAMERAS}
         if infos["upper"].GetFullName() == infos["lower"].GetFullName():
             raise ConfigError(f"options 'upper' ({upper!r}) and 'lower' ({lower!r}) select the same camera")
         for role in CAMERAS:
             try:
                 self.cameras[role] = _Camera(role, infos[role], pylon, self.genicam)
             except self.genicam.GenericException as exc:
-                raise PluginError(f"cannot open the {role} camera ({device_label(infos[role])}): {exc}") from None
+                raise PluginError(
+                    f"cannot open the {role} camera ({device_label(infos[role])}): {exc}"
+                ) from None
             self.cameras[role].configure(
                 pixel_format=self.pixel_format,
                 exposure_us=self.settings["exposure_us"],
@@ -579,7 +601,8 @@ class BaslerStereoSource:
 
     def _check_readers(self, inbox: _Inbox, sequence: int) -> bool:
         if inbox.errors:
-            self.incidents.add("stopped", "both", sequence, "; ".join(inbox.errors) + "; acquisition stopped", "error")
+            message = "; ".join(inbox.errors) + "; acquisition stopped"
+            self.incidents.add("stopped", "both", sequence, message, "error")
             return False
         return True
 
@@ -639,8 +662,8 @@ class BaslerStereoSource:
         else:
             self.incidents.add(
                 "late_frame", frame.camera, k,
-                f"{frame.camera} frame (block {frame.block_id}) of an earlier trigger arrived after its pair was "
-                f"given up, before trigger {k}; discarded",
+                f"{frame.camera} frame (block {frame.block_id}) of an earlier trigger arrived after its "
+                f"pair was given up, before trigger {k}; discarded",
             )
 
     def _ready_for_trigger(self, k: int) -> bool:
@@ -672,7 +695,8 @@ class BaslerStereoSource:
             if frame is None:
                 self.incidents.add(
                     "timeout", role, k,
-                    f"{role}: no frame within timeout_ms {self.timeout_ms:g} of trigger {k}; pair {k} dropped",
+                    f"{role}: no frame within timeout_ms {self.timeout_ms:g} of trigger {k}; "
+                    f"pair {k} dropped",
                 )
                 return None
             if frame.host_ns < trigger_ns:  # arrived before the trigger was sent (causality)
@@ -682,8 +706,8 @@ class BaslerStereoSource:
             if verdict == BlockCounter.STALE:
                 self.incidents.add(
                     "late_frame", role, k,
-                    f"{role}: frame with block {frame.block_id} belongs to an earlier trigger (trigger {k} expects "
-                    f"block {counter.expected}); discarded",
+                    f"{role}: frame with block {frame.block_id} belongs to an earlier trigger "
+                    f"(trigger {k} expects block {counter.expected}); discarded",
                 )
                 continue
             if not frame.ok:
@@ -695,8 +719,8 @@ class BaslerStereoSource:
             if verdict == BlockCounter.AHEAD:
                 self.incidents.add(
                     "counter_mismatch", role, k,
-                    f"{role}: frame of trigger {k} carries block {frame.block_id}, frames were lost before it "
-                    f"(counter resynchronised); pair {k} dropped",
+                    f"{role}: frame of trigger {k} carries block {frame.block_id}, frames were lost "
+                    f"before it (counter resynchronised); pair {k} dropped",
                 )
                 return None
             return frame
@@ -711,8 +735,8 @@ class BaslerStereoSource:
         if abs(skew_ns) > self.max_skew_ms * 1e6:
             self.incidents.add(
                 "skew", "both", k,
-                f"the frames of trigger {k} are {skew_ns / 1e6:+.3f} ms apart (upper - lower, {basis}), more than "
-                f"max_skew_ms {self.max_skew_ms:g}; pair {k} dropped",
+                f"the frames of trigger {k} are {skew_ns / 1e6:+.3f} ms apart (upper - lower, {basis}), "
+                f"more than max_skew_ms {self.max_skew_ms:g}; pair {k} dropped",
             )
             return None
         return upper, lower

@@ -105,7 +105,9 @@ class OpenCVStereoSource:
         backend: str = "any",
     ):
         if isinstance(frames, bool) or not isinstance(frames, int) or frames < 0:
-            raise ValueError(f"option 'frames' must be an integer >= 0 (0 = until a stream ends), got {frames!r}")
+            raise ValueError(
+                f"option 'frames' must be an integer >= 0 (0 = until a stream ends), got {frames!r}"
+            )
         if isinstance(bit_depth, bool) or not isinstance(bit_depth, int) or not 0 <= bit_depth <= 16:
             raise ValueError(f"option 'bit_depth' must be 0 (from the frames) or 1..16, got {bit_depth!r}")
         if isinstance(max_skew_ms, bool) or not isinstance(max_skew_ms, (int, float)) or not max_skew_ms > 0:
@@ -114,10 +116,14 @@ class OpenCVStereoSource:
             raise ValueError(f"option 'backend' must be one of {', '.join(BACKENDS)}, got {backend!r}")
         if isinstance(calibration, str) and calibration:
             files = [calibration]
-        elif isinstance(calibration, (list, tuple)) and calibration and all(isinstance(c, str) and c for c in calibration):
+        elif isinstance(calibration, (list, tuple)) and calibration and all(
+            isinstance(c, str) and c for c in calibration
+        ):
             files = list(calibration)
         else:
-            raise ValueError(f"option 'calibration' must be a calibration file or a list of files, got {calibration!r}")
+            raise ValueError(
+                f"option 'calibration' must be a calibration file or a list of files, got {calibration!r}"
+            )
         self.specs = {"upper": upper, "lower": lower}
         self.n_frames = frames
         self.bit_depth_option = bit_depth
@@ -143,8 +149,9 @@ class OpenCVStereoSource:
                 want = self.calibration.camera(camera).image_size
                 if size is not None and tuple(size) != tuple(want):
                     raise ConfigError(
-                        f"option {camera!r}: {self.specs[camera]!r} delivers {size[0]}x{size[1]} px, the {camera} "
-                        f"camera's calibration ({self.calibration.source}) is for {want[0]}x{want[1]} px"
+                        f"option {camera!r}: {self.specs[camera]!r} delivers {size[0]}x{size[1]} px, "
+                        f"the {camera} camera's calibration ({self.calibration.source}) is for "
+                        f"{want[0]}x{want[1]} px"
                     )
             self._description = {c: self._describe_capture(c) for c in CAMERAS}
         except BaseException:
@@ -155,7 +162,9 @@ class OpenCVStereoSource:
 
     def _open(self, camera: str, spec: int | str) -> cv2.VideoCapture:
         if isinstance(spec, bool) or not isinstance(spec, (int, str)) or spec == "":
-            raise ValueError(f"option {camera!r} must be a device index (integer) or a file/URL (string), got {spec!r}")
+            raise ValueError(
+                f"option {camera!r} must be a device index (integer) or a file/URL (string), got {spec!r}"
+            )
         api = BACKENDS[self.backend]
         if self.backend == "any" and isinstance(spec, str) and "%" in spec:
             # An image-sequence pattern: OpenCV's own reader (IMREAD_UNCHANGED). Left to
@@ -174,7 +183,9 @@ class OpenCVStereoSource:
             hint = ""
             if isinstance(spec, str) and "://" not in spec and "%" not in spec and not Path(spec).exists():
                 hint = ": file not found"
-            raise ConfigError(f"option {camera!r}: OpenCV cannot open {spec!r} (backend {self.backend}){hint}")
+            raise ConfigError(
+                f"option {camera!r}: OpenCV cannot open {spec!r} (backend {self.backend}){hint}"
+            )
         return capture
 
     def _reported_size(self, camera: str) -> tuple[int, int] | None:
@@ -210,20 +221,23 @@ class OpenCVStereoSource:
                 image = cv2.cvtColor(np.ascontiguousarray(bgr), cv2.COLOR_BGR2GRAY)
         if image.ndim != 2 or image.dtype not in (np.uint8, np.uint16):
             raise ConfigError(
-                f"{where}: unsupported frame (shape {image.shape}, {image.dtype}); expected 8- or 16-bit grey or BGR"
+                f"{where}: unsupported frame (shape {image.shape}, {image.dtype}); "
+                f"expected 8- or 16-bit grey or BGR"
             )
         natural = 8 if image.dtype == np.uint8 else 16
         if not self.bit_depth:
             self.bit_depth = natural
         elif self.bit_depth_option == 0 and natural != self.bit_depth:
             raise ConfigError(
-                f"{where}: {natural}-bit frame, earlier frames were {self.bit_depth}-bit; the two sources must "
-                f"deliver the same depth (or set the option 'bit_depth')"
+                f"{where}: {natural}-bit frame, earlier frames were {self.bit_depth}-bit; "
+                f"the two sources must deliver the same depth (or set the option 'bit_depth')"
             )
         if self.bit_depth < natural:
             peak = int(image.max())
             if peak >= 1 << self.bit_depth:
-                raise ConfigError(f"{where}: pixel value {peak} exceeds the {self.bit_depth}-bit range (option 'bit_depth')")
+                raise ConfigError(
+                    f"{where}: pixel value {peak} exceeds the {self.bit_depth}-bit range (option 'bit_depth')"
+                )
         want = self.calibration.camera(camera).image_size
         if (image.shape[1], image.shape[0]) != tuple(want):
             raise ConfigError(
@@ -254,7 +268,7 @@ class OpenCVStereoSource:
             for camera in need:
                 read = self._read(camera, self.frames_read[camera], host_ns) if grabbed[camera] else None
                 if read is None:
-                    self._stream_ended(camera, heads, need, grabbed)
+                    self._stream_ended(camera, heads, grabbed)
                     return
                 self.frames_read[camera] += 1
                 heads[camera] = read
@@ -268,9 +282,9 @@ class OpenCVStereoSource:
                     dropped = heads.pop(earlier)
                     self.incidents.add(
                         "skew", earlier, u.index,
-                        f"upper frame {u.index} ({u.pos_ms:.3f} ms) and lower frame {l.index} ({l.pos_ms:.3f} ms) "
-                        f"are {skew_ms:+.3f} ms apart, more than max_skew_ms {self.max_skew_ms:g}; the earlier "
-                        f"{earlier} frame {dropped.index} is dropped",
+                        f"upper frame {u.index} ({u.pos_ms:.3f} ms) and lower frame {l.index} "
+                        f"({l.pos_ms:.3f} ms) are {skew_ms:+.3f} ms apart, more than max_skew_ms "
+                        f"{self.max_skew_ms:g}; the earlier {earlier} frame {dropped.index} is dropped",
                     )
                     continue
             heads.clear()
@@ -283,14 +297,16 @@ class OpenCVStereoSource:
             self.pairs_delivered += 1
             yield StereoFrame(u.index, timestamp_ns, u.image, l.image, self.bit_depth)
 
-    def _stream_ended(self, camera: str, heads: dict[str, _Read], need: list[str], grabbed: dict[str, bool]) -> None:
+    def _stream_ended(self, camera: str, heads: dict[str, _Read], grabbed: dict[str, bool]) -> None:
         other = "lower" if camera == "upper" else "upper"
         other_has_more = other in heads or bool(grabbed.get(other))
         if other_has_more:
+            sequence = heads["upper"].index if "upper" in heads else self.frames_read["upper"]
             self.incidents.add(
-                "stream_ended", camera, heads["upper"].index if "upper" in heads else self.frames_read["upper"],
-                f"the {camera} source {self.specs[camera]!r} ended after {self.frames_read[camera]} frames while "
-                f"the {other} source still delivers (read {self.frames_read[other]}); acquisition stopped",
+                "stream_ended", camera, sequence,
+                f"the {camera} source {self.specs[camera]!r} ended after {self.frames_read[camera]} frames "
+                f"while the {other} source still delivers (read {self.frames_read[other]}); "
+                f"acquisition stopped",
             )
 
     # ---- control and record ------------------------------------------------------------------
@@ -306,7 +322,9 @@ class OpenCVStereoSource:
         elif self.timestamps_available:
             skew_check = f"CAP_PROP_POS_MSEC, max_skew_ms {self.max_skew_ms:g}"
         else:
-            skew_check = "unavailable: a source gives no timestamps (CAP_PROP_POS_MSEC = -1); pairs by read order only"
+            skew_check = (
+                "unavailable: a source gives no timestamps (CAP_PROP_POS_MSEC = -1); pairs by read order only"
+            )
         return {
             "source": "opencv",
             "opencv": cv2.__version__,
@@ -333,4 +351,7 @@ class OpenCVStereoSource:
 
 @hookimpl
 def register_acquires(register) -> None:
-    register("opencv", OpenCVStereoSource, "Two OpenCV VideoCapture sources (devices, video files, image sequences)")
+    register(
+        "opencv", OpenCVStereoSource,
+        "Two OpenCV VideoCapture sources (devices, video files, image sequences)",
+    )

@@ -21,7 +21,8 @@ SMALL = (160, 120)  # width, height of the synthetic videos
 def small_calibration(path: Path) -> Path:
     K = np.array([[400.0, 0, 79.5], [0, 400.0, 59.5], [0, 0, 1]])
     intr = CameraIntrinsics(K, np.zeros(5), SMALL)
-    return write_stereo_calibration(path, StereoCalibration(intr, intr, np.eye(3), np.array([0.0, -50.0, 0.0])))
+    calibration = StereoCalibration(intr, intr, np.eye(3), np.array([0.0, -50.0, 0.0]))
+    return write_stereo_calibration(path, calibration)
 
 
 def write_ffv1(path: Path, images: list[np.ndarray], fps: float, color: bool = False) -> Path:
@@ -77,7 +78,8 @@ def test_ffv1_videos_deliver_the_simulator_frames_bit_exact(station_videos):
         np.testing.assert_array_equal(pair.lower, truth.lower)
     # timestamps follow the stream's presentation times (Matroska stores ms)
     assert np.diff([p.timestamp_ns for p in got]) / 1e6 == pytest.approx([71.0, 72.0], abs=1.0)
-    assert info["cameras"]["upper"]["backend"] == "FFMPEG" and info["cameras"]["upper"]["fourcc"].upper() == "FFV1"
+    upper = info["cameras"]["upper"]
+    assert upper["backend"] == "FFMPEG" and upper["fourcc"].upper() == "FFV1"
     assert info["skew_check"].startswith("CAP_PROP_POS_MSEC")
     assert info["incidents"] == [] and info["pairs_delivered"] == 3
 
@@ -124,8 +126,11 @@ def test_skewed_streams_resynchronise_on_timestamps(tmp_path):
         assert (int(p.upper[0, 0]), int(p.lower[0, 0])) == (p.sequence, k)
         np.testing.assert_array_equal(p.lower, lower[k])
     kinds = [(i["kind"], i["camera"], i["sequence"]) for i in info["incidents"]]
-    assert kinds == [("skew", "upper", 1), ("skew", "upper", 3), ("skew", "upper", 5), ("stream_ended", "lower", 7)]
-    assert "(71.000 ms) and lower frame 1 (143.000 ms) are -72.000 ms apart" in info["incidents"][0]["message"]
+    assert kinds == [
+        ("skew", "upper", 1), ("skew", "upper", 3), ("skew", "upper", 5), ("stream_ended", "lower", 7),
+    ]
+    message = info["incidents"][0]["message"]
+    assert "(71.000 ms) and lower frame 1 (143.000 ms) are -72.000 ms apart" in message
 
 
 def test_a_shorter_stream_ends_the_session_with_an_incident(tmp_path):
@@ -148,8 +153,10 @@ def test_a_shorter_stream_ends_the_session_with_an_incident(tmp_path):
 
 def test_grey_material_decoded_as_bgr_is_taken_exactly(tmp_path):
     grey = [(image >> 4).astype(np.uint8) for image in numbered(2, 7)]
-    path = write_ffv1(tmp_path / "c.mkv", [cv2.cvtColor(g, cv2.COLOR_GRAY2BGR) for g in grey], 14.0, color=True)
-    source = OpenCVStereoSource(upper=str(path), lower=str(path), calibration=str(small_calibration(tmp_path / "cal.yml")))
+    bgr = [cv2.cvtColor(g, cv2.COLOR_GRAY2BGR) for g in grey]
+    path = str(write_ffv1(tmp_path / "c.mkv", bgr, 14.0, color=True))
+    calibration = str(small_calibration(tmp_path / "cal.yml"))
+    source = OpenCVStereoSource(upper=path, lower=path, calibration=calibration)
     try:
         got = list(source.frames())
     finally:
@@ -163,13 +170,13 @@ def test_errors_name_the_source_and_frame(tmp_path, station_videos):
     with pytest.raises(ConfigError, match=r"option 'lower': OpenCV cannot open .*nope.mkv.*file not found"):
         OpenCVStereoSource(upper=str(root / "upper.mkv"), lower=str(tmp_path / "nope.mkv"),
                            calibration=str(root / "calibration.yml"))
-    with pytest.raises(ConfigError, match=r"'upper'.* delivers 1626x1236 px, the upper camera's calibration .* 160x120"):
+    with pytest.raises(ConfigError, match=r"'upper'.* delivers 1626x1236 px, the upper camera's .* 160x120"):
         OpenCVStereoSource(upper=str(root / "upper.mkv"), lower=str(root / "lower.mkv"),
                            calibration=str(small_calibration(tmp_path / "cal.yml")))
     source = OpenCVStereoSource(upper=str(root / "upper.mkv"), lower=str(root / "lower.mkv"),
                                 calibration=str(root / "calibration.yml"), bit_depth=8)
     try:
-        with pytest.raises(ConfigError, match=r"upper source .*upper.mkv', frame 0: pixel value \d+ exceeds the 8-bit range"):
+        with pytest.raises(ConfigError, match=r"upper source .*upper.mkv', frame 0: pixel value \d+ exceeds"):
             next(source.frames())
     finally:
         source.close()

@@ -100,6 +100,10 @@ def make_source(root: Path, **options) -> BaslerStereoSource:
     return BaslerStereoSource(**options)
 
 
+def incident_keys(info: dict) -> list[tuple[str, str, int]]:
+    return [(i["kind"], i["camera"], i["sequence"]) for i in info["incidents"]]
+
+
 def test_emulated_cameras_deliver_the_simulator_frames_bit_exact(emulation, station):
     root, frames, simulator = station
     source = make_source(root, exposure_us=5000.0, gain_db=6.0)
@@ -128,7 +132,8 @@ def test_emulated_cameras_deliver_the_simulator_frames_bit_exact(emulation, stat
         assert cam["pixel_format"] == "Mono12"
         assert cam["exposure_us"] == pytest.approx(5000.0)
         assert cam["gain_db"] == pytest.approx(6.0, abs=1e-3)
-        assert (cam["trigger_mode"], cam["trigger_source"], cam["trigger_selector"]) == ("On", "Software", "FrameStart")
+        trigger = (cam["trigger_mode"], cam["trigger_source"], cam["trigger_selector"])
+        assert trigger == ("On", "Software", "FrameStart")
         assert cam["camera_timestamps"].startswith("no")
         assert cam["features_set"]["ImageFilename"] == str(root / role)
 
@@ -176,7 +181,7 @@ def test_failed_buffer_drops_the_pair_and_is_reported(emulation, station):
     for pair in got:  # each camera's k-th frame shows file k mod N (the failed buffer used up file 2)
         np.testing.assert_array_equal(pair.upper, frames[pair.sequence % N_FRAMES].upper)
         np.testing.assert_array_equal(pair.lower, frames[pair.sequence % N_FRAMES].lower)
-    assert [(i["kind"], i["camera"], i["sequence"]) for i in info["incidents"]] == [("grab_failed", "lower", 2)]
+    assert incident_keys(info) == [("grab_failed", "lower", 2)]
     assert "incompletely grabbed" in info["incidents"][0]["message"]
     assert info["triggers_sent"] == 5 and info["pairs_delivered"] == 4
     assert len(logged) == 1 and logged[0]["level"] == "warning" and "grab_failed" in logged[0]["message"]
@@ -240,7 +245,7 @@ def test_hardware_trigger_pairs_by_time_and_drops_a_missed_pulse(emulation, stat
     for pair, k in zip(got, lower_index):
         np.testing.assert_array_equal(pair.upper, frames[pair.sequence % N_FRAMES].upper)
         np.testing.assert_array_equal(pair.lower, frames[k % N_FRAMES].lower)
-    assert [(i["kind"], i["camera"], i["sequence"]) for i in info["incidents"]] == [("no_partner", "upper", 2)]
+    assert incident_keys(info) == [("no_partner", "upper", 2)]
 
 
 def test_skew_beyond_max_skew_ms_refuses_the_pair(emulation, station):
@@ -259,13 +264,13 @@ def test_skew_beyond_max_skew_ms_refuses_the_pair(emulation, station):
 
 def test_camera_selection_errors_list_the_cameras(emulation, station):
     root, _, _ = station
-    with pytest.raises(ConfigError, match=r"option 'lower': no camera has the serial number or user id 'nope'.*0815-0000"):
+    with pytest.raises(ConfigError, match=r"option 'lower': no camera has the serial .* 'nope'.*0815-0000"):
         make_source(root, lower="nope")
-    with pytest.raises(ConfigError, match=r"the upper camera \(CamEmu, serial 0815-0000\) delivers 1024x1040 px.*1626x1236"):
+    with pytest.raises(ConfigError, match=r"upper camera \(CamEmu, serial 0815-0000\) delivers 1024x1040"):
         make_source(root, upper_features={})
-    with pytest.raises(ConfigError, match=r"option 'lower_features': the lower camera .* has no feature 'NoSuchFeature'"):
+    with pytest.raises(ConfigError, match=r"option 'lower_features': the lower camera .* 'NoSuchFeature'"):
         make_source(root, lower_features={"NoSuchFeature": 1})
-    with pytest.raises(ConfigError, match=r"option 'features': cannot set ExposureTime = -5 on the upper camera"):
+    with pytest.raises(ConfigError, match=r"option 'features': cannot set ExposureTime = -5 on the upper"):
         make_source(root, features={"ExposureTime": -5})
 
 
@@ -282,7 +287,7 @@ def test_select_device_by_serial_or_user_id():
     assert select_device(devices, "21000002", "lower").GetSerialNumber() == "21000002"
     with pytest.raises(ConfigError, match="matches 2 cameras"):
         select_device(devices, "21000001", "upper")
-    with pytest.raises(ConfigError, match=r"no camera .* 'X'; cameras found: acA1600-20gm serial '21000001' user id 'UPPER'"):
+    with pytest.raises(ConfigError, match=r"'X'; cameras found: acA1600-20gm serial '21000001' user id 'UPP"):
         select_device(devices, "X", "upper")
 
 
@@ -318,7 +323,9 @@ def _without(value, drop):
     return value
 
 
-def test_session_over_emulated_cameras_reports_what_the_simulator_source_reports(emulation, station, tmp_path):
+def test_session_over_emulated_cameras_reports_what_the_simulator_source_reports(
+    emulation, station, tmp_path
+):
     """Same frames -> same numbers: run_session with acquire = basler (emulated
     cameras streaming the simulator's station frames, calibration from a YAML
     file, plan from a TOML file, the simulated arm on a pseudo-terminal) and with
@@ -355,7 +362,8 @@ def test_session_over_emulated_cameras_reports_what_the_simulator_source_reports
     assert basler.info.acquisition["source"] == "basler"
     assert basler.info.acquisition["cameras"]["upper"]["serial"] == UPPER
     assert basler.info.ground_truth is None and simulated.info.ground_truth is not None
-    assert [f.sequence for f in basler.frames] == [f.sequence for f in simulated.frames] == list(range(N_FRAMES))
+    assert [f.sequence for f in basler.frames] == list(range(N_FRAMES))
+    assert [f.sequence for f in simulated.frames] == list(range(N_FRAMES))
     assert not any(f.error for f in basler.frames + simulated.frames)
     for b, s in zip(basler.frames, simulated.frames):
         np.testing.assert_array_equal(b.centroids.upper.uv, s.centroids.upper.uv)
@@ -370,7 +378,8 @@ def test_session_over_emulated_cameras_reports_what_the_simulator_source_reports
         for name, summary in (("basler", basler), ("simulator", simulated))
     }
     for key in ("frames", "registration", "characteristics", "frames_processed", "frames_failed", "passed"):
-        ours, theirs = (_without(reports[n][key], GROUND_TRUTH_KEYS | {"timestamp_ns"}) for n in ("basler", "simulator"))
+        drop = GROUND_TRUTH_KEYS | {"timestamp_ns"}
+        ours, theirs = (_without(reports[n][key], drop) for n in ("basler", "simulator"))
         assert ours == theirs, key
     assert reports["simulator"]["ground_truth_known"] and not reports["basler"]["ground_truth_known"]
     assert reports["basler"]["characteristics"][0]["measured_mm"] == simulated.characteristics[0].measured_mm
