@@ -8,7 +8,8 @@ For each repeat (interleaved, so that both see the same disk state):
   written with ``file.write`` into one file;
 * recorder: the same pairs through ``pm.hook.on_frame`` into a
   :class:`pipeline.recorder.McapRecorder` (writer thread on, then off),
-  closed at the end (summary and indexes written).
+  closed at the end (summary and indexes written);
+* with ``--rerun``: the same pairs through :class:`pipeline.rerun_log.RerunLogger`.
 
 Reports pairs/s (wall clock, file closed; with ``--fsync`` also synced to
 disk), the CPU time per pair of the process, and for the recorder the time
@@ -93,12 +94,39 @@ def run_recorder(path: Path, frames: list[StereoFrame], pairs: int, fsync: bool,
     return {"pairs_per_s": pairs / wall, "cpu_ms_per_pair": 1e3 * cpu / pairs, "hook_ms_per_pair": 1e3 * in_hook / pairs}
 
 
+def run_rerun_logger(path: Path, frames: list[StereoFrame], pairs: int, fsync: bool) -> dict[str, float]:
+    """The same pairs through RerunLogger (images only) into an .rrd, for comparison."""
+    from pipeline.rerun_log import RerunLogger
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    logger = RerunLogger(path)
+    pm = make_plugin_manager(builtins=False, extra=[logger])
+    in_hook = 0.0
+    start_ns = time.time_ns()
+    for i in range(pairs):
+        template = frames[i % len(frames)]
+        frame = StereoFrame(i, start_ns + i * 16_666_667, template.upper, template.lower, 12)
+        h0 = time.perf_counter()
+        pm.hook.on_frame(frame=frame)
+        in_hook += time.perf_counter() - h0
+    logger.close()
+    if fsync:
+        fd = os.open(path, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    return {"pairs_per_s": pairs / wall, "cpu_ms_per_pair": 1e3 * cpu / pairs, "hook_ms_per_pair": 1e3 * in_hook / pairs}
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--pairs", type=int, default=120)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--fsync", action="store_true", help="sync to disk before stopping the clock")
     parser.add_argument("--dir", default=None, help="where to write (default: a temporary directory)")
+    parser.add_argument("--rerun", action="store_true", help="also time RerunLogger (images into session.rrd)")
     args = parser.parse_args(argv)
 
     frames = make_frames()
@@ -110,6 +138,8 @@ def main(argv: list[str] | None = None) -> None:
         "McapRecorder (writer thread)": lambda p: run_recorder(p, frames, args.pairs, args.fsync, True),
         "McapRecorder (synchronous)": lambda p: run_recorder(p, frames, args.pairs, args.fsync, False),
     }
+    if args.rerun:
+        cases["RerunLogger (images)"] = lambda p: run_rerun_logger(p, frames, args.pairs, args.fsync)
     results: dict[str, list[dict[str, float]]] = {name: [] for name in cases}
     with tempfile.TemporaryDirectory(dir=args.dir) as tmp:
         path = Path(tmp) / "bench.out"

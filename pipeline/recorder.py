@@ -575,31 +575,17 @@ def frame_status_doc(result: Any) -> dict[str, Any]:
 
 
 def calibration_yaml(calibration: StereoCalibration) -> str:
-    """The stereo calibration as OpenCV FileStorage YAML, keys as OpenCV's
-    ``stereo_calib`` sample writes them (M1 D1 M2 D2 R T; 1 = upper,
-    2 = lower), plus ``image_width1`` / ``image_height1`` /
-    ``image_width2`` / ``image_height2`` (``pipeline/calibration_io.py``
-    reads them back)."""
-    fs = cv2.FileStorage("calibration.yml", cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
+    """The stereo calibration as OpenCV FileStorage YAML (the ``calibration.yml``
+    attachment), written by :mod:`pipeline.calibration_io`: the keys OpenCV's
+    ``stereo_calib`` sample writes (M1 D1 M2 D2 R T, 1 = upper, 2 = lower,
+    plus R1 R2 P1 P2 Q from ``cv2.stereoRectify``) and the image size;
+    :func:`pipeline.calibration_io.stereo_calibration_from_yaml` reads it back."""
+    from .calibration_io import stereo_calibration_to_yaml
+
     try:
-        fs.writeComment(
-            "crossfield stereo calibration. Camera 1 = upper, camera 2 = lower. "
-            "M: camera matrix (pixels), D: distortion (OpenCV order). "
-            "R, T: p_lower = R * p_upper + T, T in mm."
-        )
-        if calibration.source:
-            fs.writeComment(f"source: {calibration.source}")
-        for index, camera in ((1, calibration.upper), (2, calibration.lower)):
-            fs.write(f"M{index}", np.asarray(camera.camera_matrix, dtype=np.float64))
-            fs.write(f"D{index}", np.asarray(camera.dist_coeffs, dtype=np.float64).reshape(1, -1))
-        fs.write("R", np.asarray(calibration.R_lower_upper, dtype=np.float64))
-        fs.write("T", np.asarray(calibration.t_lower_upper, dtype=np.float64).reshape(3, 1))
-        for index, camera in ((1, calibration.upper), (2, calibration.lower)):
-            fs.write(f"image_width{index}", int(camera.image_size[0]))
-            fs.write(f"image_height{index}", int(camera.image_size[1]))
-    finally:
-        text = fs.releaseAndGetString()
-    return text
+        return stereo_calibration_to_yaml(calibration)
+    except cv2.error:  # a calibration stereoRectify cannot handle: record it without R1..Q
+        return stereo_calibration_to_yaml(calibration, rectification=False)
 
 
 def ground_truth_doc(truth: GroundTruth) -> dict[str, Any]:

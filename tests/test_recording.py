@@ -26,6 +26,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from pipeline.calibration_io import stereo_calibration_from_yaml
 from pipeline.config import load_config, parse_config
 from pipeline.errors import RecordingError
 from pipeline.plan import parse_plan
@@ -504,14 +505,16 @@ def test_metadata_and_attachments(session):
         assert np.array_equal(truth["R_global_camera"], synthetic.R)
         yaml_text = attachments["calibration.yml"].text
         assert attachments["calibration.yml"].media_type == "application/yaml"
-    fs = cv2.FileStorage(yaml_text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
+    back = stereo_calibration_from_yaml(yaml_text, "calibration.yml")
     cal = synthetic.calibration
-    assert np.array_equal(fs.getNode("M1").mat(), cal.upper.camera_matrix)
-    assert np.array_equal(fs.getNode("M2").mat(), cal.lower.camera_matrix)
-    assert np.array_equal(fs.getNode("D2").mat().ravel(), cal.lower.dist_coeffs)
-    assert np.array_equal(fs.getNode("R").mat(), cal.R_lower_upper)
-    assert np.array_equal(fs.getNode("T").mat().ravel(), cal.t_lower_upper)
-    assert int(fs.getNode("image_width2").real()) == SIZE[0] and int(fs.getNode("image_height1").real()) == SIZE[1]
+    for name in ("upper", "lower"):
+        assert np.array_equal(back.camera(name).camera_matrix, cal.camera(name).camera_matrix)
+        assert np.array_equal(back.camera(name).dist_coeffs, cal.camera(name).dist_coeffs)
+        assert back.camera(name).image_size == SIZE
+    assert np.array_equal(back.R_lower_upper, cal.R_lower_upper)
+    assert np.array_equal(back.t_lower_upper, cal.t_lower_upper)
+    fs = cv2.FileStorage(yaml_text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
+    assert all(not fs.getNode(k).empty() for k in ("M1", "D1", "M2", "D2", "R", "T"))  # stereo_calib's keys
 
 
 def test_toml_text_round_trips():
@@ -528,8 +531,8 @@ def test_toml_text_round_trips():
 def test_calibration_yaml_reads_back_with_more_distortion_terms():
     cal = make_calibration()
     wide = StereoCalibration(cal.upper, CameraIntrinsics(cal.lower.camera_matrix, np.arange(8) * 0.01, SIZE), cal.R_lower_upper, cal.t_lower_upper)
-    fs = cv2.FileStorage(calibration_yaml(wide), cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
-    assert np.array_equal(fs.getNode("D2").mat().ravel(), np.arange(8) * 0.01)
+    back = stereo_calibration_from_yaml(calibration_yaml(wide))
+    assert np.array_equal(back.lower.dist_coeffs, np.arange(8) * 0.01)
 
 
 # --------------------------------------------------------------------------
@@ -646,6 +649,28 @@ def test_a_killed_session_keeps_everything_up_to_the_last_finished_frame(tmp_pat
         assert [m.data for m in rec.messages("/cmm/raw")] == synthetic.serial_chunks
         assert [m.decoded["error"] for m in rec.messages("/frames")] == ["centroid: synthetic failure"]
     assert topics["/centroids/upper"].message_count == 1
+    # Rerun converts what survived too.
+    converted = tmp_path / "recovered.rrd"
+    proc = run_rerun("mcap", "convert", "--recover", str(tmp_path / "session.mcap"), "-o", str(converted), "--application-id", "crossfield")
+    assert proc.returncode == 0, proc.stderr
+    assert run_rerun("rrd", "verify", str(converted)).returncode == 0
+    assert "Image:buffer" in archetype_columns(converted)["/camera/upper/image"]
+
+
+def test_an_unclosed_recorder_is_finished_at_exit(tmp_path):
+    script = textwrap.dedent(
+        f"""
+        import sys
+        sys.path.insert(0, {str(ROOT)!r})
+        from pipeline.recorder import McapRecorder
+        recorder = McapRecorder({str(tmp_path / "s.mcap")!r})
+        recorder.on_log(level="info", message="no close()", timestamp_ns=5)
+        """
+    )
+    subprocess.run([sys.executable, "-c", script], check=True, timeout=60)
+    with open_recording(tmp_path / "s.mcap") as rec:
+        assert rec.complete
+        assert [m.decoded.message for m in rec.messages("/log")] == ["no close()"]
 
 
 # --------------------------------------------------------------------------
