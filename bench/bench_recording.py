@@ -32,9 +32,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.recorder import McapRecorder  # noqa: E402
-from pipeline.registry import make_plugin_manager  # noqa: E402
-from pipeline.types import StereoFrame  # noqa: E402
+from pipeline.recorder import McapRecorder
+from pipeline.registry import make_plugin_manager
+from pipeline.types import StereoFrame
 
 HEIGHT, WIDTH = 1236, 1626
 
@@ -68,10 +68,16 @@ def run_baseline(path: Path, frames: list[StereoFrame], pairs: int, fsync: bool)
         if fsync:
             os.fsync(f.fileno())
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    return {"pairs_per_s": pairs / wall, "cpu_ms_per_pair": 1e3 * cpu / pairs, "hook_ms_per_pair": float("nan")}
+    return {
+        "pairs_per_s": pairs / wall,
+        "cpu_ms_per_pair": 1e3 * cpu / pairs,
+        "hook_ms_per_pair": float("nan"),
+    }
 
 
-def run_recorder(path: Path, frames: list[StereoFrame], pairs: int, fsync: bool, writer_thread: bool) -> dict[str, float]:
+def run_recorder(
+    path: Path, frames: list[StereoFrame], pairs: int, fsync: bool, writer_thread: bool
+) -> dict[str, float]:
     t0, c0 = time.perf_counter(), time.process_time()
     recorder = McapRecorder(path, overwrite=True, writer_thread=writer_thread)
     pm = make_plugin_manager(builtins=False, extra=[recorder])
@@ -91,7 +97,11 @@ def run_recorder(path: Path, frames: list[StereoFrame], pairs: int, fsync: bool,
         finally:
             os.close(fd)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    return {"pairs_per_s": pairs / wall, "cpu_ms_per_pair": 1e3 * cpu / pairs, "hook_ms_per_pair": 1e3 * in_hook / pairs}
+    return {
+        "pairs_per_s": pairs / wall,
+        "cpu_ms_per_pair": 1e3 * cpu / pairs,
+        "hook_ms_per_pair": 1e3 * in_hook / pairs,
+    }
 
 
 def run_rerun_logger(path: Path, frames: list[StereoFrame], pairs: int, fsync: bool) -> dict[str, float]:
@@ -117,7 +127,11 @@ def run_rerun_logger(path: Path, frames: list[StereoFrame], pairs: int, fsync: b
         finally:
             os.close(fd)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    return {"pairs_per_s": pairs / wall, "cpu_ms_per_pair": 1e3 * cpu / pairs, "hook_ms_per_pair": 1e3 * in_hook / pairs}
+    return {
+        "pairs_per_s": pairs / wall,
+        "cpu_ms_per_pair": 1e3 * cpu / pairs,
+        "hook_ms_per_pair": 1e3 * in_hook / pairs,
+    }
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -126,13 +140,17 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--fsync", action="store_true", help="sync to disk before stopping the clock")
     parser.add_argument("--dir", default=None, help="where to write (default: a temporary directory)")
-    parser.add_argument("--rerun", action="store_true", help="also time RerunLogger (images into session.rrd)")
+    parser.add_argument(
+        "--rerun", action="store_true", help="also time RerunLogger (images into session.rrd)"
+    )
     args = parser.parse_args(argv)
 
     frames = make_frames()
     mb = args.pairs * 2 * HEIGHT * WIDTH * 2 / 1e6
-    print(f"{args.pairs} pairs of 2 x {WIDTH}x{HEIGHT} uint16 ({mb:.0f} MB) per run, {args.repeats} repeats, "
-          f"fsync={'on' if args.fsync else 'off'}, {os.cpu_count()} CPUs")
+    print(
+        f"{args.pairs} pairs of 2 x {WIDTH}x{HEIGHT} uint16 ({mb:.0f} MB) per run, {args.repeats} repeats, "
+        f"fsync={'on' if args.fsync else 'off'}, {os.cpu_count()} CPUs"
+    )
     cases = {
         "plain file write": lambda p: run_baseline(p, frames, args.pairs, args.fsync),
         "McapRecorder (writer thread)": lambda p: run_recorder(p, frames, args.pairs, args.fsync, True),

@@ -34,10 +34,11 @@ import queue
 import sys
 import threading
 import time
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from importlib import metadata, resources
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Self
 
 import cv2
 import numpy as np
@@ -140,7 +141,7 @@ class ChannelSpec:
     metadata: tuple[tuple[str, str], ...] = ()
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def protobuf_schema(message_class: Any) -> SchemaSpec:
     """The MCAP schema of a protobuf message class (a FileDescriptorSet)."""
     fds = build_file_descriptor_set(message_class)
@@ -152,7 +153,7 @@ def load_json_schema(name: str) -> dict[str, Any]:
     return json.loads(_json_schema_text(name))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _json_schema_text(name: str) -> str:
     try:
         filename = JSON_SCHEMAS[name]
@@ -161,13 +162,15 @@ def _json_schema_text(name: str) -> str:
     return resources.files("pipeline").joinpath("schemas", filename).read_text(encoding="utf-8")
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def json_schema(name: str) -> SchemaSpec:
     return SchemaSpec(name, "jsonschema", _json_schema_text(name).encode("utf-8"))
 
 
 @functools.lru_cache(maxsize=256)
-def _protobuf_channel(topic: str, message_class: Any, metadata_: tuple[tuple[str, str], ...] = ()) -> ChannelSpec:
+def _protobuf_channel(
+    topic: str, message_class: Any, metadata_: tuple[tuple[str, str], ...] = ()
+) -> ChannelSpec:
     return ChannelSpec(topic, "protobuf", protobuf_schema(message_class), metadata_)
 
 
@@ -230,7 +233,7 @@ def dump_json(doc: Any) -> bytes:
 
 def utc_text(timestamp_ns: int) -> str:
     seconds, nanos = divmod(int(timestamp_ns), 1_000_000_000)
-    moment = _dt.datetime.fromtimestamp(seconds, tz=_dt.timezone.utc)
+    moment = _dt.datetime.fromtimestamp(seconds, tz=_dt.UTC)
     return moment.strftime("%Y-%m-%dT%H:%M:%S") + f".{nanos:09d}Z"
 
 
@@ -415,7 +418,9 @@ def upper_to_lower_pose(calibration: StereoCalibration) -> FramePose:
     return FramePose("upper", "lower", R.T, -R.T @ t)
 
 
-_XYZ_FIELDS = [PackedElementField(name=n, offset=4 * i, type=PackedElementField.FLOAT32) for i, n in enumerate("xyz")]
+_XYZ_FIELDS = [
+    PackedElementField(name=n, offset=4 * i, type=PackedElementField.FLOAT32) for i, n in enumerate("xyz")
+]
 
 
 def point_cloud_message(xyz_mm: np.ndarray, frame_id: str, timestamp_ns: int) -> bytes:
@@ -631,7 +636,14 @@ def _metadata_record(doc: Mapping[str, Any], flat: Mapping[str, Any] | None = No
 class _McapSink:
     """Owns the ``mcap`` Writer; every method is called from one thread."""
 
-    def __init__(self, stream: Any, chunk_size: int, flush_interval_s: float, library: str, compression: CompressionType):
+    def __init__(
+        self,
+        stream: Any,
+        chunk_size: int,
+        flush_interval_s: float,
+        library: str,
+        compression: CompressionType,
+    ):
         self.stream = stream
         self.writer = Writer(stream, chunk_size=chunk_size, compression=compression)
         self.writer.start(profile="", library=library)
@@ -647,7 +659,9 @@ class _McapSink:
             if spec.schema is not None:
                 schema_id = self.schemas.get(spec.schema, 0)
                 if not schema_id:
-                    schema_id = self.writer.register_schema(spec.schema.name, spec.schema.encoding, spec.schema.data)
+                    schema_id = self.writer.register_schema(
+                        spec.schema.name, spec.schema.encoding, spec.schema.data
+                    )
                     self.schemas[spec.schema] = schema_id
             channel_id = self.writer.register_channel(
                 spec.topic, spec.message_encoding, schema_id, dict(spec.metadata)
@@ -656,7 +670,9 @@ class _McapSink:
         return channel_id
 
     def message(self, spec: ChannelSpec, log_time: int, data: bytes, sequence: int) -> None:
-        self.writer.add_message(self._channel_id(spec), int(log_time), data, int(log_time), int(sequence) & 0xFFFFFFFF)
+        self.writer.add_message(
+            self._channel_id(spec), int(log_time), data, int(log_time), int(sequence) & 0xFFFFFFFF
+        )
         if time.monotonic() - self.last_flush > self.flush_interval_s:
             self.flush()
 
@@ -713,12 +729,14 @@ class McapRecorder:
         if compression not in COMPRESSIONS:
             raise ValueError(f"compression must be one of {', '.join(COMPRESSIONS)}, got {compression!r}")
         try:
-            self._stream = open(self.path, "wb" if overwrite else "xb")
+            self._stream = open(self.path, "wb" if overwrite else "xb")  # noqa: SIM115 - held until close()
         except FileExistsError:
             raise RecordingError(f"{self.path}: a recording already exists there (not overwritten)") from None
         except OSError as exc:
             raise RecordingError(f"{self.path}: cannot create the recording: {exc.strerror}") from None
-        library = f"crossfield/{_crossfield_version({})} {RECORDING_FORMAT} mcap-python/{metadata.version('mcap')}"
+        library = (
+            f"crossfield/{_crossfield_version({})} {RECORDING_FORMAT} mcap-python/{metadata.version('mcap')}"
+        )
         self._sink = _McapSink(self._stream, chunk_size, flush_interval_s, library, COMPRESSIONS[compression])
         self._closed = False
         self._error: BaseException | None = None
@@ -733,7 +751,9 @@ class McapRecorder:
         self._thread: threading.Thread | None = None
         if writer_thread:
             self._queue = queue.Queue(maxsize=max(1, int(queue_size)))
-            self._thread = threading.Thread(target=self._run_writer, name=f"mcap-writer {self.path.name}", daemon=True)
+            self._thread = threading.Thread(
+                target=self._run_writer, name=f"mcap-writer {self.path.name}", daemon=True
+            )
             self._thread.start()
         atexit.register(self.close)
 
@@ -800,7 +820,7 @@ class McapRecorder:
         try:
             if self._error is None:
                 self._sink.finish()
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001 - reported below as RecordingError
             self._error = exc
         finally:
             self._stream.close()
@@ -811,10 +831,10 @@ class McapRecorder:
     def closed(self) -> bool:
         return self._closed
 
-    def __enter__(self) -> "McapRecorder":
+    def __enter__(self) -> Self:
         return self
 
-    def __exit__(self, *exc: Any) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     # ---- session start: facts, attachments, static data ----------------
@@ -855,7 +875,11 @@ class McapRecorder:
 
         self._submit("attachment", "plan.toml", "application/toml", session.plan.text.encode("utf-8"), start)
         self._submit(
-            "attachment", "calibration.yml", "application/yaml", calibration_yaml(session.calibration).encode(), start
+            "attachment",
+            "calibration.yml",
+            "application/yaml",
+            calibration_yaml(session.calibration).encode(),
+            start,
         )
         if session.ground_truth is not None:
             self._submit(
@@ -920,7 +944,9 @@ class McapRecorder:
         t = self._now()
         xyz = np.array([p.xyz for p in reference.points], dtype=np.float64).reshape(-1, 3)
         self._message(
-            _protobuf_channel(TOPIC_POINTS_REFERENCE, PointCloud), t, point_cloud_message(xyz, FRAME_GLOBAL, t)
+            _protobuf_channel(TOPIC_POINTS_REFERENCE, PointCloud),
+            t,
+            point_cloud_message(xyz, FRAME_GLOBAL, t),
         )
         twin = {
             "frame": FRAME_GLOBAL,
@@ -939,7 +965,13 @@ class McapRecorder:
         t = self._frame_time(centroids.sequence)
         for camera in CAMERAS:
             cs = getattr(centroids, camera)
-            self._json(TOPIC_CENTROIDS.format(camera=camera), "crossfield.CentroidSet", centroids_doc(cs), t, cs.sequence)
+            self._json(
+                TOPIC_CENTROIDS.format(camera=camera),
+                "crossfield.CentroidSet",
+                centroids_doc(cs),
+                t,
+                cs.sequence,
+            )
 
     @hookimpl
     def on_camera_points(self, points: Any) -> None:
@@ -949,9 +981,14 @@ class McapRecorder:
         while len(self._camera_points) > 8:
             self._camera_points.pop(next(iter(self._camera_points)))
         self._message(
-            _protobuf_channel(TOPIC_POINTS_CAMERA, PointCloud), t, point_cloud_message(points.xyz, "upper", t), seq
+            _protobuf_channel(TOPIC_POINTS_CAMERA, PointCloud),
+            t,
+            point_cloud_message(points.xyz, "upper", t),
+            seq,
         )
-        self._json(TOPIC_POINTS_CAMERA + JSON_TWIN, "crossfield.CameraPoints", camera_points_doc(points), t, seq)
+        self._json(
+            TOPIC_POINTS_CAMERA + JSON_TWIN, "crossfield.CameraPoints", camera_points_doc(points), t, seq
+        )
 
     @hookimpl
     def on_registration(self, registration: Any) -> None:
@@ -959,17 +996,24 @@ class McapRecorder:
         t = self._frame_time(seq)
         fit = registration.fit
         pose = FramePose(FRAME_GLOBAL, "upper", np.asarray(fit.R), np.asarray(fit.t))
-        self._message(_protobuf_channel(TOPIC_TF, FrameTransforms), t, frame_transforms_message([pose], t), seq)
+        self._message(
+            _protobuf_channel(TOPIC_TF, FrameTransforms), t, frame_transforms_message([pose], t), seq
+        )
         self._json(TOPIC_REGISTRATION, "crossfield.Registration", registration_doc(registration), t, seq)
         points = self._camera_points.get(seq)
         if points is not None:
             xyz, sigma = global_points(points, registration)
             ids: list[str | None] = [None] * len(points)
-            for index, cid in zip(registration.correspondence.camera_index, registration.correspondence.control_ids):
+            for index, cid in zip(
+                registration.correspondence.camera_index, registration.correspondence.control_ids
+            ):
                 if 0 <= int(index) < len(ids):
                     ids[int(index)] = str(cid)
             self._message(
-                _protobuf_channel(TOPIC_POINTS_GLOBAL, PointCloud), t, point_cloud_message(xyz, FRAME_GLOBAL, t), seq
+                _protobuf_channel(TOPIC_POINTS_GLOBAL, PointCloud),
+                t,
+                point_cloud_message(xyz, FRAME_GLOBAL, t),
+                seq,
             )
             twin = {
                 "sequence": seq,
@@ -986,7 +1030,13 @@ class McapRecorder:
     @hookimpl
     def on_measurement(self, measurement: Any) -> None:
         seq = int(measurement.sequence)
-        self._json(TOPIC_MEASUREMENT, "crossfield.Measurement", measurement_doc(measurement), self._frame_time(seq), seq)
+        self._json(
+            TOPIC_MEASUREMENT,
+            "crossfield.Measurement",
+            measurement_doc(measurement),
+            self._frame_time(seq),
+            seq,
+        )
 
     @hookimpl
     def on_frame_done(self, result: Any) -> None:
@@ -1010,7 +1060,7 @@ class McapRecorder:
             from plugins.report_document import build_report
 
             report = build_report(summary)
-        except Exception as exc:  # the recording must still be finished
+        except Exception as exc:  # noqa: BLE001 - the recording must still be finished
             self._message(
                 _protobuf_channel(TOPIC_LOG, Log), t, log_message("error", f"recorder: no /report: {exc}", t)
             )

@@ -21,9 +21,10 @@ from __future__ import annotations
 
 import json
 import struct
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Iterator, Mapping
+from typing import Any, Self
 
 from mcap.exceptions import McapError
 from mcap.reader import SeekingReader
@@ -121,10 +122,10 @@ class Recording:
     def close(self) -> None:
         """Nothing to release: every read opens the file afresh."""
 
-    def __enter__(self) -> "Recording":
+    def __enter__(self) -> Self:
         return self
 
-    def __exit__(self, *exc: Any) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     @staticmethod
@@ -139,8 +140,7 @@ class Recording:
         with self._open() as f:
             reader = StreamReader(f, validate_crcs=True)
             try:
-                for record in reader.records:
-                    yield record
+                yield from reader.records
             except _DAMAGE as exc:
                 self.damage = f"damaged or truncated near byte {f.tell()}: {exc}"
 
@@ -198,18 +198,22 @@ class Recording:
             if decoder is None:
                 decoder = self._decoders.decoder_for(encoding, schema)
                 if decoder is None:
-                    raise RecordingError(f"{self.path}: {channel.topic}: protobuf channel without a protobuf schema")
+                    raise RecordingError(
+                        f"{self.path}: {channel.topic}: protobuf channel without a protobuf schema"
+                    )
                 self._decoder_cache[key] = decoder
             try:
                 return decoder(message.data)
-            except Exception as exc:
+            except Exception as exc:  # noqa: BLE001 - protobuf raises several types
                 raise RecordingError(
                     f"{self.path}: {channel.topic} message at {message.log_time}: cannot decode "
                     f"{schema.name if schema else 'protobuf'}: {exc}"
                 ) from None
         return message.data
 
-    def messages(self, topics: str | Iterable[str] | None = None, *, decode: bool = True) -> Iterator[RecordedMessage]:
+    def messages(
+        self, topics: str | Iterable[str] | None = None, *, decode: bool = True
+    ) -> Iterator[RecordedMessage]:
         """Messages of ``topics`` (all when None) in log-time order.
 
         On a damaged recording: the messages before the damage, in file order.
@@ -240,7 +244,9 @@ class Recording:
                     continue
                 yield self._recorded(schemas.get(channel.schema_id), channel, record, decode)
 
-    def _recorded(self, schema: Schema | None, channel: Channel, message: Message, decode: bool) -> RecordedMessage:
+    def _recorded(
+        self, schema: Schema | None, channel: Channel, message: Message, decode: bool
+    ) -> RecordedMessage:
         return RecordedMessage(
             topic=channel.topic,
             log_time_ns=message.log_time,
@@ -288,7 +294,9 @@ class Recording:
         try:
             return json.loads(record["json"])
         except ValueError as exc:
-            raise RecordingError(f"{self.path}: metadata {name!r}: key 'json' is not valid JSON: {exc}") from None
+            raise RecordingError(
+                f"{self.path}: metadata {name!r}: key 'json' is not valid JSON: {exc}"
+            ) from None
 
     def attachments(self) -> dict[str, RecordedAttachment]:
         """name -> attachment."""

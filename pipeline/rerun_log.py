@@ -40,8 +40,9 @@ principal points are shifted by +0.5 px so that everything lines up.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 import rerun as rr
@@ -79,7 +80,28 @@ _REFERENCE_COLOUR = (220, 220, 220)
 _TARGET_COLOUR = (90, 220, 90)
 _CENTROID_COLOUR = (255, 60, 60)
 _REJECTED_COLOUR = (160, 160, 160)
-_LOG_LEVELS = {"debug": "DEBUG", "info": "INFO", "warning": "WARN", "warn": "WARN", "error": "ERROR", "critical": "CRITICAL"}
+_LOG_LEVELS = {
+    "debug": "DEBUG",
+    "info": "INFO",
+    "warning": "WARN",
+    "warn": "WARN",
+    "error": "ERROR",
+    "critical": "CRITICAL",
+}
+
+
+_REPORT_COLUMNS = (
+    "characteristic",
+    "n",
+    "measured (mm)",
+    "std (mm)",
+    "u (mm)",
+    "nominal (mm)",
+    "tol (mm)",
+    "deviation (mm)",
+    "error (mm)",
+    "result",
+)
 
 
 def default_blueprint() -> rrb.Blueprint:
@@ -177,7 +199,7 @@ class RerunLogger:
         self.rec = rr.RecordingStream(application_id)
         try:
             self.rec.save(self.path, default_blueprint=default_blueprint())
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001 - rerun raises several types
             raise RecordingError(f"{self.path}: cannot write the Rerun recording: {exc}") from None
         self._closed = False
         self._frame_times: dict[int, int] = {}
@@ -212,7 +234,11 @@ class RerunLogger:
         for camera in CAMERAS:
             rec.log(IMAGE[camera], pinhole(calibration.camera(camera)), static=True)
         rec.log(LOWER, lower_in_upper(calibration), static=True)
-        rec.log(SESSION, rr.TextDocument(self._session_markdown(session), media_type=rr.MediaType.MARKDOWN), static=True)
+        rec.log(
+            SESSION,
+            rr.TextDocument(self._session_markdown(session), media_type=rr.MediaType.MARKDOWN),
+            static=True,
+        )
 
     @hookimpl
     def on_frame(self, frame: Any) -> None:
@@ -250,7 +276,12 @@ class RerunLogger:
             labels = [str(i) for i in np.flatnonzero(keep)]
             self.rec.log(
                 f"{IMAGE[camera]}/centroids",
-                rr.Points2D(uv[keep] + PIXEL_OFFSET, labels=labels, colors=_CENTROID_COLOUR, radii=rr.Radius.ui_points(1.5)),
+                rr.Points2D(
+                    uv[keep] + PIXEL_OFFSET,
+                    labels=labels,
+                    colors=_CENTROID_COLOUR,
+                    radii=rr.Radius.ui_points(1.5),
+                ),
             )
             # A ring around each blob (twice its equivalent radius) that leaves the target visible.
             area = np.nan_to_num(np.asarray(cs.area_px, dtype=np.float64)[keep], nan=0.0)
@@ -342,13 +373,19 @@ class RerunLogger:
     @hookimpl
     def on_log(self, level: str, message: str, timestamp_ns: int) -> None:
         self._at_time(timestamp_ns)
-        self.rec.log(LOG, rr.TextLog(str(message), level=_LOG_LEVELS.get(str(level).lower(), str(level).upper())))
+        self.rec.log(
+            LOG, rr.TextLog(str(message), level=_LOG_LEVELS.get(str(level).lower(), str(level).upper()))
+        )
 
     @hookimpl
     def on_session_end(self, summary: Any) -> None:
         if self._closed:
             return
-        self.rec.log(REPORT, rr.TextDocument(self._report_markdown(summary), media_type=rr.MediaType.MARKDOWN), static=True)
+        self.rec.log(
+            REPORT,
+            rr.TextDocument(self._report_markdown(summary), media_type=rr.MediaType.MARKDOWN),
+            static=True,
+        )
         self.close()
 
     def close(self) -> None:
@@ -379,7 +416,8 @@ class RerunLogger:
             "| --- | --- | --- | --- |",
         ]
         for stage, entry in session.plugins.items():
-            lines.append(f"| {stage} | {entry.get('name', '')} | {entry.get('package', '')} | {entry.get('version', '')} |")
+            cells = [stage] + [str(entry.get(key, "")) for key in ("name", "package", "version")]
+            lines.append("| " + " | ".join(cells) + " |")
         return "\n".join(lines) + "\n"
 
     @staticmethod
@@ -392,15 +430,21 @@ class RerunLogger:
             f"{len(summary.frames)} stereo pairs, {len(failed)} failed."
             + (f" Incomplete: {summary.incomplete}." if summary.incomplete else ""),
             "",
-            "| characteristic | n | measured (mm) | std (mm) | u (mm) | nominal (mm) | tol (mm) | deviation (mm) | error (mm) | result |",
-            "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+            "| " + " | ".join(_REPORT_COLUMNS) + " |",
+            "|" + " --- |" * len(_REPORT_COLUMNS),
         ]
         for c in summary.characteristics:
-            lines.append(
-                f"| {c.name} | {c.n} | {_fmt(c.measured_mm)} | {_fmt(c.std_mm)} | {_fmt(c.uncertainty_mm)} | "
-                f"{_fmt(c.nominal_mm)} | {_fmt(c.tolerance_mm)} | {_fmt(c.deviation_mm)} | {_fmt(c.error_mm)} | "
-                f"{'pass' if c.passed else 'FAIL'} |"
+            numbers = (
+                c.measured_mm,
+                c.std_mm,
+                c.uncertainty_mm,
+                c.nominal_mm,
+                c.tolerance_mm,
+                c.deviation_mm,
+                c.error_mm,
             )
+            cells = [c.name, str(c.n)] + [_fmt(v) for v in numbers] + ["pass" if c.passed else "FAIL"]
+            lines.append("| " + " | ".join(cells) + " |")
         rms = summary.rms_error_mm()
         if rms is not None:
             lines += ["", f"RMS error against the simulator's ground truth: {_fmt(rms)} mm"]
@@ -413,4 +457,18 @@ class RerunLogger:
 
 def logged_entities() -> Iterable[str]:
     """The fixed entity paths (per-control and per-characteristic entities come in addition)."""
-    return (WORLD, CAMERA, IMAGE["upper"], IMAGE["lower"], LOWER, CAMERA_POINTS, REFERENCE_POINTS, CONTROLS, TARGETS, RMS, LOG, SESSION, REPORT)
+    return (
+        WORLD,
+        CAMERA,
+        IMAGE["upper"],
+        IMAGE["lower"],
+        LOWER,
+        CAMERA_POINTS,
+        REFERENCE_POINTS,
+        CONTROLS,
+        TARGETS,
+        RMS,
+        LOG,
+        SESSION,
+        REPORT,
+    )

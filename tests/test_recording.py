@@ -24,6 +24,7 @@ import cv2
 import jsonschema
 import numpy as np
 import pytest
+from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from scipy.spatial.transform import Rotation
 
 from pipeline.calibration_io import stereo_calibration_from_yaml
@@ -61,7 +62,6 @@ from pipeline.types import (
     StereoCentroids,
     StereoFrame,
 )
-from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
 ROOT = Path(__file__).resolve().parents[1]
 T0 = 1_750_000_000_123_456_789  # session start, ns since the epoch
@@ -132,7 +132,15 @@ class Synthetic:
         self.plan = parse_plan(PLAN_TEXT, "synthetic_plan.toml")
         self.R = Rotation.from_rotvec([0.3, -0.2, 1.1]).as_matrix()
         self.t = np.array([120.5, -340.25, 55.0])
-        cam = np.array([[-20.0, 10.0, 400.0], [25.0, 12.0, 405.0], [0.0, 40.0, 398.0], [5.0, -15.0, 402.0], [12.0, 3.0, 401.0]])
+        cam = np.array(
+            [
+                [-20.0, 10.0, 400.0],
+                [25.0, 12.0, 405.0],
+                [0.0, 40.0, 398.0],
+                [5.0, -15.0, 402.0],
+                [12.0, 3.0, 401.0],
+            ]
+        )
         self.camera_xyz = cam
         glob = cam @ self.R.T + self.t
         labels = self.plan.probing_order()
@@ -154,7 +162,10 @@ class Synthetic:
         )
         truth_points = {f"C{k + 1}": glob[k] for k in range(4)} | {"P1": glob[4]}
         self.ground_truth = GroundTruth(
-            truth_points, {"L3": Line3D(np.array([300.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]))}, self.R, self.t
+            truth_points,
+            {"L3": Line3D(np.array([300.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]))},
+            self.R,
+            self.t,
         )
         self.config = load_config()
         self.info = SessionInfo(
@@ -164,8 +175,18 @@ class Synthetic:
             calibration=self.calibration,
             plan=self.plan,
             plugins={
-                "acquire": {"name": "synthetic", "plugin": "tests", "package": "crossfield", "version": "0.1.0"},
-                "register": {"name": "svd", "plugin": "plugins.register_svd", "package": "crossfield", "version": "0.1.0"},
+                "acquire": {
+                    "name": "synthetic",
+                    "plugin": "tests",
+                    "package": "crossfield",
+                    "version": "0.1.0",
+                },
+                "register": {
+                    "name": "svd",
+                    "plugin": "plugins.register_svd",
+                    "package": "crossfield",
+                    "version": "0.1.0",
+                },
             },
             packages={"crossfield": "0.1.0", "numpy": np.__version__},
             acquisition={"source": "synthetic", "frames": 2, "period_s": 0.1, "seed": seed},
@@ -218,17 +239,30 @@ class Synthetic:
         )
 
     def registration(self, seq: int) -> Registration:
-        residuals = np.array([[0.001, -0.002, 0.0005], [0.0, 0.003, -0.001], [-0.002, 0.0, 0.0], [0.001, -0.001, 0.0005]])
+        residuals = np.array(
+            [[0.001, -0.002, 0.0005], [0.0, 0.003, -0.001], [-0.002, 0.0, 0.0], [0.001, -0.001, 0.0005]]
+        )
         fit = RigidFit(self.R, self.t, residuals, float(np.sqrt((residuals**2).sum(1).mean())), method="svd")
         corr = Correspondence(np.array([0, 1, 2, 3]), ("C1", "C2", "C3", "C4"), unmatched_camera=(4,))
         return Registration(seq, fit, corr)
 
     def measurement(self, seq: int) -> Measurement:
         c = CharacteristicResult(
-            "P1-L3", "point_line", 308.36, 308.35, 0.1, 0.01, True,
-            uncertainty_mm=0.004, actual_mm=308.352, error_mm=0.008, elements=("P1", "L3"),
+            "P1-L3",
+            "point_line",
+            308.36,
+            308.35,
+            0.1,
+            0.01,
+            True,
+            uncertainty_mm=0.004,
+            actual_mm=308.352,
+            error_mm=0.008,
+            elements=("P1", "L3"),
         )
-        return Measurement(seq, (c,), {"P1": tuple(self.camera_xyz[4] @ self.R.T + self.t)}, missing_targets=())
+        return Measurement(
+            seq, (c,), {"P1": tuple(self.camera_xyz[4] @ self.R.T + self.t)}, missing_targets=()
+        )
 
     def drive(self, pm) -> SessionSummary:
         """Fire every observer hook in the runner's order."""
@@ -313,7 +347,10 @@ def test_every_topic_has_its_schema_and_count(session):
     for topic, (schema, schema_encoding, encoding, count) in EXPECTED_SCHEMAS.items():
         info = topics[topic]
         assert (info.schema_name, info.schema_encoding, info.message_encoding, info.message_count) == (
-            schema, schema_encoding, encoding, count
+            schema,
+            schema_encoding,
+            encoding,
+            count,
         ), topic
 
 
@@ -324,7 +361,13 @@ def test_images_are_bit_exact_with_capture_time(session):
         assert [m.sequence for m in recorded] == [0, 1]
         for m, frame in zip(recorded, synthetic.frames):
             img = m.decoded
-            assert (img.encoding, img.frame_id, img.width, img.height, img.step) == ("mono16", camera, SIZE[0], SIZE[1], 2 * SIZE[0])
+            assert (img.encoding, img.frame_id, img.width, img.height, img.step) == (
+                "mono16",
+                camera,
+                SIZE[0],
+                SIZE[1],
+                2 * SIZE[0],
+            )
             assert img.timestamp.ToNanoseconds() == frame.timestamp_ns == m.log_time_ns
             pixels = np.frombuffer(img.data, dtype="<u2").reshape(SIZE[1], SIZE[0])
             assert np.array_equal(pixels, frame.image(camera))
@@ -334,7 +377,9 @@ def test_images_are_bit_exact_with_capture_time(session):
 def test_raw_image_message_equals_protobuf_serialisation():
     image = np.arange(12, dtype=np.uint16).reshape(3, 4) * 4000
     fast = RawImage.FromString(raw_image_message(image, "upper", 42))
-    slow = RawImage(frame_id="upper", width=4, height=3, encoding="mono16", step=8, data=image.astype("<u2").tobytes())
+    slow = RawImage(
+        frame_id="upper", width=4, height=3, encoding="mono16", step=8, data=image.astype("<u2").tobytes()
+    )
     slow.timestamp.FromNanoseconds(42)
     assert fast == slow
     # A big-endian or strided view records the same little-endian pixels.
@@ -380,7 +425,9 @@ def test_stage_results_carry_the_numbers_sent(session):
     assert centroids["rejected"] == [{"uv": [12.5, 1000.25], "reason": "touches_border"}]
 
     reg = messages(path, "/registration")[0].decoded
-    assert np.array_equal(reg["R_global_camera"], synthetic.R) and np.array_equal(reg["t_global_camera_mm"], synthetic.t)
+    assert np.array_equal(reg["R_global_camera"], synthetic.R) and np.array_equal(
+        reg["t_global_camera_mm"], synthetic.t
+    )
     residuals = synthetic.registration(0).fit.residuals
     assert [r["control_id"] for r in reg["residuals"]] == ["C1", "C2", "C3", "C4"]
     assert np.array_equal([r["residual_mm"] for r in reg["residuals"]], residuals)
@@ -394,7 +441,10 @@ def test_stage_results_carry_the_numbers_sent(session):
     assert ref["problems"] == list(synthetic.reference.problems)
 
     meas = messages(path, "/measurement")[1].decoded
-    assert meas["characteristics"][0]["measured_mm"] == 308.36 and meas["characteristics"][0]["error_mm"] == 0.008
+    assert (
+        meas["characteristics"][0]["measured_mm"] == 308.36
+        and meas["characteristics"][0]["error_mm"] == 0.008
+    )
 
     frames = [m.decoded for m in messages(path, "/frames")]
     assert [f["sequence"] for f in frames] == [0, 1] and all(f["error"] is None for f in frames)
@@ -481,8 +531,14 @@ def test_metadata_and_attachments(session):
     synthetic, out = session
     with open_recording(out / "session.mcap") as rec:
         meta = rec.metadata()
-        assert {"crossfield.session", "crossfield.config", "crossfield.plugins", "crossfield.packages",
-                "crossfield.acquisition", "crossfield.result"} <= set(meta)
+        assert {
+            "crossfield.session",
+            "crossfield.config",
+            "crossfield.plugins",
+            "crossfield.packages",
+            "crossfield.acquisition",
+            "crossfield.result",
+        } <= set(meta)
         sess = rec.metadata_doc("crossfield.session")
         assert sess["session_id"] == "synthetic-session" and sess["start_time_ns"] == T0
         assert sess["crossfield_version"] == "0.1.0" and sess["simulated"] is True
@@ -519,7 +575,7 @@ def test_metadata_and_attachments(session):
 
 def test_toml_text_round_trips():
     data = {
-        "title": "x \"quoted\" \\ \u00e9",
+        "title": 'x "quoted" \\ \u00e9',
         "session": {"name": "", "record": True, "n": 3, "f": 0.1, "nan": float("nan"), "list": [1, 2.5, "a"]},
         "acquire": {"plugin": "simulator", "nested": {"a key": 1, "b": [True, False]}},
     }
@@ -530,7 +586,12 @@ def test_toml_text_round_trips():
 
 def test_calibration_yaml_reads_back_with_more_distortion_terms():
     cal = make_calibration()
-    wide = StereoCalibration(cal.upper, CameraIntrinsics(cal.lower.camera_matrix, np.arange(8) * 0.01, SIZE), cal.R_lower_upper, cal.t_lower_upper)
+    wide = StereoCalibration(
+        cal.upper,
+        CameraIntrinsics(cal.lower.camera_matrix, np.arange(8) * 0.01, SIZE),
+        cal.R_lower_upper,
+        cal.t_lower_upper,
+    )
     back = stereo_calibration_from_yaml(calibration_yaml(wide))
     assert np.array_equal(back.lower.dist_coeffs, np.arange(8) * 0.01)
 
@@ -593,7 +654,11 @@ def test_writer_error_surfaces_at_the_next_hook(tmp_path):
 
 @pytest.mark.parametrize(
     "content, message",
-    [(b"", "empty"), (b"not an mcap file at all", "not an MCAP file"), (b"\x89PNG\r\n\x1a\n0000", "not an MCAP file")],
+    [
+        (b"", "empty"),
+        (b"not an mcap file at all", "not an MCAP file"),
+        (b"\x89PNG\r\n\x1a\n0000", "not an MCAP file"),
+    ],
 )
 def test_non_mcap_files_are_a_clear_error(tmp_path, content, message):
     path = tmp_path / "x.mcap"
@@ -634,7 +699,7 @@ os.kill(os.getpid(), signal.SIGKILL)
 
 def test_a_killed_session_keeps_everything_up_to_the_last_finished_frame(tmp_path):
     script = CRASH_SCRIPT.format(root=str(ROOT), tests=str(ROOT / "tests"), out=str(tmp_path))
-    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, timeout=120)
+    proc = subprocess.run([sys.executable, "-c", script], check=False, capture_output=True, timeout=120)
     assert proc.returncode == -signal.SIGKILL, proc.stderr.decode()
     synthetic = Synthetic(tmp_path)
     with open_recording(tmp_path / "session.mcap") as rec:
@@ -651,7 +716,16 @@ def test_a_killed_session_keeps_everything_up_to_the_last_finished_frame(tmp_pat
     assert topics["/centroids/upper"].message_count == 1
     # Rerun converts what survived too.
     converted = tmp_path / "recovered.rrd"
-    proc = run_rerun("mcap", "convert", "--recover", str(tmp_path / "session.mcap"), "-o", str(converted), "--application-id", "crossfield")
+    proc = run_rerun(
+        "mcap",
+        "convert",
+        "--recover",
+        str(tmp_path / "session.mcap"),
+        "-o",
+        str(converted),
+        "--application-id",
+        "crossfield",
+    )
     assert proc.returncode == 0, proc.stderr
     assert run_rerun("rrd", "verify", str(converted)).returncode == 0
     assert "Image:buffer" in archetype_columns(converted)["/camera/upper/image"]
@@ -688,7 +762,9 @@ def rerun_cli() -> str:
 
 def run_rerun(*args: str) -> subprocess.CompletedProcess:
     env = dict(os.environ, RERUN_ANALYTICS="0")  # stay offline
-    return subprocess.run([rerun_cli(), *args], capture_output=True, text=True, timeout=300, env=env)
+    return subprocess.run(
+        [rerun_cli(), *args], check=False, capture_output=True, text=True, timeout=300, env=env
+    )
 
 
 def archetype_columns(rrd: Path) -> dict[str, dict[str, object]]:
@@ -708,7 +784,9 @@ def archetype_columns(rrd: Path) -> dict[str, dict[str, object]]:
 def test_rerun_converts_every_foxglove_schema(session, tmp_path):
     synthetic, out = session
     converted = tmp_path / "converted.rrd"
-    proc = run_rerun("mcap", "convert", str(out / "session.mcap"), "-o", str(converted), "--application-id", "crossfield")
+    proc = run_rerun(
+        "mcap", "convert", str(out / "session.mcap"), "-o", str(converted), "--application-id", "crossfield"
+    )
     assert proc.returncode == 0, proc.stderr
     verify = run_rerun("rrd", "verify", str(converted))
     assert verify.returncode == 0, verify.stdout + verify.stderr
@@ -735,7 +813,12 @@ def test_rerun_converts_every_foxglove_schema(session, tmp_path):
     assert np.allclose(positions * 1000.0, synthetic.camera_points(0).xyz, atol=1e-3)
 
     tf = cols["/tf"]
-    assert {"Transform3D:translation", "Transform3D:quaternion", "Transform3D:parent_frame", "Transform3D:child_frame"} <= set(tf)
+    assert {
+        "Transform3D:translation",
+        "Transform3D:quaternion",
+        "Transform3D:parent_frame",
+        "Transform3D:child_frame",
+    } <= set(tf)
     pairs = [(p[0], c[0]) for p, c in zip(tf["Transform3D:parent_frame"], tf["Transform3D:child_frame"])]
     assert pairs == [("upper", "lower"), ("global", "upper"), ("global", "upper")]
     assert np.allclose(np.array(tf["Transform3D:translation"][1][0]) * 1000.0, synthetic.t, atol=1e-3)
@@ -770,7 +853,10 @@ def test_rerun_logger_writes_a_valid_recording(session):
     shown = np.array(cols["/world/camera/upper/image"]["Image:buffer"][0][0], dtype=np.uint8).view("<u2")
     assert np.array_equal(shown.reshape(SIZE[1], SIZE[0]), synthetic.frames[0].upper << 4)
     assert "TextDocument:text" in cols["/report"] and "TextLog:text" in cols["/log"]
-    assert "PASS" in cols["/report"]["TextDocument:text"][0][0] or "FAIL" in cols["/report"]["TextDocument:text"][0][0]
+    assert (
+        "PASS" in cols["/report"]["TextDocument:text"][0][0]
+        or "FAIL" in cols["/report"]["TextDocument:text"][0][0]
+    )
 
 
 @pytest.mark.parametrize("compression", ["lz4", "zstd"])
@@ -783,7 +869,9 @@ def test_compressed_chunks_stay_lossless(tmp_path, compression):
     pm.hook.on_frame(frame=synthetic.frames[0])
     recorder.close()
     (m,) = messages(path, "/camera/lower/image")
-    assert np.array_equal(np.frombuffer(m.decoded.data, "<u2").reshape(SIZE[1], SIZE[0]), synthetic.frames[0].lower)
+    assert np.array_equal(
+        np.frombuffer(m.decoded.data, "<u2").reshape(SIZE[1], SIZE[0]), synthetic.frames[0].lower
+    )
     from mcap.reader import make_reader
 
     with open(path, "rb") as f:
