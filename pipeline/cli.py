@@ -41,6 +41,11 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("-q", "--quiet", action="store_true", help="no progress display")
     _add_stage_flags(run)
 
+    sub.add_parser(
+        "romer-sim", add_help=False,
+        help="run the simulated ROMER arm on a pseudo-terminal or TCP port (see romer-sim --help)",
+    )
+
     plugins = sub.add_parser("plugins", help="list every stage's registered implementations")
     plugins.add_argument("--json", action="store_true", help="machine-readable output")
     return parser
@@ -128,6 +133,11 @@ COMMANDS = {"run": cmd_run, "plugins": cmd_plugins}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["romer-sim"]:
+        from .simulator.romer_sim import main_romer_sim
+
+        return main_romer_sim(argv[1:])
     args = build_parser().parse_args(argv)
     try:
         return COMMANDS[args.command](args)

@@ -37,31 +37,19 @@ import tempfile
 import termios
 import threading
 import time
-from dataclasses import dataclass
 from typing import Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
 from pipeline.cmm_formats import encode_pcdmis
 from pipeline.romer_protocol import encode_point
+from .scene import ArmProbe  # noqa: F401  (re-exported for the tools that build probes)
 
 #: termios speed set on the slave before a client opens it; pyserial's
 #: open() replaces it, which tells the arm that the port is configured.
 _MARKER_SPEED = termios.B50
 
 Fault = Callable[[bytes], bytes]
-
-
-@dataclass(frozen=True)
-class ArmProbe:
-    """One button press: label (plan label), xyz (3,) measured probe-ball
-    centre in mm (noise already added), probe_vector (3,) unit approach
-    direction, probe_diameter_mm in mm."""
-
-    label: str
-    xyz: np.ndarray
-    probe_vector: np.ndarray
-    probe_diameter_mm: float
 
 
 def probes_from_points(
