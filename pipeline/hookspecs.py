@@ -15,7 +15,7 @@ Two kinds of hook (``docs/plugins.md``):
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Callable
 
 import pluggy
 
