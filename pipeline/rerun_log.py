@@ -39,6 +39,7 @@ principal points are shifted by +0.5 px so that everything lines up.
 
 from __future__ import annotations
 
+import atexit
 import math
 from collections.abc import Iterable
 from pathlib import Path
@@ -202,6 +203,7 @@ class RerunLogger:
         except Exception as exc:  # noqa: BLE001 - rerun raises several types
             raise RecordingError(f"{self.path}: cannot write the Rerun recording: {exc}") from None
         self._closed = False
+        atexit.register(self.close)
         self._frame_times: dict[int, int] = {}
         self._reference: Any = None
 
@@ -393,6 +395,7 @@ class RerunLogger:
         if self._closed:
             return
         self._closed = True
+        atexit.unregister(self.close)
         self.rec.flush()
         self.rec.disconnect()
 
