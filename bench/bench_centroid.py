@@ -33,10 +33,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
-from pipeline.registry import implementations, make_plugin_manager  # noqa: E402
-from synthetic_targets import distractors, random_targets, render  # noqa: E402
+from synthetic_targets import distractors, random_targets, render
 
-from plugins._blobs import estimate_background  # noqa: E402
+from pipeline.registry import implementations, make_plugin_manager
+from plugins._blobs import estimate_background
 
 
 def baseline(image: np.ndarray, threshold_dn: int) -> list[tuple[float, float]]:
@@ -73,8 +73,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--targets", type=int, default=20, help="targets in the frame")
     parser.add_argument("--threads", type=int, default=-1, help="cv2.setNumThreads (-1: OpenCV's default)")
     parser.add_argument("--seed", type=int, default=2024)
-    parser.add_argument("--source", choices=("synthetic", "station", "table3"), default="synthetic",
-                        help="synthetic frame (default) or a simulator scenario's upper image")
+    parser.add_argument(
+        "--source",
+        choices=("synthetic", "station", "table3"),
+        default="synthetic",
+        help="synthetic frame (default) or a simulator scenario's upper image",
+    )
     args = parser.parse_args(argv)
     if args.threads >= 0:
         cv2.setNumThreads(args.threads)
@@ -97,8 +101,10 @@ def main(argv: list[str] | None = None) -> int:
         content = f"simulator scenario {args.source!r}, {len(truth)} targets"
     threshold = estimate_background(image, 8.0).threshold_dn
 
-    print(f"frame {image.shape[1]}x{image.shape[0]} {image.dtype}, {content}, "
-          f"OpenCV {cv2.__version__}, {cv2.getNumThreads()} OpenCV threads, {args.runs} runs")
+    print(
+        f"frame {image.shape[1]}x{image.shape[0]} {image.dtype}, {content}, "
+        f"OpenCV {cv2.__version__}, {cv2.getNumThreads()} OpenCV threads, {args.runs} runs"
+    )
     pm = make_plugin_manager()
     extractors = {name: impl.create({}) for name, impl in sorted(implementations(pm, "centroid").items())}
     functions = {"baseline": lambda: baseline(image, threshold)}
@@ -107,7 +113,10 @@ def main(argv: list[str] | None = None) -> int:
     times = interleaved_ms(functions, args.runs)
     base_ms = float(np.median(times["baseline"]))
     print(f"{'implementation':44s} {'median':>7s}    {'p90':>7s}     ratio")
-    print(f"{'baseline (threshold+findContours+moments)':44s} {base_ms:7.3f} ms {np.percentile(times['baseline'], 90):7.3f} ms   1.00 x")
+    print(
+        f"{'baseline (threshold+findContours+moments)':44s} {base_ms:7.3f} ms "
+        f"{np.percentile(times['baseline'], 90):7.3f} ms   1.00 x"
+    )
     for name, extractor in extractors.items():
         ms = float(np.median(times[name]))
         p90 = float(np.percentile(times[name], 90))
@@ -116,9 +125,11 @@ def main(argv: list[str] | None = None) -> int:
         matched = d.min(axis=1) < 1.0
         err = result.uv[matched] - truth[d.argmin(axis=1)[matched]]
         rms = float(np.sqrt((err**2).sum(axis=1).mean())) if matched.any() else float("nan")
-        print(f"{name:44s} {ms:7.3f} ms {p90:7.3f} ms {ms / base_ms:6.2f} x   "
-              f"found {int(matched.sum())}/{len(truth)}, rejected {len(result.rejected)}, "
-              f"radial RMS error {rms:.4f} px, median sigma_uv {np.median(result.sigma_uv):.4f} px")
+        print(
+            f"{name:44s} {ms:7.3f} ms {p90:7.3f} ms {ms / base_ms:6.2f} x   "
+            f"found {int(matched.sum())}/{len(truth)}, rejected {len(result.rejected)}, "
+            f"radial RMS error {rms:.4f} px, median sigma_uv {np.median(result.sigma_uv):.4f} px"
+        )
     return 0
 
 

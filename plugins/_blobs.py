@@ -154,7 +154,7 @@ def estimate_background(image: np.ndarray, threshold_sigma: float, stride: int =
         q25, level, q75 = np.percentile(sample, [25.0, 50.0, 75.0])
         iqr = q75 - q25
     sigma = max(iqr * _IQR_TO_SIGMA, _QUANTISATION_SIGMA)
-    return Background(float(level), float(sigma), int(math.floor(level + threshold_sigma * sigma)))
+    return Background(float(level), float(sigma), math.floor(level + threshold_sigma * sigma))
 
 
 class BlobDetector:
@@ -261,8 +261,23 @@ class BlobDetector:
                 rejected.append(RejectedBlob(uv, "not_round"))
                 continue
             blobs.append(
-                Blob(x0, y0, roi, component, window, window_count, M, N, b, ring_count, int(area),
-                     roundness, float(max_value - b), bool(saturated), uv)
+                Blob(
+                    x0,
+                    y0,
+                    roi,
+                    component,
+                    window,
+                    window_count,
+                    M,
+                    N,
+                    b,
+                    ring_count,
+                    int(area),
+                    roundness,
+                    float(max_value - b),
+                    bool(saturated),
+                    uv,
+                )
             )
         return blobs, rejected, background
 

@@ -161,10 +161,16 @@ class EllipseCentroids:
         self.edge_level = float(edge_level)
         self.detector = BlobDetector(
             DetectorOptions(
-                threshold_sigma=threshold_sigma, min_area_px=min_area_px, max_area_px=max_area_px,
-                min_roundness=min_roundness, reject_saturated=reject_saturated,
-                reject_border=reject_border, bit_depth=bit_depth, dilate_px=dilate_px,
-                ring_px=ring_px, stride=background_stride,
+                threshold_sigma=threshold_sigma,
+                min_area_px=min_area_px,
+                max_area_px=max_area_px,
+                min_roundness=min_roundness,
+                reject_saturated=reject_saturated,
+                reject_border=reject_border,
+                bit_depth=bit_depth,
+                dilate_px=dilate_px,
+                ring_px=ring_px,
+                stride=background_stride,
             )
         )
 

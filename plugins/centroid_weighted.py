@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import math
 
-import cv2
 import numpy as np
 
 from pipeline.hookspecs import hookimpl
@@ -44,7 +43,9 @@ from pipeline.types import CentroidSet
 from ._blobs import Background, Blob, BlobDetector, DetectorOptions, sort_order, sort_rejected
 
 
-def weighted_centroid(blob: Blob, background: Background, gain_e_per_dn: float) -> tuple[float, float, float, float]:
+def weighted_centroid(
+    blob: Blob, background: Background, gain_e_per_dn: float
+) -> tuple[float, float, float, float]:
     """Intensity-weighted centroid of one blob and its standard uncertainty.
 
     Returns (u, v, sigma_u, sigma_v) in pixels, image coordinates. See the
@@ -119,10 +120,16 @@ class WeightedCentroids:
         self.gain_e_per_dn = float(gain_e_per_dn)
         self.detector = BlobDetector(
             DetectorOptions(
-                threshold_sigma=threshold_sigma, min_area_px=min_area_px, max_area_px=max_area_px,
-                min_roundness=min_roundness, reject_saturated=reject_saturated,
-                reject_border=reject_border, bit_depth=bit_depth, dilate_px=dilate_px,
-                ring_px=ring_px, stride=background_stride,
+                threshold_sigma=threshold_sigma,
+                min_area_px=min_area_px,
+                max_area_px=max_area_px,
+                min_roundness=min_roundness,
+                reject_saturated=reject_saturated,
+                reject_border=reject_border,
+                bit_depth=bit_depth,
+                dilate_px=dilate_px,
+                ring_px=ring_px,
+                stride=background_stride,
             )
         )
 

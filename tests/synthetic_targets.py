@@ -133,5 +133,8 @@ def distractors(shape: tuple[int, int] = (HEIGHT, WIDTH)) -> dict[str, list[Elli
         "too_small": [Ellipse(60.0, 40.0, 1.0, 1.0, 0.0, 1500.0), Ellipse(140.4, 45.6, 1.3, 0.9, 0.3, 900.0)],
         "not_round": [Ellipse(300.0, 50.0, 30.0, 4.0, 0.2, 2500.0)],
         "saturated": [Ellipse(480.0, 60.0, 18.0, 16.0, 1.0, 6000.0)],
-        "touches_border": [Ellipse(w - 8.0, h / 2, 20.0, 18.0, 0.0, 2800.0), Ellipse(w / 2, 5.0, 15.0, 15.0, 0.0, 2800.0)],
+        "touches_border": [
+            Ellipse(w - 8.0, h / 2, 20.0, 18.0, 0.0, 2800.0),
+            Ellipse(w / 2, 5.0, 15.0, 15.0, 0.0, 2800.0),
+        ],
     }

@@ -13,13 +13,13 @@ import math
 
 import numpy as np
 import pytest
+from synthetic_targets import Ellipse, coverage, distractors, random_targets, render
 
 from pipeline.errors import ConfigError
 from pipeline.registry import implementations, make_plugin_manager
 from pipeline.types import CentroidSet, StereoFrame
 from plugins._blobs import BlobDetector, DetectorOptions, estimate_background
 from plugins.centroid_weighted import weighted_centroid
-from synthetic_targets import Ellipse, coverage, distractors, random_targets, render
 
 IMPLEMENTATIONS = implementations(make_plugin_manager(), "centroid")
 NAMES = sorted(IMPLEMENTATIONS)
@@ -166,7 +166,10 @@ def test_weighted_uncertainty_formula_matches_explicit_sum():
 @pytest.mark.parametrize("name", NAMES)
 def test_rejects_non_target_blobs_with_reasons(name):
     groups = distractors()
-    targets = [Ellipse(700.0, 500.0, 22.0, 19.0, 0.3, 3000.0), Ellipse(1000.4, 800.6, 26.0, 25.0, 0.0, 2600.0)]
+    targets = [
+        Ellipse(700.0, 500.0, 22.0, 19.0, 0.3, 3000.0),
+        Ellipse(1000.4, 800.6, 26.0, 25.0, 0.0, 2600.0),
+    ]
     image = render(targets + [e for group in groups.values() for e in group], np.random.default_rng(4))
     result = make(name).extract(image, "upper", 0)
     match(result, np.array([[t.u0, t.v0] for t in targets]))
@@ -181,8 +184,12 @@ def test_rejects_non_target_blobs_with_reasons(name):
 def test_area_limits(name):
     target = Ellipse(100.0, 90.0, 20.0, 20.0, 0.0, 3000.0)  # about 1300 px
     image = render([target], np.random.default_rng(2), shape=(180, 200))
-    assert [r.reason for r in make(name, max_area_px=800).extract(image, "upper", 0).rejected] == ["too_large"]
-    assert [r.reason for r in make(name, min_area_px=2000).extract(image, "upper", 0).rejected] == ["too_small"]
+    assert [r.reason for r in make(name, max_area_px=800).extract(image, "upper", 0).rejected] == [
+        "too_large"
+    ]
+    assert [r.reason for r in make(name, min_area_px=2000).extract(image, "upper", 0).rejected] == [
+        "too_small"
+    ]
     assert len(make(name).extract(image, "upper", 0)) == 1
 
 
@@ -205,7 +212,7 @@ def test_order_independent_and_raster_ordered(name, noisy_frame):
     extractor = make(name)
     result = extractor.extract(image, "upper", 0)
     assert np.all(np.diff(result.uv[:, 1]) >= 0)
-    h, w = image.shape
+    w = image.shape[1]
 
     flipped = extractor.extract(np.ascontiguousarray(image[:, ::-1]), "upper", 0)
     mirrored = np.column_stack((w - 1 - flipped.uv[:, 0], flipped.uv[:, 1]))
@@ -247,7 +254,7 @@ def test_perspective_ellipse_centre_is_the_truth(name):
     # plane (x, y, 1) -> image homography and the circle's image conic
     H = K @ np.column_stack((e1, e2, centre))
     Hinv = np.linalg.inv(H)
-    conic = Hinv.T @ np.diag([1.0, 1.0, -radius**2]) @ Hinv
+    conic = Hinv.T @ np.diag([1.0, 1.0, -(radius**2)]) @ Hinv
     A, b, c = conic[:2, :2], conic[:2, 2], conic[2, 2]
     ellipse_centre = -np.linalg.solve(A, b)
     k = ellipse_centre @ A @ ellipse_centre - c
@@ -287,7 +294,9 @@ def test_background_estimate():
 
 
 @pytest.mark.parametrize("name", NAMES)
-@pytest.mark.parametrize("options", [{"min_roundness": 1.5}, {"threshold_sigma": 0}, {"min_area_px": 0}, {"bogus": 1}])
+@pytest.mark.parametrize(
+    "options", [{"min_roundness": 1.5}, {"threshold_sigma": 0}, {"min_area_px": 0}, {"bogus": 1}]
+)
 def test_bad_options_are_config_errors(name, options):
     with pytest.raises(ConfigError):
         IMPLEMENTATIONS[name].create(options)
