@@ -96,8 +96,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     impl = get_implementation(pm, "report", reporter).create(dict(config.stages["report"].options))
     print(impl.summary_text(summary))
     print(f"session written to {summary.info.out_dir}/")
-    for path in summary.report_files:
-        print(f"  {path}")
+    for path in sorted(summary.info.out_dir.iterdir()):
+        print(f"  {path.name:<14} {path.stat().st_size / 1e6:9.2f} MB")
     return 0 if summary.passed else 1
 
 
