@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import gc
-import os
 import resource
 import sys
 import tempfile
@@ -74,7 +73,7 @@ class MemoryPlugin:
 def write_reference_csv(scene, path: Path) -> None:
     probes = scene.arm_probes(np.random.default_rng(2))
     lines = ["id,x,y,z,sigma"]
-    lines += [f"{p.label},{p.xyz[0]!r},{p.xyz[1]!r},{p.xyz[2]!r},0.01" for p in probes]
+    lines += [f"{p.label},{float(p.xyz[0])!r},{float(p.xyz[1])!r},{float(p.xyz[2])!r},0.01" for p in probes]
     path.write_text("\n".join(lines) + "\n")
 
 
@@ -86,8 +85,6 @@ def baseline_write(pairs, count: int, path: Path) -> float:
             f = pairs[k % len(pairs)]
             fh.write(f.upper.data)
             fh.write(f.lower.data)
-        fh.flush()
-        os.fsync(fh.fileno())
     elapsed = time.perf_counter() - start
     path.unlink()
     return count / elapsed

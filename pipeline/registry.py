@@ -7,6 +7,7 @@ factory, description)``. The config names the implementation that runs.
 
 from __future__ import annotations
 
+import functools
 import importlib
 import inspect
 from dataclasses import dataclass
@@ -88,9 +89,15 @@ class Implementation:
             raise ConfigError(f"{prefix}{self.stage} plugin {self.name!r}: {exc}") from None
 
 
+@functools.cache
+def _packages_distributions() -> dict[str, list[str]]:
+    # Scans every installed distribution's file list (~0.1 s): once per process.
+    return metadata.packages_distributions()
+
+
 def _distribution_of(module_name: str) -> tuple[str, str]:
     top = module_name.split(".")[0]
-    for dist_name in metadata.packages_distributions().get(top, []):
+    for dist_name in _packages_distributions().get(top, []):
         try:
             return dist_name, metadata.version(dist_name)
         except metadata.PackageNotFoundError:  # pragma: no cover
