@@ -345,22 +345,21 @@ def point_line_distance(
     the point covariance ``point_cov`` (3, 3) (None = exact point) and of the
     fit's axis covariance: ``var = g_p^T C_p g_p + g_l^T C_l g_l``, where g_p is
     the unit normal from the line to p and g_l the gradient with respect to the
-    axis parameters (x, y, a, b) (central differences).
+    axis parameters (x, y, a, b), analytic: with v = p - c, n = v - (v.u) u
+    and n^ = n / |n|, d|n|/dx = -n^.e1, d|n|/dy = -n^.e2 (the point moves by
+    x e1 + y e2) and d|n|/da = -(v.u) n^.e1, d|n|/db = -(v.u) n^.e2 (the
+    direction tilts to u + a e1 + b e2; first order, n^ is normal to u).
     """
     p = np.asarray(p, dtype=np.float64)
     line = line_fit.line
-    d = line.distance(p)
     v = p - line.point
-    normal = v - (v @ line.direction) * line.direction
-    g_p = normal / np.linalg.norm(normal) if np.linalg.norm(normal) > 0 else np.zeros(3)
-    scale = max(1.0, abs(d))
-    steps = np.array([1e-6, 1e-6, 1e-9, 1e-9]) * scale
-    g_l = np.array(
-        [
-            (line_fit.perturbed(dx).distance(p) - line_fit.perturbed(-dx).distance(p)) / (2 * h)
-            for dx, h in ((np.eye(4)[k] * steps[k], steps[k]) for k in range(4))
-        ]
-    )
+    along = float(v @ line.direction)
+    normal = v - along * line.direction
+    d = float(np.linalg.norm(normal))
+    g_p = normal / d if d > 0 else np.zeros(3)
+    e1, e2 = line_fit.basis
+    n1, n2 = float(g_p @ e1), float(g_p @ e2)
+    g_l = np.array([-n1, -n2, -along * n1, -along * n2])
     var = float(g_l @ line_fit.covariance @ g_l)
     if point_cov is not None:
         var += float(g_p @ np.asarray(point_cov) @ g_p)
