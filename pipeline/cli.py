@@ -46,6 +46,47 @@ def build_parser() -> argparse.ArgumentParser:
         help="run the simulated ROMER arm on a pseudo-terminal or TCP port (see romer-sim --help)",
     )
 
+    replay = sub.add_parser(
+        "replay",
+        help="re-run a recorded session from its raw inputs, optionally with other plugins",
+        description="Re-run the session recorded in SESSION.mcap from its raw inputs (images, serial bytes, "
+        "calibration, plan) with the recorded plugins and options, or with the ones given here. "
+        "The replay is recorded as a new session whose metadata names its parent and what changed.",
+    )
+    replay.add_argument("recording", metavar="SESSION.mcap", help="the recorded session")
+    replay.add_argument(
+        "-o", "--output", metavar="OUT.mcap",
+        help="the MCAP file to write (report files go into a folder of the same name); "
+        "default: a new session folder <id>-replay next to the recorded one",
+    )
+    replay.add_argument("--no-record", action="store_true", help="do not write an MCAP file")
+    replay.add_argument("--no-rerun", action="store_true", help="do not write session.rrd")
+    replay.add_argument("-q", "--quiet", action="store_true", help="no progress display")
+    _add_stage_flags(replay)
+
+    compare = sub.add_parser(
+        "compare",
+        help="compare two recorded sessions side by side (characteristics, registration, centroids)",
+        description="Side by side: every characteristic, the registration (R, t, RMS, per-point residuals) "
+        "and the centroid statistics of two recorded sessions, with every difference. "
+        "Exit status 0 if they agree in every compared value, 1 if not.",
+    )
+    compare.add_argument("a", metavar="A.mcap")
+    compare.add_argument("b", metavar="B.mcap")
+    compare.add_argument("--json", action="store_true", help="machine-readable output")
+
+    audit = sub.add_parser(
+        "audit",
+        help="check a recorded session: integrity chain, provenance, reproduction by replay",
+        description="Check a recorded session: (1) integrity: the SHA-256 chain over every message; "
+        "(2) provenance: config, plugins and versions, packages, machine, plan and calibration hashes; "
+        "(3) reproduction: a replay with the recorded plugins gives the recorded results. "
+        "Exit status 0 if all pass, 1 if not.",
+    )
+    audit.add_argument("recording", metavar="SESSION.mcap")
+    audit.add_argument("--json", action="store_true", help="machine-readable output")
+    audit.add_argument("--no-replay", action="store_true", help="skip the reproduction check")
+
     plugins = sub.add_parser("plugins", help="list every stage's registered implementations")
     plugins.add_argument("--json", action="store_true", help="machine-readable output")
     return parser
@@ -129,7 +170,70 @@ def cmd_plugins(args: argparse.Namespace) -> int:
     return 0
 
 
-COMMANDS = {"run": cmd_run, "plugins": cmd_plugins}
+def cmd_replay(args: argparse.Namespace) -> int:
+    from .progress import Progress
+    from .registry import get_implementation
+    from .replay import load_recorded_session, replay_session
+
+    pm = make_plugin_manager(entry_points=True)
+    recorded = load_recorded_session(args.recording)
+    total = sum(1 for _ in recorded.recording.messages("/camera/upper/image", decode=False)) if not args.quiet else 0
+    observers = [] if args.quiet else [Progress(total=total or None)]
+    summary = replay_session(
+        args.recording,
+        pm,
+        plugins={stage: getattr(args, stage) for stage in STAGES},
+        options=args.option,
+        output=args.output,
+        record=not args.no_record,
+        rerun=False if args.no_rerun else None,
+        observers=observers,
+        recorded=recorded,
+    )
+    config = summary.info.config
+    impl = get_implementation(pm, "report", config.stages["report"].plugin).create(
+        dict(config.stages["report"].options)
+    )
+    parent = summary.info.parent or {}
+    print(f"replay of {parent.get('path')} (session {parent.get('session_id')}, SHA-256 {parent.get('sha256')})")
+    changed = parent.get("changed") or {}
+    if not changed.get("plugins") and not changed.get("options"):
+        print("  with the recorded plugins and options")
+    for stage, c in (changed.get("plugins") or {}).items():
+        print(f"  {stage}: {c['from']} -> {c['to']}")
+    for key, c in (changed.get("options") or {}).items():
+        print(f"  {key}: {c['from']!r} -> {c['to']!r}")
+    if summary.incomplete:
+        print(f"INCOMPLETE: {summary.incomplete}")
+    print(impl.summary_text(summary))
+    if args.output and not args.no_record:
+        print(f"replay recorded to {args.output}")
+    print(f"session files in {summary.info.out_dir}/")
+    for path in sorted(summary.info.out_dir.iterdir()):
+        print(f"  {path.name:<14} {path.stat().st_size / 1e6:9.2f} MB")
+    return 0 if summary.passed else 1
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    from .compare import compare, format_table
+
+    result = compare(args.a, args.b)
+    if args.json:
+        print(json.dumps(result, indent=2, allow_nan=False, default=str))
+    else:
+        print(format_table(result))
+    return 0 if result["identical"] else 1
+
+
+def cmd_audit(args: argparse.Namespace) -> int:
+    from .audit import audit, format_report, to_json
+
+    report = audit(args.recording, make_plugin_manager(entry_points=True), reproduce=not args.no_replay)
+    print(to_json(report) if args.json else format_report(report))
+    return 0 if report.passed else 1
+
+
+COMMANDS = {"run": cmd_run, "replay": cmd_replay, "compare": cmd_compare, "audit": cmd_audit, "plugins": cmd_plugins}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -28,6 +28,7 @@ from __future__ import annotations
 import atexit
 import datetime as _dt
 import functools
+import hashlib
 import json
 import math
 import queue
@@ -54,6 +55,7 @@ from scipy.spatial.transform import Rotation
 
 from .errors import RecordingError
 from .hookspecs import hookimpl
+from .integrity import TOPIC_INTEGRITY, IntegrityChain
 from .types import CAMERAS, CameraIntrinsics, CameraPoints, CentroidSet, GroundTruth, StereoCalibration
 
 #: Identifies this layout; written into the ``crossfield.session`` metadata.
@@ -92,6 +94,7 @@ JSON_SCHEMAS: dict[str, str] = {
     "crossfield.ReferenceData": "reference.schema.json",
     "crossfield.FrameStatus": "frame_status.schema.json",
     "crossfield.Report": "report.schema.json",
+    "crossfield.Integrity": "integrity.schema.json",
 }
 
 #: Message encoding of ``/cmm/raw`` (schema-less: the bytes as read).
@@ -609,6 +612,33 @@ def ground_truth_doc(truth: GroundTruth) -> dict[str, Any]:
     }
 
 
+def machine_info() -> dict[str, Any]:
+    """The machine a session runs on (the ``crossfield.machine`` metadata record)."""
+    import os
+    import platform
+    import socket
+
+    cpu = platform.processor() or ""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    return {
+        "hostname": socket.gethostname(),
+        "platform": platform.platform(),
+        "system": platform.system(),
+        "release": platform.release(),
+        "machine": platform.machine(),
+        "cpu": cpu,
+        "cpu_count": os.cpu_count(),
+        "python": f"{platform.python_implementation()} {platform.python_version()}",
+    }
+
+
 def _crossfield_version(packages: Mapping[str, str]) -> str:
     if packages.get("crossfield"):
         return str(packages["crossfield"])
@@ -651,6 +681,7 @@ class _McapSink:
         self.channels: dict[ChannelSpec, int] = {}
         self.flush_interval_s = flush_interval_s
         self.last_flush = time.monotonic()
+        self.chain = IntegrityChain()
 
     def _channel_id(self, spec: ChannelSpec) -> int:
         channel_id = self.channels.get(spec)
@@ -670,29 +701,43 @@ class _McapSink:
         return channel_id
 
     def message(self, spec: ChannelSpec, log_time: int, data: bytes, sequence: int) -> None:
-        self.writer.add_message(
-            self._channel_id(spec), int(log_time), data, int(log_time), int(sequence) & 0xFFFFFFFF
-        )
+        sequence = int(sequence) & 0xFFFFFFFF
+        self.writer.add_message(self._channel_id(spec), int(log_time), data, int(log_time), sequence)
+        self.chain.add_message(spec.topic, int(log_time), sequence, data)
         if time.monotonic() - self.last_flush > self.flush_interval_s:
             self.flush()
 
     def metadata(self, name: str, record: dict[str, str]) -> None:
         self.writer.add_metadata(name, record)
+        self.chain.add_metadata(name, record)
 
     def attachment(self, name: str, media_type: str, data: bytes, log_time: int) -> None:
         self.writer.add_attachment(int(log_time), int(log_time), name, media_type, data)
+        self.chain.add_attachment(name, media_type, data)
+
+    def _integrity_record(self, final: bool) -> None:
+        """Write the next /integrity record into the open chunk (pipeline/integrity.py)."""
+        t = self.chain.latest_time_ns or time.time_ns()
+        index = self.chain.index
+        data = self.chain.record(final)
+        self.writer.add_message(self._channel_id(_INTEGRITY_CHANNEL), t, data, t, index & 0xFFFFFFFF)
 
     def flush(self) -> None:
-        """Close the open chunk and hand everything to the OS (no fsync)."""
+        """Close the open chunk and hand everything to the OS (no fsync). The
+        chunk ends with an /integrity record covering everything written so far."""
+        if self.chain.pending:
+            self._integrity_record(final=False)
         self.writer.flush()
         self.last_flush = time.monotonic()
 
     def finish(self) -> None:
+        self._integrity_record(final=True)
         self.writer.finish()
         self.stream.flush()
 
 
 _CLOSE = object()
+_INTEGRITY_CHANNEL = _json_channel(TOPIC_INTEGRITY, "crossfield.Integrity")
 
 
 class McapRecorder:
@@ -845,6 +890,7 @@ class McapRecorder:
         start = int(session.start_time_ns or time.time_ns())
         self._latest_time_ns = max(self._latest_time_ns, start)
         version = _crossfield_version(session.packages)
+        calibration_text = calibration_yaml(session.calibration).encode()
         session_doc = {
             "session_id": session.session_id,
             "start_time_ns": start,
@@ -857,6 +903,7 @@ class McapRecorder:
             "plan_source": session.plan.source,
             "plan_sha256": session.plan.sha256,
             "calibration_source": session.calibration.source,
+            "calibration_sha256": hashlib.sha256(calibration_text).hexdigest(),
             "simulated": session.ground_truth is not None,
             "parent": plain(session.parent),
             "units": "JSON messages: mm, rad, px; foxglove PointCloud and FrameTransforms: m",
@@ -872,15 +919,10 @@ class McapRecorder:
         self._submit("metadata", "crossfield.plugins", _metadata_record(session.plugins))
         self._submit("metadata", "crossfield.packages", {str(k): str(v) for k, v in session.packages.items()})
         self._submit("metadata", "crossfield.acquisition", _metadata_record(session.acquisition))
+        self._submit("metadata", "crossfield.machine", _metadata_record(machine_info()))
 
         self._submit("attachment", "plan.toml", "application/toml", session.plan.text.encode("utf-8"), start)
-        self._submit(
-            "attachment",
-            "calibration.yml",
-            "application/yaml",
-            calibration_yaml(session.calibration).encode(),
-            start,
-        )
+        self._submit("attachment", "calibration.yml", "application/yaml", calibration_text, start)
         if session.ground_truth is not None:
             self._submit(
                 "attachment",
@@ -1085,7 +1127,33 @@ def recorded_topics(cameras: Sequence[str] = CAMERAS) -> list[str]:
         topics += [TOPIC_IMAGE.format(camera=camera), TOPIC_CALIBRATION.format(camera=camera)]
         topics.append(TOPIC_CENTROIDS.format(camera=camera))
     topics += [TOPIC_TF, TOPIC_LOG, TOPIC_CMM_RAW, TOPIC_REFERENCE, TOPIC_REGISTRATION, TOPIC_MEASUREMENT]
-    topics += [TOPIC_FRAMES, TOPIC_REPORT]
+    topics += [TOPIC_FRAMES, TOPIC_REPORT, TOPIC_INTEGRITY]
     for cloud in (TOPIC_POINTS_CAMERA, TOPIC_POINTS_REFERENCE, TOPIC_POINTS_GLOBAL):
         topics += [cloud, cloud + JSON_TWIN]
     return topics
+
+
+class MessageCapture(McapRecorder):
+    """An observer that builds every message exactly as :class:`McapRecorder`
+    would and keeps them in memory instead of writing a file.
+
+    ``messages``: ``(topic, log_time_ns, sequence, data)`` in write order,
+    topics in ``skip_topics`` left out (the audit skips the raw images).
+    Metadata and attachments are not kept. Used by ``crossfield audit`` to
+    recompute a session's recorded results without writing a second file.
+    """
+
+    def __init__(self, skip_topics: Iterable[str] = ()) -> None:
+        import os
+
+        super().__init__(os.devnull, overwrite=True, writer_thread=False)
+        self.messages: list[tuple[str, int, int, bytes]] = []
+        self._skip = frozenset(skip_topics)
+
+    def _submit(self, method: str, *args: Any) -> None:
+        if self._closed:
+            raise RecordingError("the message capture is closed")
+        if method == "message":
+            spec, log_time, data, sequence = args
+            if spec.topic not in self._skip:
+                self.messages.append((spec.topic, int(log_time), int(sequence) & 0xFFFFFFFF, bytes(data)))

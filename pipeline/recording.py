@@ -115,6 +115,20 @@ class Recording:
     # ---- basics ---------------------------------------------------------
 
     @property
+    def library(self) -> str:
+        """The writer named in the file's MCAP header (``""`` if it has none);
+        crossfield writes ``crossfield/<version> crossfield-mcap/1 mcap-python/<version>``."""
+        from mcap.records import Header
+
+        with self._open() as f:
+            try:
+                for record in StreamReader(f).records:
+                    return record.library if isinstance(record, Header) else ""
+            except _DAMAGE:
+                return ""
+        return ""
+
+    @property
     def complete(self) -> bool:
         """True when the file was finished (summary and footer intact)."""
         return self._summary is not None
@@ -212,9 +226,10 @@ class Recording:
         return message.data
 
     def messages(
-        self, topics: str | Iterable[str] | None = None, *, decode: bool = True
+        self, topics: str | Iterable[str] | None = None, *, decode: bool = True, file_order: bool = False
     ) -> Iterator[RecordedMessage]:
-        """Messages of ``topics`` (all when None) in log-time order.
+        """Messages of ``topics`` (all when None) in log-time order, or in the
+        order they were written when ``file_order`` (replay: the processing order).
 
         On a damaged recording: the messages before the damage, in file order.
         """
@@ -226,7 +241,9 @@ class Recording:
                 reader = self._seeking(f)
                 selected = None if wanted is None else list(wanted)
                 try:
-                    for schema, channel, message in reader.iter_messages(topics=selected):
+                    for schema, channel, message in reader.iter_messages(
+                        topics=selected, log_time_order=not file_order
+                    ):
                         yield self._recorded(schema, channel, message, decode)
                 except _DAMAGE as exc:
                     raise RecordingError(f"{self.path}: damaged recording: {exc}") from None

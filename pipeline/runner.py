@@ -18,7 +18,7 @@ import time
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import Any, Callable, Iterable, Iterator
 
 import numpy as np
 import pluggy
@@ -81,8 +81,13 @@ class Stages:
     report: Any
 
     @classmethod
-    def build(cls, pm: pluggy.PluginManager, config: Config) -> "Stages":
-        impls = {stage: get_implementation(pm, stage, config.stages[stage].plugin) for stage in STAGES}
+    def build(cls, pm: pluggy.PluginManager, config: Config, *, skip: Iterable[str] = ()) -> "Stages":
+        """Look up every stage's implementation (those in ``skip`` excepted: replay
+        does not need the acquisition plugin) and create the per-frame ones."""
+        skip = set(skip)
+        impls = {
+            stage: get_implementation(pm, stage, config.stages[stage].plugin) for stage in STAGES if stage not in skip
+        }
         made = {
             stage: impls[stage].create(dict(config.stages[stage].options), f"{config.source}: [{stage}]")
             for stage in ("centroid", "triangulate", "register", "measure", "report")
@@ -90,6 +95,7 @@ class Stages:
         return cls(impls, **made)
 
     def describe(self) -> dict[str, dict[str, str]]:
+        """stage -> {name, plugin, package, version} of each implementation looked up."""
         return {
             stage: {"name": i.name, "plugin": i.plugin, "package": i.package, "version": i.version}
             for stage, i in self.implementations.items()
@@ -201,12 +207,14 @@ def _registered(pm: pluggy.PluginManager, observers: Iterable[object]) -> Iterat
             pm.unregister(obs)
 
 
-def _session_observers(config: Config, out_dir: Path, extra: Iterable[object]) -> list[object]:
+def _session_observers(
+    config: Config, out_dir: Path, extra: Iterable[object], mcap_path: Path | None = None
+) -> list[object]:
     observers: list[object] = []
     if config.session.get("record", True):
         from .recorder import McapRecorder
 
-        observers.append(McapRecorder(out_dir / "session.mcap"))
+        observers.append(McapRecorder(mcap_path or out_dir / "session.mcap"))
     if config.session.get("rerun", True):
         from .rerun_log import RerunLogger
 
@@ -265,42 +273,83 @@ def run_session(
         acquisition.close()
 
 
-def _import_reference(pm: pluggy.PluginManager, config: Config, stages: Stages, acquisition: Any, plan: MeasurementPlan) -> ReferenceData:
+#: ``import_reference(hook) -> (reference, time_ns)``: reads (or replays) the
+#: CMM data, handing every raw byte to ``hook.on_serial_bytes`` first; time_ns
+#: is when the last byte was read (None if none was), the time of the import's log lines.
+ReferenceImport = Callable[[Any], tuple[ReferenceData, int | None]]
+
+
+def _live_reference(config: Config, stages: Stages, acquisition: Any, plan: MeasurementPlan) -> ReferenceImport:
     impl = stages.implementations["reference"]
     options = dict(config.stages["reference"].options)
     where = f"{config.source}: [reference]"
-    hook = pm.hook
     source = f"{impl.name}"
 
-    def sink(data: bytes) -> None:
-        hook.on_serial_bytes(data=data, timestamp_ns=time.time_ns(), source=source)
+    def import_reference(hook: Any) -> tuple[ReferenceData, int | None]:
+        last: list[int] = []
 
-    if options.get("port") == SIMULATED_PORT:
-        if not hasattr(acquisition, "serve_arm"):
-            raise ConfigError(f"{where}: port = {SIMULATED_PORT!r} needs the simulator as the acquire source")
-        with acquisition.serve_arm() as port:
-            options["port"] = port
-            return impl.create(options, where).acquire(plan, sink)
-    return impl.create(options, where).acquire(plan, sink)
+        def sink(data: bytes) -> None:
+            t = time.time_ns()
+            last[:] = [t]
+            hook.on_serial_bytes(data=data, timestamp_ns=t, source=source)
+
+        if options.get("port") == SIMULATED_PORT:
+            if not hasattr(acquisition, "serve_arm"):
+                raise ConfigError(f"{where}: port = {SIMULATED_PORT!r} needs the simulator as the acquire source")
+            with acquisition.serve_arm() as port:
+                reference = impl.create({**options, "port": port}, where).acquire(plan, sink)
+        else:
+            reference = impl.create(options, where).acquire(plan, sink)
+        return reference, (last[0] if last else None)
+
+    return import_reference
 
 
 def _run(pm: pluggy.PluginManager, config: Config, stages: Stages, acquisition: Any, info: SessionInfo) -> SessionSummary:
-    hook = pm.hook
+    return run_pipeline(
+        pm.hook,
+        stages,
+        info,
+        _live_reference(config, stages, acquisition, info.plan),
+        acquisition.frames(),
+        float(config.session.get("match_tolerance_mm", 0.5)),
+    )
+
+
+def run_pipeline(
+    hook: Any,
+    stages: Stages,
+    info: SessionInfo,
+    import_reference: ReferenceImport,
+    frames: Iterable[StereoFrame],
+    match_tolerance_mm: float,
+    incomplete: Callable[[], str | None] = lambda: None,
+) -> SessionSummary:
+    """The session's chain, shared by a live run and a replay.
+
+    on_session_start -> reference import (raw bytes to the observers first)
+    -> on_reference -> per frame: on_frame, :func:`process_frame`,
+    on_frame_done -> :func:`finish_session`. Every time stamp comes from the
+    data (frame capture times, serial read times), so a replay that feeds
+    the recorded inputs with their recorded times emits the same hook calls
+    with the same arguments. ``incomplete()`` is asked after the last frame
+    (a replay of a cut-short recording says so).
+    """
     hook.on_session_start(session=info)
-    reference = _import_reference(pm, config, stages, acquisition, info.plan)
+    reference, reference_time_ns = import_reference(hook)
+    t = reference_time_ns if reference_time_ns is not None else time.time_ns()
     for problem in reference.problems:
-        hook.on_log(level="warning", message=f"reference: {problem}", timestamp_ns=time.time_ns())
+        hook.on_log(level="warning", message=f"reference: {problem}", timestamp_ns=t)
     hook.on_reference(reference=reference)
     results = []
-    tolerance = float(config.session.get("match_tolerance_mm", 0.5))
-    for frame in acquisition.frames():
+    for frame in frames:
         hook.on_frame(frame=frame)
         result = process_frame(
-            frame, stages, info.calibration, info.plan, reference, info.ground_truth, hook, tolerance
+            frame, stages, info.calibration, info.plan, reference, info.ground_truth, hook, match_tolerance_mm
         )
         hook.on_frame_done(result=result)
         results.append(result)
-    return finish_session(hook, stages, info, reference, results)
+    return finish_session(hook, stages, info, reference, results, incomplete())
 
 
 def finish_session(hook: Any, stages: Stages, info: SessionInfo, reference: ReferenceData, results: list[FrameResult], incomplete: str | None = None) -> SessionSummary:

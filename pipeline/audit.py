@@ -1,0 +1,509 @@
+"""Audit a recorded session (``crossfield audit SESSION.mcap``).
+
+Three checks, each with its findings named:
+
+* **integrity**: the SHA-256 chain written while recording
+  (:mod:`pipeline.integrity`) is recomputed over every message, metadata
+  record and attachment in file order; a changed, removed, added or
+  reordered message is named by topic, sequence and time, a chunk whose
+  CRC-32 fails by its byte offset and the messages it holds. A recording
+  that was cut short is checked up to where it ends and reported as
+  incomplete.
+* **provenance**: what the session was made of: config, plugins with their
+  packages and versions (and whether the same versions are installed now),
+  package versions, the machine, the plan and calibration with their
+  SHA-256 (recorded digest against the attached file).
+* **reproduction**: the session is replayed from its raw inputs with the
+  recorded plugins and options (:mod:`pipeline.replay`), each result
+  message rebuilt exactly as the recorder builds it, and compared with the
+  recorded message of the same topic, sequence and time, bit for bit.
+  Every difference is listed (for JSON results down to the field).
+  Provenance labels that name the run rather than its results are not
+  compared: see :data:`IGNORED`.
+
+The audit passes when all three pass; an incomplete recording never passes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pluggy
+
+from .errors import CrossfieldError, RecordingError
+from .integrity import TOPIC_INTEGRITY, IntegrityResult, file_sha256, name_message, verify
+from .recording import open_recording
+from .registry import STAGES, implementations
+
+#: Raw inputs: replay reads them, so they are not "reproduced".
+RAW_TOPICS = frozenset({"/camera/upper/image", "/camera/lower/image", "/cmm/raw", TOPIC_INTEGRITY})
+
+#: JSON paths (per topic) not compared by the reproduction check: they name
+#: the run (session id, folder, replay parent, time of the replay, the
+#: serial port the bytes came from), not a result.
+IGNORED: dict[str, tuple[str, ...]] = {
+    "/report": (
+        "session.id",
+        "session.out_dir",
+        "session.parent",
+        "config.session.name",
+        "config.session.output_dir",
+        "config.session.record",
+        "config.session.rerun",
+        "config_source",
+        "reference.source",
+        "packages",
+        "plugins",
+    ),
+    "/reference": ("source",),
+}
+
+#: Findings of these kinds mean "cut short", not "altered".
+_TRUNCATION = {"truncated", "uncovered"}
+
+
+@dataclass
+class AuditReport:
+    path: str
+    file_sha256: str
+    complete: bool
+    integrity: IntegrityResult
+    provenance: dict[str, Any]
+    reproduction: dict[str, Any]
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def intact(self) -> bool:
+        """No finding but truncation: what is in the file is as it was written."""
+        return self.integrity.has_chain and all(p.kind in _TRUNCATION for p in self.integrity.problems)
+
+    @property
+    def passed(self) -> bool:
+        return (
+            self.complete
+            and self.integrity.passed
+            and self.provenance.get("passed", False)
+            and self.reproduction.get("passed", False)
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "path": self.path,
+            "file_sha256": self.file_sha256,
+            "passed": self.passed,
+            "complete": self.complete,
+            "intact": self.intact,
+            "integrity": self.integrity.to_json(),
+            "provenance": self.provenance,
+            "reproduction": self.reproduction,
+            "notes": self.notes,
+        }
+
+
+# --------------------------------------------------------------------------
+# Provenance
+# --------------------------------------------------------------------------
+
+
+def provenance(path: Path, pm: pluggy.PluginManager | None) -> dict[str, Any]:
+    """The session's recorded facts and their consistency (hashes, versions)."""
+    from .runner import package_versions
+
+    rec = open_recording(path)
+    meta = rec.metadata()
+    problems: list[str] = []
+    notes: list[str] = []
+    docs: dict[str, Any] = {}
+    for name in (
+        "crossfield.session",
+        "crossfield.config",
+        "crossfield.plugins",
+        "crossfield.packages",
+        "crossfield.acquisition",
+        "crossfield.machine",
+        "crossfield.result",
+    ):
+        if name in meta:
+            docs[name] = rec.metadata_doc(name)
+        elif name == "crossfield.result":
+            notes.append("no crossfield.result record: the session did not end normally")
+        elif name == "crossfield.machine":
+            notes.append("no crossfield.machine record (recorded before the machine was recorded)")
+        else:
+            problems.append(f"metadata record {name!r} is missing")
+    session = docs.get("crossfield.session", {})
+    attachments = rec.attachments()
+
+    def digest_check(attachment: str, recorded: str | None) -> dict[str, Any]:
+        found = attachments.get(attachment)
+        actual = hashlib.sha256(found.data).hexdigest() if found else None
+        ok = found is not None and (recorded is None or recorded == actual)
+        if found is None:
+            problems.append(f"attachment {attachment!r} is missing")
+        elif recorded is not None and recorded != actual:
+            problems.append(
+                f"attachment {attachment!r}: SHA-256 {actual} differs from the recorded {recorded}"
+            )
+        elif recorded is None:
+            notes.append(f"no recorded SHA-256 for {attachment!r} (recorded before it was recorded)")
+        return {"recorded_sha256": recorded, "sha256": actual, "ok": ok}
+
+    plan = digest_check("plan.toml", session.get("plan_sha256"))
+    plan.update({"name": session.get("plan_name"), "source": session.get("plan_source")})
+    calibration = digest_check("calibration.yml", session.get("calibration_sha256"))
+    calibration["source"] = session.get("calibration_source")
+
+    plugins = docs.get("crossfield.plugins", {})
+    installed_plugins: dict[str, Any] = {}
+    if pm is not None:
+        for stage in STAGES:
+            entry = plugins.get(stage) or {}
+            available = implementations(pm, stage)
+            impl = available.get(str(entry.get("name")))
+            now = None if impl is None else {"package": impl.package, "version": impl.version}
+            installed_plugins[stage] = now
+            if impl is None:
+                notes.append(f"{stage} plugin {entry.get('name')!r} is not installed here")
+            elif (impl.package, impl.version) != (entry.get("package"), entry.get("version")):
+                notes.append(
+                    f"{stage} plugin {entry.get('name')!r}: recorded {entry.get('package')} {entry.get('version')}, "
+                    f"installed {impl.package} {impl.version}"
+                )
+    packages = docs.get("crossfield.packages", {})
+    current = package_versions()
+    for name, version in packages.items():
+        if current.get(name, "not installed") != version:
+            notes.append(
+                f"package {name}: recorded {version}, installed {current.get(name, 'not installed')}"
+            )
+    return {
+        "passed": not problems,
+        "problems": problems,
+        "notes": notes,
+        "session": session,
+        "config": docs.get("crossfield.config"),
+        "config_toml": meta.get("crossfield.config", {}).get("toml"),
+        "plugins": plugins,
+        "installed_plugins": installed_plugins,
+        "packages": packages,
+        "acquisition": docs.get("crossfield.acquisition"),
+        "machine": docs.get("crossfield.machine"),
+        "result": docs.get("crossfield.result"),
+        "plan": plan,
+        "calibration": calibration,
+        "ground_truth": "simulator_ground_truth.json" in attachments,
+        "attachments": sorted(attachments),
+        "writer": rec.library,
+    }
+
+
+# --------------------------------------------------------------------------
+# Reproduction
+# --------------------------------------------------------------------------
+
+
+def json_differences(
+    a: Any, b: Any, path: str = "", ignored: tuple[str, ...] = ()
+) -> list[tuple[str, Any, Any]]:
+    """Every leaf where ``a`` and ``b`` differ: (dotted path, a value, b value); exact equality."""
+    if path in ignored:
+        return []
+    if isinstance(a, dict) and isinstance(b, dict):
+        out = []
+        for key in list(a) + [k for k in b if k not in a]:
+            sub = f"{path}.{key}" if path else str(key)
+            if key not in a or key not in b:
+                if sub not in ignored:
+                    out.append((sub, a.get(key, "<absent>"), b.get(key, "<absent>")))
+                continue
+            out.extend(json_differences(a[key], b[key], sub, ignored))
+        return out
+    if isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
+        out = []
+        for k, (x, y) in enumerate(zip(a, b)):
+            out.extend(json_differences(x, y, f"{path}[{k}]", ignored))
+        return out
+    if type(a) is not type(b) or a != b:
+        return [(path, a, b)]
+    return []
+
+
+def _keyed(messages: list[tuple[str, int, int, bytes]]) -> dict[tuple[str, int, int, int], bytes]:
+    """(topic, sequence, log_time, occurrence) -> data."""
+    seen: dict[tuple[str, int, int], int] = {}
+    out = {}
+    for topic, log_time, sequence, data in messages:
+        key = (topic, sequence, log_time)
+        k = seen.get(key, 0)
+        seen[key] = k + 1
+        out[key + (k,)] = data
+    return out
+
+
+def _decode_log(data: bytes) -> str:
+    from foxglove_schemas_protobuf.Log_pb2 import Log
+
+    try:
+        return Log.FromString(data).message
+    except Exception:  # noqa: BLE001
+        return f"<{len(data)} bytes>"
+
+
+def reproduction(path: Path, pm: pluggy.PluginManager, *, limit: int = 500) -> dict[str, Any]:
+    """Replay with the recorded plugins and compare every result message (see module doc)."""
+    from .recorder import MessageCapture
+    from .replay import load_recorded_session, replay_session
+
+    recorded = load_recorded_session(path)
+    capture = MessageCapture(skip_topics=RAW_TOPICS)
+    with tempfile.TemporaryDirectory(prefix="crossfield-audit-") as tmp:
+        try:
+            summary = replay_session(
+                path, pm, output_dir=tmp, record=False, rerun=False, observers=[capture], recorded=recorded
+            )
+        except CrossfieldError as exc:
+            return {"passed": False, "error": f"the replay failed: {exc}", "differences": []}
+        finally:
+            if not capture.closed:
+                capture.close()
+    rec = recorded.recording
+    recorded_messages = [
+        (m.topic, m.log_time_ns, m.sequence, m.data)
+        for m in rec.messages(decode=False, file_order=True)
+        if m.topic not in RAW_TOPICS
+    ]
+    a, b = _keyed(recorded_messages), _keyed(capture.messages)
+    differences: list[dict[str, Any]] = []
+    identical = 0
+    for key in a:
+        if key not in b:
+            continue
+        if a[key] == b[key]:
+            identical += 1
+            continue
+        topic, sequence, log_time, _ = key
+        ignored = IGNORED.get(topic, ())
+        if topic == "/log":
+            differences.append(
+                {
+                    "topic": topic,
+                    "sequence": sequence,
+                    "log_time_ns": log_time,
+                    "path": "message",
+                    "recorded": _decode_log(a[key]),
+                    "replayed": _decode_log(b[key]),
+                }
+            )
+            continue
+        try:
+            ja, jb = json.loads(a[key]), json.loads(b[key])
+        except ValueError:
+            differences.append(
+                {
+                    "topic": topic,
+                    "sequence": sequence,
+                    "log_time_ns": log_time,
+                    "path": "<data>",
+                    "recorded": f"<{len(a[key])} bytes>",
+                    "replayed": f"<{len(b[key])} bytes>",
+                }
+            )
+            continue
+        found = json_differences(ja, jb, "", ignored)
+        if not found:
+            identical += 1
+        for p, x, y in found:
+            differences.append(
+                {
+                    "topic": topic,
+                    "sequence": sequence,
+                    "log_time_ns": log_time,
+                    "path": p,
+                    "recorded": x,
+                    "replayed": y,
+                }
+            )
+    only_recorded = [k for k in a if k not in b]
+    only_replayed = [k for k in b if k not in a]
+    incomplete = not recorded.complete
+    passed = not differences and not only_recorded and (not only_replayed or incomplete)
+
+    def named(keys: list) -> list[dict[str, Any]]:
+        return [{"topic": t, "sequence": s, "log_time_ns": lt} for t, s, lt, _ in keys[:limit]]
+
+    return {
+        "passed": passed,
+        "plugins": {stage: (recorded.plugins.get(stage) or {}).get("name") for stage in STAGES},
+        "frames_replayed": len(summary.frames),
+        "messages_compared": sum(1 for k in a if k in b),
+        "messages_identical": identical,
+        "differences": differences[:limit],
+        "differences_total": len(differences),
+        "only_recorded": named(only_recorded),
+        "only_replayed": named(only_replayed),
+        "only_replayed_note": (
+            "results the replay computed for stereo pairs whose recorded results were cut off"
+            if incomplete and only_replayed
+            else None
+        ),
+        "ignored": {k: list(v) for k, v in IGNORED.items()},
+        "replay_incomplete": summary.incomplete,
+    }
+
+
+# --------------------------------------------------------------------------
+# The audit
+# --------------------------------------------------------------------------
+
+
+def audit(path: str | Path, pm: pluggy.PluginManager, *, reproduce: bool = True) -> AuditReport:
+    """Run the three checks on ``path`` (``RecordingError`` if it is not a crossfield recording)."""
+    path = Path(path)
+    rec = open_recording(path)
+    if "crossfield.session" not in rec.metadata():
+        library = rec.library
+        if library.startswith("crossfield/"):
+            raise RecordingError(
+                f"{path}: the recording ends before its session facts were written; nothing to audit"
+            )
+        writer = f"written by {library!r}" if library else "its header names no writer"
+        raise RecordingError(f"{path}: an MCAP file but not a crossfield session recording ({writer})")
+    integrity = verify(path)
+    prov = provenance(path, pm)
+    if reproduce:
+        repro = reproduction(path, pm)
+    else:
+        repro = {"passed": False, "skipped": "not run (--no-replay)", "differences": []}
+    report = AuditReport(
+        path=str(path),
+        file_sha256=file_sha256(path),
+        complete=rec.complete and integrity.complete,
+        integrity=integrity,
+        provenance=prov,
+        reproduction=repro,
+    )
+    if not report.complete:
+        report.notes.append(f"INCOMPLETE recording: {integrity.ends}")
+    return report
+
+
+def _section(title: str, ok: bool, text: str = "") -> str:
+    return f"{title:<14} {'PASS' if ok else 'FAIL'}{('  ' + text) if text else ''}"
+
+
+def format_report(report: AuditReport, *, limit: int = 40) -> str:
+    """The audit as text for the terminal."""
+    lines = [f"Audit of {report.path}", f"  file SHA-256 {report.file_sha256}"]
+    prov = report.provenance
+    session = prov.get("session") or {}
+    lines.append(
+        f"  session {session.get('session_id')}  started {session.get('start_time_utc')}  "
+        f"crossfield {session.get('crossfield_version')}  {session.get('recording_format')}"
+    )
+    if session.get("parent"):
+        parent = session["parent"]
+        lines.append(f"  replay of {parent.get('path')} (SHA-256 {parent.get('sha256')})")
+        changed = parent.get("changed") or {}
+        for stage, c in (changed.get("plugins") or {}).items():
+            lines.append(f"    changed {stage}: {c.get('from')} -> {c.get('to')}")
+        for key, c in (changed.get("options") or {}).items():
+            lines.append(f"    changed {key}: {c.get('from')!r} -> {c.get('to')!r}")
+    if not report.complete:
+        lines.append(f"  INCOMPLETE: {report.integrity.ends}")
+    lines.append("")
+
+    integ = report.integrity
+    if integ.passed:
+        text = f"{integ.messages} messages, {integ.records} records, chain head {integ.chain_sha256}"
+    elif report.intact:
+        text = (
+            f"intact up to where the file ends: {integ.covered} of {integ.messages} messages covered by "
+            f"{integ.records} records; incomplete"
+        )
+    else:
+        text = f"{len([p for p in integ.problems if p.kind not in _TRUNCATION])} finding(s)"
+    lines.append(_section("integrity", integ.passed, text))
+    for p in integ.problems[:limit]:
+        lines.append(f"  - {p.detail}")
+    if len(integ.problems) > limit:
+        lines.append(f"  ... and {len(integ.problems) - limit} more (see --json)")
+
+    lines.append(_section("provenance", prov.get("passed", False)))
+    plugins = prov.get("plugins") or {}
+    for stage in STAGES:
+        entry = plugins.get(stage) or {}
+        lines.append(
+            f"  {stage:<12} {entry.get('name', '-'):<14} {entry.get('package', '')} {entry.get('version', '')}"
+        )
+    machine = prov.get("machine") or {}
+    if machine:
+        lines.append(
+            f"  machine      {machine.get('hostname')}  {machine.get('platform')}  {machine.get('cpu')} "
+            f"x{machine.get('cpu_count')}  {machine.get('python')}"
+        )
+    packages = prov.get("packages") or {}
+    if packages:
+        lines.append("  packages     " + ", ".join(f"{k} {v}" for k, v in packages.items()))
+    plan, cal = prov.get("plan") or {}, prov.get("calibration") or {}
+    lines.append(
+        f"  plan         {plan.get('name')} ({plan.get('source')}) SHA-256 {plan.get('sha256')} "
+        f"{'matches the record' if plan.get('ok') else 'MISMATCH'}"
+    )
+    lines.append(
+        f"  calibration  {cal.get('source')} SHA-256 {cal.get('sha256')} "
+        f"{'matches the record' if cal.get('ok') and cal.get('recorded_sha256') else ('MISMATCH' if not cal.get('ok') else '(no recorded digest)')}"
+    )
+    for p in prov.get("problems", []):
+        lines.append(f"  - {p}")
+    for n in prov.get("notes", []):
+        lines.append(f"  note: {n}")
+
+    repro = report.reproduction
+    if repro.get("error") or repro.get("skipped"):
+        lines.append(_section("reproduction", False, repro.get("error") or repro.get("skipped")))
+    else:
+        text = (
+            f"{repro['messages_identical']} of {repro['messages_compared']} result messages identical "
+            f"({repro['frames_replayed']} stereo pairs replayed with the recorded plugins)"
+        )
+        lines.append(_section("reproduction", repro["passed"], text))
+        for d in repro["differences"][:limit]:
+            lines.append(
+                f"  - {name_message(d['topic'], d['sequence'], d['log_time_ns'])}: {d['path']}: "
+                f"recorded {_short(d['recorded'])}, replayed {_short(d['replayed'])}"
+            )
+        if repro["differences_total"] > limit:
+            lines.append(f"  ... and {repro['differences_total'] - limit} more (see --json)")
+        for m in repro["only_recorded"][:limit]:
+            lines.append(
+                f"  - only in the recording: {name_message(m['topic'], m['sequence'], m['log_time_ns'])}"
+            )
+        if repro["only_replayed"]:
+            note = repro.get("only_replayed_note") or "not in the recording"
+            lines.append(f"  - {len(repro['only_replayed'])} message(s) only in the replay: {note}")
+    lines.append("")
+    lines.append(
+        f"Audit: {'PASS' if report.passed else 'FAIL'}"
+        + ("" if report.complete else " (incomplete recording)")
+    )
+    return "\n".join(lines)
+
+
+def _short(value: Any) -> str:
+    text = (
+        repr(value)
+        if isinstance(value, float)
+        else json.dumps(value)
+        if not isinstance(value, str)
+        else value
+    )
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def to_json(report: AuditReport) -> str:
+    return json.dumps(report.to_json(), indent=2, default=str, allow_nan=False)

@@ -1,0 +1,412 @@
+"""Replay a recorded session from its raw inputs (``crossfield replay``).
+
+Only the raw inputs of the recording are used: both camera images of every
+stereo pair, the exact bytes read from the CMM arm (``/cmm/raw``), the
+calibration (``calibration.yml``), the measurement plan (``plan.toml``),
+the simulator's ground truth when there is one, and the recorded config
+(which plugins ran, with which options). Recorded stage results are never
+read. Frames are fed in the order they were recorded, with their recorded
+capture times; serial bytes with their recorded read times; the session
+start time is the recorded one. The chain is the live one
+(:func:`pipeline.runner.run_pipeline`), so with the recorded plugins every
+stage output, and every number of the report, is the same float as
+recorded, and the replayed session's own recording holds the same
+messages. With swapped plugins or options the replay is a new session
+whose ``parent`` (metadata and report) names the recording it re-ran
+(path and SHA-256) and what was changed.
+
+A recording that was cut short (killed writer, truncated file) is replayed
+up to its last complete chunk; the summary's ``incomplete`` says where it ends.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pluggy
+
+from .calibration_io import stereo_calibration_from_yaml
+from .config import Config, parse_config, with_overrides
+from .errors import ConfigError, PluginError, RecordingError
+from .integrity import file_sha256, utc
+from .plan import MeasurementPlan, parse_plan
+from .recording import Recording, open_recording
+from .registry import STAGES
+from .runner import Stages, _registered, _session_observers, _unique_dir, package_versions, run_pipeline
+from .session import SessionInfo, SessionSummary
+from .types import CAMERAS, GroundTruth, Line3D, ReferenceData, StereoCalibration, StereoFrame
+
+#: The recording layouts this replay reads.
+READABLE_FORMATS = ("crossfield-mcap/1",)
+
+#: Session keys that say where and how a replay is written, not what it computes.
+OUTPUT_KEYS = ("name", "output_dir", "record", "rerun")
+
+_IMAGE_TOPICS = tuple(f"/camera/{camera}/image" for camera in CAMERAS)
+_DTYPES = {"mono16": np.dtype("<u2"), "mono8": np.dtype("u1")}
+
+
+@dataclass(frozen=True)
+class RecordedSession:
+    """The facts of a recorded session, read from its metadata and attachments.
+
+    session: the ``crossfield.session`` document; config: the recorded,
+    resolved config; plugins / packages / acquisition / machine: the
+    records of the same names (machine is None for recordings made before
+    it was recorded); plan, calibration, ground_truth: from the attachments.
+    """
+
+    path: Path
+    recording: Recording
+    session: Mapping[str, Any]
+    config: Config
+    plugins: Mapping[str, Mapping[str, str]]
+    packages: Mapping[str, str]
+    acquisition: Mapping[str, Any]
+    machine: Mapping[str, Any] | None
+    plan: MeasurementPlan
+    calibration: StereoCalibration
+    ground_truth: GroundTruth | None
+
+    @property
+    def complete(self) -> bool:
+        return self.recording.complete
+
+    @property
+    def session_id(self) -> str:
+        return str(self.session.get("session_id", ""))
+
+
+def load_recorded_session(path: str | Path) -> RecordedSession:
+    """Open ``path`` and read its session facts.
+
+    :class:`RecordingError` (one line, naming the file) when it is not an
+    MCAP file, is MCAP written by another program, or lacks what a replay needs.
+    """
+    path = Path(path)
+    recording = open_recording(path)
+    metadata = recording.metadata()
+    if "crossfield.session" not in metadata:
+        library = recording.library
+        if library.startswith("crossfield/"):
+            raise RecordingError(
+                f"{path}: the recording ends before its session facts were written "
+                f"(no 'crossfield.session' metadata); nothing to replay"
+            )
+        writer = f"written by {library!r}" if library else "its header names no writer"
+        raise RecordingError(
+            f"{path}: an MCAP file but not a crossfield session recording ({writer}; "
+            f"no 'crossfield.session' metadata)"
+        )
+    session = recording.metadata_doc("crossfield.session")
+    fmt = session.get("recording_format")
+    if fmt not in READABLE_FORMATS:
+        raise RecordingError(
+            f"{path}: recording format {fmt!r} is not one this crossfield reads ({', '.join(READABLE_FORMATS)})"
+        )
+    for name in ("crossfield.config", "crossfield.plugins", "crossfield.packages", "crossfield.acquisition"):
+        if name not in metadata:
+            raise RecordingError(f"{path}: metadata record {name!r} is missing")
+    try:
+        config = parse_config(json.loads(metadata["crossfield.config"]["json"]), f"{path} (recorded config)")
+    except (KeyError, ValueError) as exc:
+        raise RecordingError(f"{path}: metadata 'crossfield.config' is not a config: {exc}") from None
+    except ConfigError as exc:
+        raise RecordingError(str(exc)) from None
+    attachments = recording.attachments()
+    for name in ("plan.toml", "calibration.yml"):
+        if name not in attachments:
+            raise RecordingError(f"{path}: attachment {name!r} is missing; the session cannot be replayed")
+    try:
+        plan = parse_plan(
+            attachments["plan.toml"].text, str(session.get("plan_source") or f"{path}:plan.toml")
+        )
+    except (ConfigError, UnicodeDecodeError) as exc:
+        raise RecordingError(f"{path}: attachment 'plan.toml': {exc}") from None
+    try:
+        calibration = stereo_calibration_from_yaml(
+            attachments["calibration.yml"].text, f"{path}:calibration.yml"
+        )
+    except Exception as exc:  # noqa: BLE001 - calibration_io raises CrossfieldError or cv2.error
+        raise RecordingError(f"{path}: attachment 'calibration.yml': {exc}") from None
+    calibration = StereoCalibration(
+        calibration.upper,
+        calibration.lower,
+        calibration.R_lower_upper,
+        calibration.t_lower_upper,
+        str(session.get("calibration_source") or calibration.source),
+    )
+    truth = None
+    if "simulator_ground_truth.json" in attachments:
+        truth = ground_truth_from_doc(json.loads(attachments["simulator_ground_truth.json"].data))
+    machine = recording.metadata_doc("crossfield.machine") if "crossfield.machine" in metadata else None
+    return RecordedSession(
+        path=path,
+        recording=recording,
+        session=session,
+        config=config,
+        plugins=recording.metadata_doc("crossfield.plugins"),
+        packages=dict(metadata["crossfield.packages"]),
+        acquisition=recording.metadata_doc("crossfield.acquisition"),
+        machine=machine,
+        plan=plan,
+        calibration=calibration,
+        ground_truth=truth,
+    )
+
+
+def ground_truth_from_doc(doc: Mapping[str, Any]) -> GroundTruth:
+    """The :class:`GroundTruth` of a ``simulator_ground_truth.json`` attachment (exact floats)."""
+    return GroundTruth(
+        points_global={k: np.array(v, dtype=np.float64) for k, v in doc["points_global_mm"].items()},
+        lines_global={
+            k: Line3D(np.array(v["point_mm"], dtype=np.float64), np.array(v["direction"], dtype=np.float64))
+            for k, v in doc["lines_global"].items()
+        },
+        R_global_camera=np.array(doc["R_global_camera"], dtype=np.float64),
+        t_global_camera=np.array(doc["t_global_camera_mm"], dtype=np.float64),
+    )
+
+
+def decode_image(data: bytes, where: str) -> tuple[np.ndarray, int]:
+    """(H, W) pixels and capture time (ns) of a serialized foxglove.RawImage."""
+    from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+
+    try:
+        message = RawImage.FromString(data)
+    except Exception as exc:  # noqa: BLE001 - protobuf raises several types
+        raise RecordingError(f"{where}: not a foxglove.RawImage: {exc}") from None
+    dtype = _DTYPES.get(message.encoding)
+    if dtype is None:
+        raise RecordingError(f"{where}: image encoding {message.encoding!r}; replay reads mono16 and mono8")
+    width, height = int(message.width), int(message.height)
+    if message.step != width * dtype.itemsize or len(message.data) != height * message.step:
+        raise RecordingError(
+            f"{where}: {len(message.data)} bytes of pixel data for {width} x {height} {message.encoding} "
+            f"with step {message.step}"
+        )
+    pixels = np.frombuffer(message.data, dtype=dtype).reshape(height, width)
+    return pixels.astype(pixels.dtype.newbyteorder("="), copy=False), message.timestamp.ToNanoseconds()
+
+
+class RecordingSource:
+    """The acquisition of a replay: the recorded stereo pairs and serial bytes.
+
+    Implements :class:`pipeline.stages.Acquisition`. Frames come in the order
+    they were recorded (file order), each with its recorded capture time
+    (the image messages' log time). After :meth:`frames` is exhausted,
+    ``incomplete`` says where a cut-short recording ends (None if complete).
+    """
+
+    def __init__(self, recorded: RecordedSession) -> None:
+        self.recorded = recorded
+        self.calibration = recorded.calibration
+        self.ground_truth = recorded.ground_truth
+        self.default_plan = recorded.plan
+        self.incomplete: str | None = None
+        self.frames_read = 0
+
+    def frames(self) -> Iterator[StereoFrame]:
+        rec = self.recorded.recording
+        pending: dict[int, dict[str, Any]] = {}
+        last: tuple[int, int] | None = None
+        for m in rec.messages(_IMAGE_TOPICS, decode=False, file_order=True):
+            camera = m.topic.split("/")[2]
+            where = f"{rec.path}: {m.topic} sequence {m.sequence}"
+            pixels, _ = decode_image(m.data, where)
+            entry = pending.setdefault(m.sequence, {"time": m.log_time_ns, "bit_depth": 0})
+            if camera in entry:
+                raise RecordingError(f"{where}: a second {camera} image for this stereo pair")
+            entry[camera] = pixels
+            entry["bit_depth"] = int(m.channel_metadata.get("bit_depth") or 8 * pixels.itemsize)
+            if all(c in entry for c in CAMERAS):
+                del pending[m.sequence]
+                self.frames_read += 1
+                last = (m.sequence, entry["time"])
+                yield StereoFrame(
+                    m.sequence, entry["time"], entry["upper"], entry["lower"], entry["bit_depth"]
+                )
+        notes = []
+        if not rec.complete:
+            ends = (
+                f"the last complete stereo pair is sequence {last[0]} at {utc(last[1])}"
+                if last
+                else "no complete stereo pair was recorded"
+            )
+            notes.append(
+                f"the recording {rec.path} is incomplete ({rec.damage}); {self.frames_read} stereo pair(s) "
+                f"replayed, {ends}"
+            )
+        for seq, entry in sorted(pending.items()):
+            have = [c for c in CAMERAS if c in entry]
+            notes.append(f"stereo pair {seq} has only its {' and '.join(have)} image, not replayed")
+        self.incomplete = "; ".join(notes) or None
+
+    def serial_chunks(self) -> list[tuple[bytes, int, str]]:
+        """Every recorded read from the CMM line: (bytes, read time ns, source), in read order."""
+        rec = self.recorded.recording
+        return [
+            (m.data, m.log_time_ns, str(m.channel_metadata.get("source", "")))
+            for m in rec.messages("/cmm/raw", decode=False, file_order=True)
+        ]
+
+    def describe(self) -> dict[str, Any]:
+        return dict(self.recorded.acquisition)
+
+    def close(self) -> None:
+        pass
+
+
+def _recorded_reference(source: RecordingSource, stages: Stages, config: Config, plan: MeasurementPlan):
+    impl = stages.implementations["reference"]
+    where = f"{config.source}: [reference]"
+
+    def import_reference(hook: Any) -> tuple[ReferenceData, int | None]:
+        chunks = source.serial_chunks()
+        for data, t, name in chunks:
+            hook.on_serial_bytes(data=data, timestamp_ns=t, source=name or impl.name)
+        reader = impl.create(dict(config.stages["reference"].options), where)
+        if not callable(getattr(reader, "decode", None)):
+            raise PluginError(
+                f"reference plugin {impl.name!r} has no decode(raw, plan) method, so it cannot re-read "
+                f"recorded bytes; choose another with --reference"
+            )
+        reference = reader.decode(b"".join(c[0] for c in chunks), plan)
+        return reference, (chunks[-1][1] if chunks else None)
+
+    return import_reference
+
+
+def changes(recorded: Config, replayed: Config) -> dict[str, Any]:
+    """What a replay changes: {"plugins": {stage: {"from", "to"}}, "options": {"stage.key": {"from", "to"}}}.
+
+    Where and how the replay is written (session name, output_dir, record,
+    rerun) is not a change of the computation and is left out.
+    """
+    a, b = recorded.to_dict(), replayed.to_dict()
+    plugins: dict[str, Any] = {}
+    options: dict[str, Any] = {}
+    for table in ("session", *STAGES):
+        ta, tb = dict(a.get(table, {})), dict(b.get(table, {}))
+        if table != "session" and ta.get("plugin") != tb.get("plugin"):
+            plugins[table] = {"from": ta.get("plugin"), "to": tb.get("plugin")}
+        for key in sorted(set(ta) | set(tb)):
+            if key == "plugin" or (table == "session" and key in OUTPUT_KEYS):
+                continue
+            if ta.get(key) != tb.get(key):
+                options[f"{table}.{key}"] = {"from": ta.get(key), "to": tb.get(key)}
+    return {"plugins": plugins, "options": options}
+
+
+def _default_output(recorded: RecordedSession) -> tuple[Path, str]:
+    """(base folder, session id) for a replay written next to the recorded session."""
+    path = recorded.path.resolve()
+    base = path.parent.parent if path.name == "session.mcap" else path.parent
+    return base, f"{recorded.session_id or path.stem}-replay"
+
+
+def replay_session(
+    path: str | Path,
+    pm: pluggy.PluginManager,
+    *,
+    plugins: Mapping[str, str | None] | None = None,
+    options: Sequence[str] = (),
+    output: str | Path | None = None,
+    output_dir: str | Path | None = None,
+    record: bool = True,
+    rerun: bool | None = None,
+    observers: Iterable[object] = (),
+    recorded: RecordedSession | None = None,
+) -> SessionSummary:
+    """Re-run the session recorded in ``path`` from its raw inputs.
+
+    plugins: stage -> implementation name to swap in (None keeps the
+    recorded one; ``acquire`` cannot be swapped: the frames come from the
+    recording). options: ``stage.key=value`` overrides. output: the MCAP
+    file to write (its report files go into a new folder named after it);
+    by default a new session folder ``<id>-replay`` is made next to the
+    recorded one (or in ``output_dir``). record: write the MCAP (audit
+    replays without). rerun: write session.rrd (default: as recorded).
+    observers: extra observer plugins for this replay. Returns the summary;
+    ``summary.info.parent`` names the recording and the changes.
+    """
+    recorded = recorded or load_recorded_session(path)
+    plugins = dict(plugins or {})
+    if plugins.get("acquire") and plugins["acquire"] != recorded.config.stages["acquire"].plugin:
+        raise ConfigError(
+            f"replay reads the stereo pairs from the recording; the acquire stage cannot be swapped "
+            f"(--acquire {plugins['acquire']})"
+        )
+    plugins.pop("acquire", None)
+    config = with_overrides(recorded.config, plugins, list(options))
+    changed = changes(recorded.config, config)
+
+    stages = Stages.build(
+        pm, config, skip=("acquire",)
+    )  # unknown plugins / bad options fail here, before any folder
+    if output is not None:
+        mcap_path = Path(output)
+        base, session_id = mcap_path.parent, mcap_path.stem
+        if record and mcap_path.exists():
+            raise RecordingError(f"{mcap_path}: a file already exists there (not overwritten)")
+    else:
+        mcap_path = None
+        base, session_id = _default_output(recorded)
+        if output_dir is not None:
+            base = Path(output_dir)
+    base.mkdir(parents=True, exist_ok=True)
+    out_dir = _unique_dir(base, session_id)
+    session_options = [
+        f"session.name={json.dumps(out_dir.name)}",
+        f"session.output_dir={json.dumps(str(base))}",
+        f"session.record={'true' if record else 'false'}",
+    ]
+    if rerun is not None:
+        session_options.append(f"session.rerun={'true' if rerun else 'false'}")
+    overridden = bool(changed["plugins"] or changed["options"])
+    source_name = f"{recorded.path} (recorded config" + (", with replay overrides)" if overridden else ")")
+    config = dataclasses.replace(with_overrides(config, {}, session_options), source=source_name)
+
+    described = stages.describe()
+    described["acquire"] = dict(recorded.plugins.get("acquire", {}))
+    described = {stage: described[stage] for stage in STAGES if stage in described}
+    source = RecordingSource(recorded)
+    parent = {
+        "path": str(recorded.path.resolve()),
+        "sha256": file_sha256(recorded.path),
+        "session_id": recorded.session_id,
+        "complete": recorded.complete,
+        "changed": changed,
+        "replayed_at_utc": utc(time.time_ns()),
+    }
+    info = SessionInfo(
+        session_id=out_dir.name,
+        out_dir=out_dir,
+        config=config,
+        calibration=recorded.calibration,
+        plan=recorded.plan,
+        plugins=described,
+        packages=package_versions(),
+        acquisition=source.describe(),
+        ground_truth=recorded.ground_truth,
+        start_time_ns=int(recorded.session.get("start_time_ns") or 0),
+        parent=parent,
+    )
+    tolerance = float(config.session.get("match_tolerance_mm", 0.5))
+    with _registered(pm, _session_observers(config, out_dir, observers, mcap_path)):
+        return run_pipeline(
+            pm.hook,
+            stages,
+            info,
+            _recorded_reference(source, stages, config, recorded.plan),
+            source.frames(),
+            tolerance,
+            incomplete=lambda: source.incomplete,
+        )
