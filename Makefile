@@ -3,8 +3,12 @@ PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
+SUDO   := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+# Debian packages the tests need: Mesa's lavapipe Vulkan driver, so the real
+# Rerun viewer renders headless (screenshots, ViewerClient) with no GPU.
+APT_PACKAGES := mesa-vulkan-drivers libvulkan1
 
-.PHONY: demo test bench install clean
+.PHONY: demo test bench install apt-packages clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -14,10 +18,15 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
+apt-packages:
+	@dpkg -s $(APT_PACKAGES) >/dev/null 2>&1 || { \
+	  $(SUDO) apt-get update -q && \
+	  DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -q --no-install-recommends $(APT_PACKAGES); }
+
 demo: $(STAMP)
 	$(VENV)/bin/crossfield run --scenario table3
 
-test: $(STAMP)
+test: $(STAMP) apt-packages
 	$(PY) -m pytest -q
 
 bench: $(STAMP)

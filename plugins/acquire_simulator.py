@@ -52,10 +52,12 @@ class SimulatorSource:
         self.calibration = self.scene.calibration
         self.ground_truth = self.scene.ground_truth
         self.default_plan = self.scene.plan
-        self.start_time_ns = start_time_ns or time.time_ns()
+        self.start_time_ns = start_time_ns  # 0: taken when the first pair is acquired
 
     def frames(self) -> Iterator[StereoFrame]:
         rng = np.random.default_rng([self.seed, 1])
+        if not self.start_time_ns:
+            self.start_time_ns = time.time_ns()
         period_ns = round(1e9 / self.scene.frame_rate_hz)
         for sequence in range(self.n_frames):
             yield self.scene.render_pair(sequence, rng, self.start_time_ns + sequence * period_ns)
