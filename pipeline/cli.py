@@ -114,12 +114,13 @@ def resolve_run_config(args: argparse.Namespace) -> Config:
     if args.no_rerun:
         options.append("session.rerun=false")
     plugins = {stage: getattr(args, stage) for stage in STAGES}
-    config = with_overrides(config, plugins, options)
     # The demo default: the serial plugin talks to the simulated arm.
-    ref = config.stages["reference"]
-    if ref.plugin == "romer-serial" and "port" not in ref.options and config.stages["acquire"].plugin == "simulator":
-        config = with_overrides(config, {}, ['reference.port="simulator"'])
-    return config
+    reference_plugin = args.reference or config.stages["reference"].plugin
+    keeps_port = not args.reference or args.reference == config.stages["reference"].plugin
+    has_port = keeps_port and "port" in config.stages["reference"].options
+    if reference_plugin == "romer-serial" and acquire_plugin == "simulator" and not has_port:
+        options.append('reference.port="simulator"')
+    return with_overrides(config, plugins, options)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
