@@ -347,7 +347,7 @@ def reproduction(path: Path, pm: pluggy.PluginManager, *, limit: int = 500) -> d
         "only_recorded": named(only_recorded),
         "only_replayed": named(only_replayed),
         "only_replayed_note": (
-            "results the replay computed for stereo pairs whose recorded results were cut off"
+            "computed by the replay but not in the cut-short recording (the session report, results of pairs cut off)"
             if incomplete and only_replayed
             else None
         ),

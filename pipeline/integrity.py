@@ -337,7 +337,7 @@ def _scan_file(path: Path) -> _Scan:
                 offset = f.tell()
         except (McapError, struct.error, EOFError, ValueError, UnicodeDecodeError, MemoryError) as exc:
             size = path.stat().st_size
-            scan.ends = f"the file ends in damage or is cut short at byte {offset} of {size} ({type(exc).__name__}: {exc})"
+            scan.ends = f"the file ends in damage or is cut short at byte {offset} of {size} ({type(exc).__name__}{': ' + str(exc) if str(exc) else ''})"
     return scan
 
 
