@@ -22,6 +22,7 @@ BENCHMARKS = (
     ("bench_pipeline.py", ["--frames", "300", "--repeat", "3"], ["--frames", "100", "--repeat", "1"]),
     ("bench_serial.py", [], ["--points", "1000", "--runs", "1"]),
     ("bench_acquire.py", [], ["--pairs", "10", "--rounds", "2"]),
+    ("bench_replay.py", ["--frames", "60", "--repeat", "3"], ["--frames", "20", "--repeat", "1"]),
 )
 
 

@@ -483,9 +483,14 @@ def format_report(report: AuditReport, *, limit: int = 40) -> str:
             lines.append(
                 f"  - only in the recording: {name_message(m['topic'], m['sequence'], m['log_time_ns'])}"
             )
-        if repro["only_replayed"]:
-            note = repro.get("only_replayed_note") or "not in the recording"
-            lines.append(f"  - {len(repro['only_replayed'])} message(s) only in the replay: {note}")
+        if repro["only_replayed"] and repro.get("only_replayed_note"):
+            lines.append(f"  - {len(repro['only_replayed'])} message(s) {repro['only_replayed_note']}")
+        else:
+            for m in repro["only_replayed"][:limit]:
+                lines.append(
+                    f"  - only in the replay (missing from the recording): "
+                    f"{name_message(m['topic'], m['sequence'], m['log_time_ns'])}"
+                )
     lines.append("")
     lines.append(
         f"Audit: {'PASS' if report.passed else 'FAIL'}"

@@ -156,7 +156,7 @@ class Recording:
             try:
                 yield from reader.records
             except _DAMAGE as exc:
-                self.damage = f"damaged or truncated near byte {f.tell()}: {exc}"
+                self.damage = f"damaged or truncated near byte {f.tell()}: {str(exc) or type(exc).__name__}"
 
     def _scan_channels(self) -> tuple[dict[int, Schema], dict[int, Channel], dict[int, int]]:
         schemas: dict[int, Schema] = {}

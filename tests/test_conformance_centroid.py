@@ -12,6 +12,7 @@ tests/test_centroid.py tests the same implementations on synthetic images.
 from __future__ import annotations
 
 import itertools
+import os
 
 import numpy as np
 import pytest
@@ -20,7 +21,10 @@ from pipeline.registry import implementations, make_plugin_manager
 from pipeline.simulator.scenarios import build_scene
 from pipeline.types import CAMERAS, CentroidSet
 
-IMPLEMENTATIONS = implementations(make_plugin_manager(), "centroid")
+#: CROSSFIELD_CONFORMANCE_ENTRY_POINTS=1 also tests installed third-party plugins (docs/plugins.md).
+IMPLEMENTATIONS = implementations(
+    make_plugin_manager(entry_points=os.environ.get("CROSSFIELD_CONFORMANCE_ENTRY_POINTS") == "1"), "centroid"
+)
 NAMES = sorted(IMPLEMENTATIONS)
 
 #: Stated tolerances (pixels) on simulator images (12-bit, blur 0.9 px, photon + read noise).

@@ -12,6 +12,7 @@ tests/test_register.py tests the same implementations on synthetic layouts.
 from __future__ import annotations
 
 import itertools
+import os
 import math
 
 import numpy as np
@@ -21,7 +22,10 @@ from pipeline.errors import RegistrationError
 from pipeline.registry import implementations, make_plugin_manager
 from pipeline.simulator.scenarios import build_scene
 
-IMPLEMENTATIONS = implementations(make_plugin_manager(), "register")
+#: CROSSFIELD_CONFORMANCE_ENTRY_POINTS=1 also tests installed third-party plugins (docs/plugins.md).
+IMPLEMENTATIONS = implementations(
+    make_plugin_manager(entry_points=os.environ.get("CROSSFIELD_CONFORMANCE_ENTRY_POINTS") == "1"), "register"
+)
 NAMES = sorted(IMPLEMENTATIONS)
 
 #: Stated tolerances.
