@@ -40,6 +40,8 @@ BUILTIN_PLUGINS: tuple[str, ...] = (
     "plugins.triangulate_epipolar",
     "plugins.reference_romer_serial",
     "plugins.reference_csv",
+    "plugins.reference_spatialanalyzer",
+    "plugins.reference_pcdmis_xyz",
     "plugins.register_svd",
     "plugins.register_umeyama",
     "plugins.register_horn",
