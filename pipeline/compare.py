@@ -522,10 +522,10 @@ def format_table(result: Mapping[str, Any]) -> str:
         lines.append("No differences: the sessions agree in every compared value (bit for bit).")
     else:
         lines.append(f"{len(diffs)} difference(s):")
-        for d in diffs[:200]:
+        for d in diffs[:40]:
             lines.append(f"  {d['path']}: A {_short(d['a'])}  B {_short(d['b'])}  delta {_short(d['delta'])}")
-        if len(diffs) > 200:
-            lines.append(f"  ... and {len(diffs) - 200} more (see --json)")
+        if len(diffs) > 40:
+            lines.append(f"  ... and {len(diffs) - 40} more (see --json)")
     return "\n".join(lines)
 
 
