@@ -59,7 +59,12 @@ def main() -> int:
         config = parse_config(
             {
                 "session": {"output_dir": str(work), "name": "recorded", "rerun": False},
-                "acquire": {"plugin": "simulator", "scenario": args.scenario, "frames": args.frames, "seed": 1},
+                "acquire": {
+                    "plugin": "simulator",
+                    "scenario": args.scenario,
+                    "frames": args.frames,
+                    "seed": 1,
+                },
                 "reference": {"plugin": "romer-serial", "port": "simulator"},
             },
             "<bench>",

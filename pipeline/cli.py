@@ -178,8 +178,11 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
     pm = make_plugin_manager(entry_points=True)
     recorded = load_recorded_session(args.recording)
-    total = sum(1 for _ in recorded.recording.messages("/camera/upper/image", decode=False)) if not args.quiet else 0
-    observers = [] if args.quiet else [Progress(total=total or None)]
+    total = None
+    if recorded.complete:  # the summary's statistics give the count without reading the images
+        info = recorded.recording.topics().get("/camera/upper/image")
+        total = info.message_count if info else None
+    observers = [] if args.quiet else [Progress(total=total)]
     summary = replay_session(
         args.recording,
         pm,

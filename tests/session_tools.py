@@ -23,8 +23,15 @@ from pipeline.session import SessionSummary
 REPORT_IDENTITY = ("session", "config_source")
 
 
-def record_session(out: Path, name: str, *, scenario: str = "table3", frames: int = 3, seed: int = 4,
-                   **stages: dict[str, Any]) -> SessionSummary:
+def record_session(
+    out: Path,
+    name: str,
+    *,
+    scenario: str = "table3",
+    frames: int = 3,
+    seed: int = 4,
+    **stages: dict[str, Any],
+) -> SessionSummary:
     """Run and record a simulator session into ``out/name/session.mcap`` (no .rrd)."""
     data: dict[str, Any] = {
         "session": {"output_dir": str(out), "name": name, "rerun": False},
@@ -94,7 +101,9 @@ def rewrite_mcap(
         writer.start(profile=profile, library=library)
         schema_ids = {sid: writer.register_schema(s.name, s.encoding, s.data) for sid, s in schemas.items()}
         channel_ids = {
-            topic: writer.register_channel(c.topic, c.message_encoding, schema_ids.get(c.schema_id, 0), c.metadata)
+            topic: writer.register_channel(
+                c.topic, c.message_encoding, schema_ids.get(c.schema_id, 0), c.metadata
+            )
             for topic, c in channel_of.items()
         }
         for name, record in meta:

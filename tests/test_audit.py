@@ -70,8 +70,12 @@ def test_chain_follows_the_documented_formula(recorded):
                 continue
             t = m.topic.encode()
             h = hashlib.sha256(
-                h + len(t).to_bytes(4, "little") + t + m.log_time_ns.to_bytes(8, "little")
-                + m.sequence.to_bytes(4, "little") + hashlib.sha256(m.data).digest()
+                h
+                + len(t).to_bytes(4, "little")
+                + t
+                + m.log_time_ns.to_bytes(8, "little")
+                + m.sequence.to_bytes(4, "little")
+                + hashlib.sha256(m.data).digest()
             ).digest()
     assert len(records) >= 5 and records[-1][1]["final"] and not any(r["final"] for _, r in records[:-1])
     for head, doc in records:
@@ -105,7 +109,9 @@ def test_flipped_byte_in_an_image_is_named(recorded, tmp_path):
 def test_removed_message_is_named(recorded, tmp_path):
     gone = message(recorded, "/registration", 1)
     edited = tmp_path / "removed.mcap"
-    rewrite_mcap(recorded, edited, lambda ms: [m for m in ms if not (m.topic == "/registration" and m.sequence == 1)])
+    rewrite_mcap(
+        recorded, edited, lambda ms: [m for m in ms if not (m.topic == "/registration" and m.sequence == 1)]
+    )
     report = audit(edited, make_plugin_manager())
     assert not report.passed
     assert [(p.kind, p.topic, p.sequence, p.log_time_ns) for p in report.integrity.problems] == [
@@ -123,7 +129,8 @@ def test_edited_result_is_named(recorded, tmp_path):
     def edit(ms):
         return [
             edit_json(m, lambda d: d["characteristics"][3].update(measured_mm=value + 0.05))
-            if m.topic == "/measurement" and m.sequence == 2 else m
+            if m.topic == "/measurement" and m.sequence == 2
+            else m
             for m in ms
         ]
 
@@ -131,11 +138,13 @@ def test_edited_result_is_named(recorded, tmp_path):
     rewrite_mcap(recorded, edited, edit)
     report = audit(edited, make_plugin_manager())
     assert not report.passed
-    assert [(p.kind, p.topic, p.sequence) for p in report.integrity.problems] == [("changed", "/measurement", 2)]
-    assert [(d["topic"], d["sequence"], d["path"], d["recorded"], d["replayed"])
-            for d in report.reproduction["differences"]] == [
-        ("/measurement", 2, "characteristics[3].measured_mm", value + 0.05, value)
+    assert [(p.kind, p.topic, p.sequence) for p in report.integrity.problems] == [
+        ("changed", "/measurement", 2)
     ]
+    assert [
+        (d["topic"], d["sequence"], d["path"], d["recorded"], d["replayed"])
+        for d in report.reproduction["differences"]
+    ] == [("/measurement", 2, "characteristics[3].measured_mm", value + 0.05, value)]
 
 
 def test_reordered_messages_and_edited_metadata_are_named(recorded, tmp_path):
@@ -185,7 +194,9 @@ def test_cli_audit_json_and_exit_status(recorded, tmp_path, capsys):
 
 
 def test_audit_of_a_replay_names_the_parent(recorded, tmp_path):
-    summary = replay_session(recorded, make_plugin_manager(), plugins={"register": "horn"}, output_dir=tmp_path)
+    summary = replay_session(
+        recorded, make_plugin_manager(), plugins={"register": "horn"}, output_dir=tmp_path
+    )
     report = audit(summary.info.out_dir / "session.mcap", make_plugin_manager())
     assert report.passed
     text = format_report(report)
@@ -213,9 +224,25 @@ def killed(tmp_path_factory):
     out = tmp_path_factory.mktemp("killed")
     env = dict(os.environ, PYTHONPATH=str(REPO))
     proc = subprocess.Popen(
-        crossfield_command() + ["run", "--scenario", "station", "--frames", "200", "--seed", "3",
-                                "-o", str(out), "--name", "killed", "--no-rerun", "-q"],
-        env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+        crossfield_command()
+        + [
+            "run",
+            "--scenario",
+            "station",
+            "--frames",
+            "200",
+            "--seed",
+            "3",
+            "-o",
+            str(out),
+            "--name",
+            "killed",
+            "--no-rerun",
+            "-q",
+        ],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
     )
     path = out / "killed" / "session.mcap"
     deadline = time.monotonic() + 120

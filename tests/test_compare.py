@@ -20,7 +20,9 @@ def sessions(tmp_path_factory):
     record_session(out, "orig")
     original = out / "orig" / "session.mcap"
     same = replay_session(original, make_plugin_manager(), output_dir=out, rerun=False)
-    replay_session(original, make_plugin_manager(), plugins={"centroid": "ellipse"}, output=out / "ellipse.mcap")
+    replay_session(
+        original, make_plugin_manager(), plugins={"centroid": "ellipse"}, output=out / "ellipse.mcap"
+    )
     return original, same.info.out_dir / "session.mcap", out / "ellipse.mcap"
 
 
@@ -68,7 +70,9 @@ def test_an_edited_registration_residual_is_listed(sessions, tmp_path):
     with open_recording(original) as rec:
         doc = next(m.decoded for m in rec.messages("/registration") if m.sequence == 1)
     cid = doc["residuals"][2]["control_id"]
-    assert diff["path"] == f"registration[1].residual.{cid}" and diff["a"] == doc["residuals"][2]["residual_mm"]
+    assert (
+        diff["path"] == f"registration[1].residual.{cid}" and diff["a"] == doc["residuals"][2]["residual_mm"]
+    )
     assert diff["b"][1] == 0.5 and diff["delta"][0] == 0 and diff["delta"][2] == 0
 
 
@@ -81,7 +85,9 @@ def test_swapped_centroids_show_their_differences(sessions, capsys):
     assert {"centroids.upper[0].uv", "centroids.lower[2].uv"} <= paths
     for camera in ("upper", "lower"):
         shift = result["centroids"][camera]["shift_px"]
-        assert 0 < shift["max"] < 0.05 and shift["only_a"] == shift["only_b"] == 0  # the same blobs, moved a little
+        assert (
+            0 < shift["max"] < 0.05 and shift["only_a"] == shift["only_b"] == 0
+        )  # the same blobs, moved a little
     for c in result["characteristics"]:
         assert abs(c["delta_mm"]) < 0.01
     session = result["registration"]["session"]

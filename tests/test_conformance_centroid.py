@@ -49,7 +49,9 @@ def matched(result: CentroidSet, truth: dict[str, np.ndarray]) -> tuple[list[str
     d = np.linalg.norm(result.uv[:, None, :] - T[None, :, :], axis=2)
     index = d.argmin(axis=0)
     assert np.all(d[index, np.arange(len(ids))] < MATCH_RADIUS_PX), "a target was not found"
-    assert len(set(index.tolist())) == len(ids) == len(result), f"{len(result)} centroids for {len(ids)} targets"
+    assert len(set(index.tolist())) == len(ids) == len(result), (
+        f"{len(result)} centroids for {len(ids)} targets"
+    )
     return ids, index
 
 

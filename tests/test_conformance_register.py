@@ -12,8 +12,8 @@ tests/test_register.py tests the same implementations on synthetic layouts.
 from __future__ import annotations
 
 import itertools
-import os
 import math
+import os
 
 import numpy as np
 import pytest

@@ -33,9 +33,22 @@ def site(tmp_path_factory):
     shutil.copytree(EXAMPLE, source, ignore=shutil.ignore_patterns("build", "*.egg-info", "__pycache__"))
     target = root / "site"
     subprocess.run(
-        [sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation", "--no-index",
-         "--target", str(target), str(source)],
-        check=True, capture_output=True, timeout=300,
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "install",
+            "-q",
+            "--no-deps",
+            "--no-build-isolation",
+            "--no-index",
+            "--target",
+            str(target),
+            str(source),
+        ],
+        check=True,
+        capture_output=True,
+        timeout=300,
     )
     assert (target / "crossfield_squared_centroid-0.1.0.dist-info" / "entry_points.txt").exists()
     return target
@@ -44,7 +57,11 @@ def site(tmp_path_factory):
 def crossfield(site: Path, *args: str) -> subprocess.CompletedProcess:
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(site), str(REPO)]))
     return subprocess.run(
-        [sys.executable, "-m", "pipeline.cli", *args], env=env, capture_output=True, text=True, timeout=300,
+        [sys.executable, "-m", "pipeline.cli", *args],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
         check=False,
     )
 
@@ -63,7 +80,11 @@ def test_plugins_lists_the_entry_point_plugin(site):
     assert set(centroid) >= {"weighted", "ellipse", "squared"}
     squared = centroid["squared"]
     assert (squared["package"], squared["version"]) == ("crossfield-squared-centroid", "0.1.0")
-    assert squared["plugin"] and squared["options"] == {"threshold_sigma": 8.0, "min_area_px": 30, "dilate_px": 2}
+    assert squared["plugin"] and squared["options"] == {
+        "threshold_sigma": 8.0,
+        "min_area_px": 30,
+        "dilate_px": 2,
+    }
     text = crossfield(site, "plugins").stdout
     assert "squared" in text and "crossfield-squared-centroid 0.1.0" in text
 
@@ -77,7 +98,9 @@ def test_not_loaded_without_entry_points(recorded, tmp_path):
 
 def test_replay_and_audit_with_the_entry_point_plugin(site, recorded, tmp_path):
     out = tmp_path / "squared.mcap"
-    proc = crossfield(site, "replay", str(recorded), "--centroid", "squared", "-o", str(out), "-q", "--no-rerun")
+    proc = crossfield(
+        site, "replay", str(recorded), "--centroid", "squared", "-o", str(out), "-q", "--no-rerun"
+    )
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "centroid: weighted -> squared" in proc.stdout and "Result: PASS" in proc.stdout
     with open_recording(out) as rec:
@@ -85,7 +108,11 @@ def test_replay_and_audit_with_the_entry_point_plugin(site, recorded, tmp_path):
         methods = {m.decoded["method"] for m in rec.messages("/centroids/upper")}
         report = next(m.decoded for m in rec.messages("/report"))
         parent = rec.metadata_doc("crossfield.session")["parent"]
-    assert (plugin["name"], plugin["package"], plugin["version"]) == ("squared", "crossfield-squared-centroid", "0.1.0")
+    assert (plugin["name"], plugin["package"], plugin["version"]) == (
+        "squared",
+        "crossfield-squared-centroid",
+        "0.1.0",
+    )
     assert methods == {"squared"}
     assert parent["changed"]["plugins"] == {"centroid": {"from": "weighted", "to": "squared"}}
     assert all(abs(c["error_mm"]) < 0.05 for c in report["characteristics"])
@@ -95,5 +122,6 @@ def test_replay_and_audit_with_the_entry_point_plugin(site, recorded, tmp_path):
     doc = json.loads(audit.stdout)
     assert doc["passed"] and doc["reproduction"]["plugins"]["centroid"] == "squared"
     assert doc["provenance"]["installed_plugins"]["centroid"] == {
-        "package": "crossfield-squared-centroid", "version": "0.1.0"
+        "package": "crossfield-squared-centroid",
+        "version": "0.1.0",
     }

@@ -98,13 +98,18 @@ def test_replay_names_its_parent(recorded, same_plugins):
     assert report["session"]["parent"]["sha256"] == parent["sha256"]
 
 
-@pytest.mark.parametrize("stage, name", [
-    *[("centroid", n) for n in sorted(implementations(make_plugin_manager(), "centroid"))],
-    *[("register", n) for n in sorted(implementations(make_plugin_manager(), "register"))],
-])
+@pytest.mark.parametrize(
+    "stage, name",
+    [
+        *[("centroid", n) for n in sorted(implementations(make_plugin_manager(), "centroid"))],
+        *[("register", n) for n in sorted(implementations(make_plugin_manager(), "register"))],
+    ],
+)
 def test_replay_with_each_implementation_stays_within_tolerance(recorded, tmp_path, stage, name):
     _, path = recorded
-    summary = replay_session(path, make_plugin_manager(), plugins={stage: name}, output_dir=tmp_path, record=False)
+    summary = replay_session(
+        path, make_plugin_manager(), plugins={stage: name}, output_dir=tmp_path, record=False
+    )
     assert summary.info.plugins[stage]["name"] == name
     assert not any(f.error for f in summary.frames) and summary.incomplete is None
     for c in summary.characteristics:
@@ -121,15 +126,20 @@ def test_replay_with_each_implementation_stays_within_tolerance(recorded, tmp_pa
         assert np.linalg.norm(moved) < POSE_CENTRE_MM
     changed = summary.info.parent["changed"]
     recorded_name = {"centroid": "weighted", "register": "svd"}[stage]
-    assert changed["plugins"] == ({} if name == recorded_name else {stage: {"from": recorded_name, "to": name}})
+    assert changed["plugins"] == (
+        {} if name == recorded_name else {stage: {"from": recorded_name, "to": name}}
+    )
 
 
 def test_swapped_plugin_and_option_are_recorded_as_changes(recorded, tmp_path):
     _, path = recorded
     out = tmp_path / "swapped.mcap"
     summary = replay_session(
-        path, make_plugin_manager(), plugins={"centroid": "ellipse"},
-        options=["measure.registration_uncertainty=false"], output=out,
+        path,
+        make_plugin_manager(),
+        plugins={"centroid": "ellipse"},
+        options=["measure.registration_uncertainty=false"],
+        output=out,
     )
     assert out.exists() and summary.info.out_dir == tmp_path / "swapped"
     with open_recording(out) as rec:
@@ -169,7 +179,9 @@ def test_cli_replay(recorded, tmp_path, capsys):
 
 def test_cli_bad_option_is_one_line_and_leaves_no_folder(recorded, tmp_path, capsys):
     _, path = recorded
-    code = main(["replay", str(path), "--option", "register.reflection_ratio=0.5", "-o", str(tmp_path / "x.mcap")])
+    code = main(
+        ["replay", str(path), "--option", "register.reflection_ratio=0.5", "-o", str(tmp_path / "x.mcap")]
+    )
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "Traceback" not in err
     assert "(recorded config) (with command-line overrides): [register]" in err and "reflection_ratio" in err
@@ -205,11 +217,15 @@ def test_load_recorded_session_reads_the_inputs_exactly(recorded):
     assert session.plan.sha256 == info.plan.sha256 and session.plan.source == info.plan.source
     for camera in ("upper", "lower"):
         a, b = session.calibration.camera(camera), info.calibration.camera(camera)
-        assert np.array_equal(a.camera_matrix, b.camera_matrix) and np.array_equal(a.dist_coeffs, b.dist_coeffs)
+        assert np.array_equal(a.camera_matrix, b.camera_matrix) and np.array_equal(
+            a.dist_coeffs, b.dist_coeffs
+        )
     assert np.array_equal(session.calibration.R_lower_upper, info.calibration.R_lower_upper)
     assert session.calibration.source == info.calibration.source
     truth, got = info.ground_truth, session.ground_truth
     assert all(np.array_equal(got.points_global[k], v) for k, v in truth.points_global.items())
-    assert all(np.array_equal(got.lines_global[k].direction, v.direction) for k, v in truth.lines_global.items())
+    assert all(
+        np.array_equal(got.lines_global[k].direction, v.direction) for k, v in truth.lines_global.items()
+    )
     assert session.config.to_dict() == info.config.to_dict()
     assert session.machine is not None and session.machine["cpu_count"] >= 1
