@@ -487,6 +487,14 @@ def format_table(result: Mapping[str, Any]) -> str:
             f"  session    RMS A {_f(s['a'].get('rms_mm'))}  B {_f(s['b'].get('rms_mm'))}  "
             f"rotation B vs A {_d(s['rotation_diff_rad'], 6)} rad  translation {_d(s['translation_diff_mm'])} mm"
         )
+    Ra, Rb = s["a"].get("R_global_camera"), s["b"].get("R_global_camera")
+    ta, tb = s["a"].get("t_global_camera_mm"), s["b"].get("t_global_camera_mm")
+    if Ra and Rb and ta and tb:
+        lines.append(f"  {'':<10} {'R A':<30} {'t A (mm)':>11}    {'R B':<30} {'t B (mm)':>11}")
+        for k in range(3):
+            row_a = " ".join(f"{v:>9.6f}" for v in Ra[k])
+            row_b = " ".join(f"{v:>9.6f}" for v in Rb[k])
+            lines.append(f"  {'':<10} {row_a:<30} {ta[k]:>11.4f}    {row_b:<30} {tb[k]:>11.4f}")
     lines.append(
         f"  {'pair':<8} {'RMS A':>8} {'RMS B':>8} {'B - A':>10} {'rot B vs A':>12} {'|t B - A|':>10}"
     )
