@@ -39,6 +39,11 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--no-record", action="store_true", help="do not write session.mcap")
     run.add_argument("--no-rerun", action="store_true", help="do not write session.rrd")
     run.add_argument("-q", "--quiet", action="store_true", help="no progress display")
+    run.add_argument(
+        "--view", nargs="?", const="new", metavar="URL",
+        help="stream the session live to a Rerun viewer: a new native viewer, or the running one at URL "
+        "(rerun+http://HOST:PORT/proxy); see docs/visualisation.md",
+    )
     _add_stage_flags(run)
 
     sub.add_parser(
@@ -87,6 +92,25 @@ def build_parser() -> argparse.ArgumentParser:
     audit.add_argument("--json", action="store_true", help="machine-readable output")
     audit.add_argument("--no-replay", action="store_true", help="skip the reproduction check")
 
+    view = sub.add_parser(
+        "view",
+        help="show a session in the Rerun viewer (native, --web, or --screenshot PNG)",
+        description="Open a session in the Rerun viewer with the crossfield blueprint. SESSION is a session.rrd, "
+        "a session.mcap (its recorded results are shown through the full Rerun logger) or a session folder. "
+        "With --screenshot the viewer renders headless and the exit status is 1 if a view reports an error.",
+    )
+    view.add_argument("session", metavar="SESSION", help="session.rrd, session.mcap or a session folder")
+    view.add_argument("--web", action="store_true", help="serve the web viewer on http://127.0.0.1:PORT instead")
+    view.add_argument("--port", type=int, default=9090, help="web viewer port (default 9090)")
+    view.add_argument("--screenshot", metavar="PNG", help="render headless, write a screenshot and report view errors")
+    view.add_argument("--window-size", default="1600x1000", metavar="WxH", help="screenshot size (default 1600x1000)")
+    view.add_argument("--frame", type=int, metavar="N", help="show stereo pair N (default: the last)")
+    view.add_argument("--save", metavar="OUT.rrd", help="MCAP input: keep the .rrd made from it")
+    view.add_argument(
+        "--image-every", type=int, metavar="N", help="MCAP input: show the images of every N-th pair (default: "
+        "the recorded session's rerun_image_every)",
+    )
+
     plugins = sub.add_parser("plugins", help="list every stage's registered implementations")
     plugins.add_argument("--json", action="store_true", help="machine-readable output")
     return parser
@@ -131,7 +155,16 @@ def cmd_run(args: argparse.Namespace) -> int:
     pm = make_plugin_manager(entry_points=True)
     frames = config.stages["acquire"].options.get("frames")
     observers = [] if args.quiet else [Progress(total=frames if isinstance(frames, int) else None)]
+    live = None
+    if args.view:
+        from .rerun_log import RerunLogger
+        from .view import spawn_live_viewer
+
+        live = RerunLogger(viewer=spawn_live_viewer() if args.view == "new" else args.view)
+        observers.append(live)
     summary = run_session(config, pm, observers=observers)
+    for warning in live.warnings if live is not None else ():
+        print(f"crossfield: warning: {warning}", file=sys.stderr)
     reporter = summary.info.plugins["report"]["name"]
     from .registry import get_implementation
 
@@ -237,7 +270,25 @@ def cmd_audit(args: argparse.Namespace) -> int:
     return 0 if report.passed else 1
 
 
-COMMANDS = {"run": cmd_run, "replay": cmd_replay, "compare": cmd_compare, "audit": cmd_audit, "plugins": cmd_plugins}
+def cmd_view(args: argparse.Namespace) -> int:
+    from .view import parse_window_size, view
+
+    return view(
+        args.session,
+        web=args.web,
+        port=args.port,
+        screenshot_to=args.screenshot,
+        window_size=parse_window_size(args.window_size),
+        frame=args.frame,
+        save=args.save,
+        image_every=args.image_every,
+    )
+
+
+COMMANDS = {
+    "run": cmd_run, "replay": cmd_replay, "compare": cmd_compare, "audit": cmd_audit, "plugins": cmd_plugins,
+    "view": cmd_view,
+}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
