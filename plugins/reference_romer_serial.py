@@ -16,12 +16,25 @@ labelled in arrival order.
 Production behaviour: a held probe button (a burst of repeats of one
 press) gives one point; points resent after a reconnect are recognised and
 dropped; a lost link is reopened until the idle timeout.
+
+Link events are not in the bytes (``decode(raw)`` cannot see them), so the
+plugin reports them as they happen through its ``log`` attribute (set by
+the session runner to ``pm.hook.on_log``; the recorder writes them to
+``/log``): each disconnect (``link down at <time>: <reason>``), each
+reconnect (``link up again after X s ...``), the idle timeout, and each
+rejected line. They also go to the Python logger
+``crossfield.reference.romer-serial`` and to :attr:`RomerSerialReference.outages`.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import datetime
+from typing import Any
 
 import numpy as np
 
@@ -272,6 +285,37 @@ class PointCollector:
         )
 
 
+#: ``log(level=..., message=..., timestamp_ns=...)``, as ``pm.hook.on_log``.
+LogCallable = Callable[..., Any]
+
+_LEVELS = {"debug": logging.DEBUG, "info": logging.INFO, "warning": logging.WARNING, "error": logging.ERROR}
+
+
+def wall_clock(timestamp_ns: int) -> str:
+    """Local time with UTC offset and milliseconds: '2024-06-11T14:03:12.345+02:00'."""
+    return datetime.fromtimestamp(timestamp_ns / 1e9).astimezone().isoformat(timespec="milliseconds")
+
+
+@dataclass
+class LinkOutage:
+    """One interruption of the link.
+
+    down_ns / up_ns: host time (ns since the epoch) when the disconnect was
+    detected / when the port was open again (None: it never came back).
+    reason: what the transport reported. points_before: points received
+    before the link went down.
+    """
+
+    down_ns: int
+    reason: str
+    points_before: int
+    up_ns: int | None = None
+
+    @property
+    def duration_s(self) -> float | None:
+        return None if self.up_ns is None else (self.up_ns - self.down_ns) / 1e9
+
+
 def _positive(value, name: str, unit: str) -> float:
     number = isinstance(value, (int, float)) and not isinstance(value, bool)
     if not (number and math.isfinite(value) and value > 0):
@@ -296,6 +340,12 @@ class RomerSerialReference:
     units: ``"mm"`` or ``"inch"`` (``pcdmis`` only; converted to mm).
     burst_radius_mm: repeats of one press within this distance are a held
     button and give one point (mm).
+
+    ``log`` (attribute, not an option; default None): a callable receiving
+    ``level``, ``message`` and ``timestamp_ns`` keyword arguments, called
+    as things happen during :meth:`acquire` (link down / up, timeout,
+    each rejected line). ``outages``: the :class:`LinkOutage` s of the
+    last :meth:`acquire`.
     """
 
     def __init__(
@@ -334,6 +384,23 @@ class RomerSerialReference:
             self.make_decoder()
         except ValueError as exc:
             raise ValueError(f"option 'units': {exc}") from None
+        self.log: LogCallable | None = None
+        self.outages: list[LinkOutage] = []
+        self._logger = logging.getLogger("crossfield.reference.romer-serial")
+
+    def _report(self, level: str, message: str, timestamp_ns: int | None = None) -> None:
+        """One incident: to ``log`` (if set) and to the Python logger."""
+        text = f"romer-serial {self.port}: {message}"
+        self._logger.log(_LEVELS[level], text)
+        if self.log is not None:
+            when = time.time_ns() if timestamp_ns is None else timestamp_ns
+            self.log(level=level, message=text, timestamp_ns=when)
+
+    def _report_problems(self, collector: PointCollector, reported: int) -> int:
+        """Report the collector's problems from index ``reported`` on; returns the new count."""
+        for problem in collector.problems[reported:]:
+            self._report("warning", problem)
+        return len(collector.problems)
 
     # -- layers (override one to swap it) ------------------------------------
 
@@ -387,19 +454,27 @@ class RomerSerialReference:
         """Read points until the plan's probing order is complete.
 
         Every chunk read goes to ``sink`` before it is parsed. A lost link is
-        reopened (every 0.1 s) until the idle timeout. Raises
-        :class:`ReferenceImportError` if the port cannot be opened at the
-        start, or no new point arrives for ``timeout_s`` before the plan's
-        last point.
+        reopened (every 0.1 s) until the idle timeout; each outage is
+        reported through ``log`` when it starts and when it ends, and kept
+        in :attr:`outages`. Raises :class:`ReferenceImportError` if the port
+        cannot be opened at the start, or no new point arrives for
+        ``timeout_s`` before the plan's last point.
         """
         collector = self._collector(plan)
         stream = self.make_stream()
+        self.outages = []
         try:
             transport: Transport | None = self._connect()
         except (OSError, ValueError, LinkLost) as exc:
             raise ReferenceImportError(f"romer-serial: cannot open port {self.port!r}: {exc}") from None
+        self._report(
+            "info",
+            f"reading {self.format.name} from {self.port} ({self.baudrate} baud): "
+            f"{len(collector.labels)} points expected",
+        )
         ended = ""
         lost = ""
+        reported = 0  # problems already passed to log
         last_progress = time.monotonic()
         try:
             while not collector.complete:
@@ -416,6 +491,16 @@ class RomerSerialReference:
                         transport = self._connect()
                     except (OSError, ValueError, LinkLost):
                         transport = None
+                        continue
+                    outage = self.outages[-1]
+                    outage.up_ns = time.time_ns()
+                    self._report(
+                        "info",
+                        f"link up again after {outage.duration_s:.2f} s (down since "
+                        f"{wall_clock(outage.down_ns)}); {len(collector.points)} of "
+                        f"{len(collector.labels)} points so far",
+                        outage.up_ns,
+                    )
                     continue
                 try:
                     data = transport.read(4096)
@@ -423,11 +508,21 @@ class RomerSerialReference:
                     lost = str(exc)
                     transport.close()
                     transport = None
+                    outage = LinkOutage(time.time_ns(), lost, len(collector.points))
+                    self.outages.append(outage)
+                    self._report(
+                        "warning",
+                        f"link down at {wall_clock(outage.down_ns)}: {lost}; {outage.points_before} of "
+                        f"{len(collector.labels)} points so far; reopening every 0.1 s for up to "
+                        f"{self.timeout_s:g} s",
+                        outage.down_ns,
+                    )
                     continue
                 if data:
                     sink(data)
                     before = len(collector.points)
                     self._feed(collector, stream.feed(data))
+                    reported = self._report_problems(collector, reported)
                     if len(collector.points) > before:
                         last_progress = time.monotonic()
                 elif idle:
@@ -438,8 +533,18 @@ class RomerSerialReference:
                 self._close(transport)
         self._feed(collector, stream.finish())
         collector.finish()
+        reported = self._report_problems(collector, reported)
         if not collector.complete:
+            self._report("error", f"{ended}: {collector.summary()}")
             raise ReferenceImportError(f"romer-serial: {self.port}: {ended}: {collector.summary()}")
+        summary = (
+            f"{len(collector.points)} of {len(collector.labels)} points imported, "
+            f"{len(collector.problems)} problem(s)"
+        )
+        if self.outages:
+            down = sum(o.duration_s or 0.0 for o in self.outages)
+            summary += f"; the link was down {len(self.outages)} time(s), {down:.2f} s in all"
+        self._report("info", summary)
         return collector.result(self.port)
 
     def decode(self, raw: bytes, plan: MeasurementPlan) -> ReferenceData:
