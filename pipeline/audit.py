@@ -35,7 +35,7 @@ from typing import Any
 
 import pluggy
 
-from .errors import CrossfieldError, RecordingError
+from .errors import CrossfieldError
 from .integrity import TOPIC_INTEGRITY, IntegrityResult, file_sha256, name_message, verify
 from .recording import open_recording
 from .registry import STAGES, implementations
@@ -364,15 +364,10 @@ def reproduction(path: Path, pm: pluggy.PluginManager, *, limit: int = 500) -> d
 def audit(path: str | Path, pm: pluggy.PluginManager, *, reproduce: bool = True) -> AuditReport:
     """Run the three checks on ``path`` (``RecordingError`` if it is not a crossfield recording)."""
     path = Path(path)
+    from .replay import require_session
+
     rec = open_recording(path)
-    if "crossfield.session" not in rec.metadata():
-        library = rec.library
-        if library.startswith("crossfield/"):
-            raise RecordingError(
-                f"{path}: the recording ends before its session facts were written; nothing to audit"
-            )
-        writer = f"written by {library!r}" if library else "its header names no writer"
-        raise RecordingError(f"{path}: an MCAP file but not a crossfield session recording ({writer})")
+    require_session(rec)
     integrity = verify(path)
     prov = provenance(path, pm)
     if reproduce:

@@ -31,7 +31,6 @@ from typing import Any
 
 import numpy as np
 
-from .errors import RecordingError
 from .recording import Recording, open_recording
 from .registry import STAGES
 
@@ -80,14 +79,10 @@ class SessionView:
 def read_view(path: str | Path) -> SessionView:
     """Read the recorded results of a session (``RecordingError`` if it is not one)."""
     path = Path(path)
+    from .replay import require_session
+
     rec: Recording = open_recording(path)
-    meta = rec.metadata()
-    if "crossfield.session" not in meta:
-        library = rec.library
-        raise RecordingError(
-            f"{path}: not a crossfield session recording (no 'crossfield.session' metadata"
-            + (f"; written by {library!r})" if library else ")")
-        )
+    meta = require_session(rec)
     session = rec.metadata_doc("crossfield.session")
     plugins = rec.metadata_doc("crossfield.plugins") if "crossfield.plugins" in meta else {}
     view = SessionView(

@@ -92,19 +92,7 @@ def load_recorded_session(path: str | Path) -> RecordedSession:
     """
     path = Path(path)
     recording = open_recording(path)
-    metadata = recording.metadata()
-    if "crossfield.session" not in metadata:
-        library = recording.library
-        if library.startswith("crossfield/"):
-            raise RecordingError(
-                f"{path}: the recording ends before its session facts were written "
-                f"(no 'crossfield.session' metadata); nothing to replay"
-            )
-        writer = f"written by {library!r}" if library else "its header names no writer"
-        raise RecordingError(
-            f"{path}: an MCAP file but not a crossfield session recording ({writer}; "
-            f"no 'crossfield.session' metadata)"
-        )
+    metadata = require_session(recording)
     session = recording.metadata_doc("crossfield.session")
     fmt = session.get("recording_format")
     if fmt not in READABLE_FORMATS:
@@ -160,6 +148,26 @@ def load_recorded_session(path: str | Path) -> RecordedSession:
         calibration=calibration,
         ground_truth=truth,
     )
+
+
+def require_session(recording: Recording) -> dict[str, dict[str, str]]:
+    """The recording's metadata records; :class:`RecordingError` (one line) if
+    it is not a crossfield session (another program's MCAP, or cut short
+    before the session facts were written)."""
+    metadata = recording.metadata()
+    if "crossfield.session" not in metadata:
+        library = recording.library
+        if library.startswith("crossfield/"):
+            raise RecordingError(
+                f"{recording.path}: the recording ends before its session facts were written "
+                f"(no 'crossfield.session' metadata)"
+            )
+        writer = f"written by {library!r}" if library else "its header names no writer"
+        raise RecordingError(
+            f"{recording.path}: an MCAP file but not a crossfield session recording ({writer}; "
+            f"no 'crossfield.session' metadata)"
+        )
+    return metadata
 
 
 def ground_truth_from_doc(doc: Mapping[str, Any]) -> GroundTruth:
