@@ -22,8 +22,9 @@ plugin reports them as they happen through its ``log`` attribute (set by
 the session runner to ``pm.hook.on_log``; the recorder writes them to
 ``/log``): each disconnect (``link down at <time>: <reason>``), each
 reconnect (``link up again after X s ...``), the idle timeout, and each
-rejected line. They also go to the Python logger
-``crossfield.reference.romer-serial`` and to :attr:`RomerSerialReference.outages`.
+rejected line. Without ``log`` they go to the Python logger
+``crossfield.reference.romer-serial``; outages are also kept in
+:attr:`RomerSerialReference.outages`.
 """
 
 from __future__ import annotations
@@ -344,8 +345,9 @@ class RomerSerialReference:
     ``log`` (attribute, not an option; default None): a callable receiving
     ``level``, ``message`` and ``timestamp_ns`` keyword arguments, called
     as things happen during :meth:`acquire` (link down / up, timeout,
-    each rejected line). ``outages``: the :class:`LinkOutage` s of the
-    last :meth:`acquire`.
+    each rejected line); without it they go to the Python logger
+    ``crossfield.reference.romer-serial``. ``outages``: the
+    :class:`LinkOutage` s of the last :meth:`acquire`.
     """
 
     def __init__(
@@ -389,10 +391,12 @@ class RomerSerialReference:
         self._logger = logging.getLogger("crossfield.reference.romer-serial")
 
     def _report(self, level: str, message: str, timestamp_ns: int | None = None) -> None:
-        """One incident: to ``log`` (if set) and to the Python logger."""
+        """One incident: to ``log`` if set, else to the Python logger (not
+        both: the session's log observers already print it)."""
         text = f"romer-serial {self.port}: {message}"
-        self._logger.log(_LEVELS[level], text)
-        if self.log is not None:
+        if self.log is None:
+            self._logger.log(_LEVELS[level], text)
+        else:
             when = time.time_ns() if timestamp_ns is None else timestamp_ns
             self.log(level=level, message=text, timestamp_ns=when)
 
