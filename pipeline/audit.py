@@ -171,7 +171,8 @@ def provenance(path: Path, pm: pluggy.PluginManager | None) -> dict[str, Any]:
                 notes.append(f"{stage} plugin {entry.get('name')!r} is not installed here")
             elif (impl.package, impl.version) != (entry.get("package"), entry.get("version")):
                 notes.append(
-                    f"{stage} plugin {entry.get('name')!r}: recorded {entry.get('package')} {entry.get('version')}, "
+                    f"{stage} plugin {entry.get('name')!r}: recorded "
+                    f"{entry.get('package')} {entry.get('version')}, "
                     f"installed {impl.package} {impl.version}"
                 )
     packages = docs.get("crossfield.packages", {})
@@ -347,7 +348,8 @@ def reproduction(path: Path, pm: pluggy.PluginManager, *, limit: int = 500) -> d
         "only_recorded": named(only_recorded),
         "only_replayed": named(only_replayed),
         "only_replayed_note": (
-            "computed by the replay but not in the cut-short recording (the session report, results of pairs cut off)"
+            "computed by the replay but not in the cut-short recording "
+            "(the session report, results of pairs cut off)"
             if incomplete and only_replayed
             else None
         ),
@@ -433,7 +435,8 @@ def format_report(report: AuditReport, *, limit: int = 40) -> str:
     for stage in STAGES:
         entry = plugins.get(stage) or {}
         lines.append(
-            f"  {stage:<12} {entry.get('name', '-'):<14} {entry.get('package', '')} {entry.get('version', '')}"
+            f"  {stage:<12} {entry.get('name', '-'):<14} "
+            f"{entry.get('package', '')} {entry.get('version', '')}"
         )
     machine = prov.get("machine") or {}
     if machine:
@@ -449,10 +452,13 @@ def format_report(report: AuditReport, *, limit: int = 40) -> str:
         f"  plan         {plan.get('name')} ({plan.get('source')}) SHA-256 {plan.get('sha256')} "
         f"{'matches the record' if plan.get('ok') else 'MISMATCH'}"
     )
-    lines.append(
-        f"  calibration  {cal.get('source')} SHA-256 {cal.get('sha256')} "
-        f"{'matches the record' if cal.get('ok') and cal.get('recorded_sha256') else ('MISMATCH' if not cal.get('ok') else '(no recorded digest)')}"
-    )
+    if not cal.get("ok"):
+        cal_state = "MISMATCH"
+    elif cal.get("recorded_sha256"):
+        cal_state = "matches the record"
+    else:
+        cal_state = "(no recorded digest)"
+    lines.append(f"  calibration  {cal.get('source')} SHA-256 {cal.get('sha256')} {cal_state}")
     for p in prov.get("problems", []):
         lines.append(f"  - {p}")
     for n in prov.get("notes", []):

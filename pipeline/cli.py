@@ -232,7 +232,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
         dict(config.stages["report"].options)
     )
     parent = summary.info.parent or {}
-    print(f"replay of {parent.get('path')} (session {parent.get('session_id')}, SHA-256 {parent.get('sha256')})")
+    print(
+        f"replay of {parent.get('path')} (session {parent.get('session_id')}, SHA-256 {parent.get('sha256')})"
+    )
     changed = parent.get("changed") or {}
     if not changed.get("plugins") and not changed.get("options"):
         print("  with the recorded plugins and options")

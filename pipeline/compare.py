@@ -459,7 +459,8 @@ def format_table(result: Mapping[str, Any]) -> str:
     else:
         lines.append("Characteristics (mm)")
         lines.append(
-            f"  {'name':<10} {'A measured':>12} {'B measured':>12} {'B - A':>10} {'A dev':>9} {'B dev':>9}  A     B"
+            f"  {'name':<10} {'A measured':>12} {'B measured':>12} {'B - A':>10} "
+            f"{'A dev':>9} {'B dev':>9}  A     B"
         )
         for c in result["characteristics"]:
             a, b = c["a"] or {}, c["b"] or {}
@@ -480,7 +481,8 @@ def format_table(result: Mapping[str, Any]) -> str:
     if s["a"].get("rms_mm") is not None or s["b"].get("rms_mm") is not None:
         lines.append(
             f"  session    RMS A {_f(s['a'].get('rms_mm'))}  B {_f(s['b'].get('rms_mm'))}  "
-            f"rotation B vs A {_d(s['rotation_diff_rad'], 6)} rad  translation {_d(s['translation_diff_mm'])} mm"
+            f"rotation B vs A {_d(s['rotation_diff_rad'], 6)} rad  "
+            f"translation {_d(s['translation_diff_mm'])} mm"
         )
     Ra, Rb = s["a"].get("R_global_camera"), s["b"].get("R_global_camera")
     ta, tb = s["a"].get("t_global_camera_mm"), s["b"].get("t_global_camera_mm")
@@ -498,8 +500,9 @@ def format_table(result: Mapping[str, Any]) -> str:
             lines.append(f"  {f['sequence']:<8} registered in A: {f['a']}, in B: {f['b']}")
             continue
         lines.append(
-            f"  {f['sequence']:<8} {_f(f['rms_mm']['a']):>8} {_f(f['rms_mm']['b']):>8} {_d(f['rms_mm']['delta']):>10} "
-            f"{_d(f['R_global_camera']['angle_rad'], 6):>12} {_d(_norm(f['t_global_camera_mm']['delta'])):>10}"
+            f"  {f['sequence']:<8} {_f(f['rms_mm']['a']):>8} {_f(f['rms_mm']['b']):>8} "
+            f"{_d(f['rms_mm']['delta']):>10} {_d(f['R_global_camera']['angle_rad'], 6):>12} "
+            f"{_d(_norm(f['t_global_camera_mm']['delta'])):>10}"
         )
     if reg["controls"]:
         lines.append(f"  {'control':<8} {'|res| A':>8} {'|res| B':>8} {'B - A':>10}   (RMS over pairs)")

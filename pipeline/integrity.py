@@ -320,7 +320,8 @@ def _scan_file(path: Path) -> _Scan:
                             scan.problems.append(
                                 Problem(
                                     "crc",
-                                    f"chunk at byte {offset} has a bad CRC-32 (stored {record.uncompressed_crc:08x}, "
+                                    f"chunk at byte {offset} has a bad CRC-32 "
+                                    f"(stored {record.uncompressed_crc:08x}, "
                                     f"computed {crc:08x}); it holds {what or 'no message'}{more}",
                                 )
                             )
@@ -337,7 +338,8 @@ def _scan_file(path: Path) -> _Scan:
                 offset = f.tell()
         except (McapError, struct.error, EOFError, ValueError, UnicodeDecodeError, MemoryError) as exc:
             size = path.stat().st_size
-            scan.ends = f"the file ends in damage or is cut short at byte {offset} of {size} ({type(exc).__name__}{': ' + str(exc) if str(exc) else ''})"
+            reason = type(exc).__name__ + (f": {exc}" if str(exc) else "")
+            scan.ends = f"the file ends in damage or is cut short at byte {offset} of {size} ({reason})"
     return scan
 
 
@@ -543,7 +545,8 @@ def verify(path: str | Path) -> IntegrityResult:
                 Problem(
                     "uncovered",
                     f"{len(tail)} message(s) after the last /integrity record are not covered by the chain "
-                    f"(from {name_message(*first.key)} to {name_message(*last.key)}): the recording was cut short",
+                    f"(from {name_message(*first.key)} to {name_message(*last.key)}): "
+                    f"the recording was cut short",
                 )
             )
     # Metadata and attachments: every one found must be listed, every listed one found.

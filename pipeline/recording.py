@@ -97,7 +97,11 @@ class Recording:
         with self._open() as f:
             magic = f.read(len(MCAP_MAGIC))
             if magic != MCAP_MAGIC:
-                what = "empty file (0 bytes), not an MCAP recording" if not magic else "not an MCAP file (wrong magic bytes)"
+                what = (
+                    "empty file (0 bytes), not an MCAP recording"
+                    if not magic
+                    else "not an MCAP file (wrong magic bytes)"
+                )
                 raise RecordingError(f"{self.path}: {what}")
             try:
                 self._summary = self._seeking(f).get_summary()

@@ -97,7 +97,8 @@ def load_recorded_session(path: str | Path) -> RecordedSession:
     fmt = session.get("recording_format")
     if fmt not in READABLE_FORMATS:
         raise RecordingError(
-            f"{path}: recording format {fmt!r} is not one this crossfield reads ({', '.join(READABLE_FORMATS)})"
+            f"{path}: recording format {fmt!r} is not one this crossfield reads "
+            f"({', '.join(READABLE_FORMATS)})"
         )
     for name in ("crossfield.config", "crossfield.plugins", "crossfield.packages", "crossfield.acquisition"):
         if name not in metadata:

@@ -86,7 +86,9 @@ class Stages:
         does not need the acquisition plugin) and create the per-frame ones."""
         skip = set(skip)
         impls = {
-            stage: get_implementation(pm, stage, config.stages[stage].plugin) for stage in STAGES if stage not in skip
+            stage: get_implementation(pm, stage, config.stages[stage].plugin)
+            for stage in STAGES
+            if stage not in skip
         }
         made = {
             stage: impls[stage].create(dict(config.stages[stage].options), f"{config.source}: [{stage}]")
@@ -279,7 +281,9 @@ def run_session(
 ReferenceImport = Callable[[Any], tuple[ReferenceData, int | None]]
 
 
-def _live_reference(config: Config, stages: Stages, acquisition: Any, plan: MeasurementPlan) -> ReferenceImport:
+def _live_reference(
+    config: Config, stages: Stages, acquisition: Any, plan: MeasurementPlan
+) -> ReferenceImport:
     impl = stages.implementations["reference"]
     options = dict(config.stages["reference"].options)
     where = f"{config.source}: [reference]"
