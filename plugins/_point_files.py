@@ -141,7 +141,7 @@ def unit_name(spelling: str, at: str) -> str:
     listing the known spellings."""
     unit = UNIT_SPELLINGS.get(spelling.strip().lower())
     if unit is None:
-        known = ", ".join(sorted(UNIT_SPELLINGS))
+        known = ", ".join(UNIT_SPELLINGS)
         raise ReferenceImportError(
             f"{at}: unknown length unit {spelling.strip()!r} (known: {known}); "
             f"export the points in mm or inch"
