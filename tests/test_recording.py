@@ -1,11 +1,12 @@
-"""The MCAP recorder, its reader and the Rerun logger, on synthetic stage outputs.
+"""The MCAP recorder and its reader, on synthetic stage outputs.
 
 A session is driven through a plugin manager's observer hooks; the file is
 then read back with the mcap reader (pipeline.recording) and checked against
 what was sent: bit-exact images and serial bytes, schemas, JSON Schema
 validity, transforms, metadata and attachments. The real ``rerun`` CLI
-converts the MCAP and verifies both .rrd files; the converted recording is
+converts the MCAP and verifies the .rrd; the converted recording is
 opened with rerun's chunk reader to check what each Foxglove schema became.
+The Rerun logger (session.rrd) is tested in tests/test_rerun.py.
 """
 
 from __future__ import annotations
@@ -42,7 +43,6 @@ from pipeline.recorder import (
 )
 from pipeline.recording import open_recording
 from pipeline.registry import make_plugin_manager
-from pipeline.rerun_log import RerunLogger
 from pipeline.session import FrameResult, SessionInfo, SessionSummary, summarise
 from pipeline.types import (
     CameraIntrinsics,
@@ -294,14 +294,13 @@ class Synthetic:
 
 @pytest.fixture(scope="module")
 def session(tmp_path_factory):
-    """A recorded synthetic session (MCAP and RRD), shared by the read-back tests."""
+    """A recorded synthetic session (MCAP), shared by the read-back tests."""
     out = tmp_path_factory.mktemp("session")
     synthetic = Synthetic(out)
     recorder = McapRecorder(out / "session.mcap")
-    logger = RerunLogger(out / "session.rrd")
-    pm = make_plugin_manager(builtins=False, extra=[recorder, logger])
+    pm = make_plugin_manager(builtins=False, extra=[recorder])
     synthetic.summary = synthetic.drive(pm)
-    assert recorder.closed and logger.closed
+    assert recorder.closed
     return synthetic, out
 
 
@@ -830,38 +829,6 @@ def test_rerun_converts_every_foxglove_schema(session, tmp_path):
 
     assert "TextLog:text" in cols["/log"]
     assert "McapMessage:data" in cols["/registration"]  # JSON: kept as raw message bytes
-
-
-def test_rerun_logger_writes_a_valid_recording(session):
-    synthetic, out = session
-    rrd = out / "session.rrd"
-    verify = run_rerun("rrd", "verify", str(rrd))
-    assert verify.returncode == 0, verify.stdout + verify.stderr
-    cols = archetype_columns(rrd)
-    for camera in ("upper", "lower"):
-        entity = f"/world/camera/{camera}/image"
-        assert "Image:buffer" in cols[entity] and "Pinhole:image_from_camera" in cols[entity]
-        K = np.array(cols[entity]["Pinhole:image_from_camera"][0][0]).reshape(3, 3).T
-        expected = synthetic.calibration.camera(camera).camera_matrix + [[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]]
-        assert np.allclose(K, expected, rtol=1e-6)  # Rerun's pixel centres are at +0.5
-        uv = np.array(cols[f"{entity}/centroids"]["Points2D:positions"][0])
-        assert np.allclose(uv - 0.5, getattr(synthetic.results[0].centroids, camera).uv, atol=1e-3)
-    assert "Transform3D:translation" in cols["/world/camera/lower"]
-    camera_tf = cols["/world/camera"]
-    assert np.allclose(np.array(camera_tf["Transform3D:translation"][0]) * 1000.0, synthetic.t, atol=1e-3)
-    assert "Points3D:positions" in cols["/world/camera/points"]
-    assert cols["/world/reference/points"]["Points3D:labels"][0] == synthetic.plan.probing_order()
-    assert "Points3D:positions" in cols["/world/registration/controls"]
-    assert "Scalars:scalars" in cols["/registration/rms_mm"]
-    assert cols["/measurement/error_mm/P1-L3"]["Scalars:scalars"] == [[0.008], [0.008]]
-    # 12-bit images are shown scaled to 16 bits (an exact shift by 4).
-    shown = np.array(cols["/world/camera/upper/image"]["Image:buffer"][0][0], dtype=np.uint8).view("<u2")
-    assert np.array_equal(shown.reshape(SIZE[1], SIZE[0]), synthetic.frames[0].upper << 4)
-    assert "TextDocument:text" in cols["/report"] and "TextLog:text" in cols["/log"]
-    assert (
-        "PASS" in cols["/report"]["TextDocument:text"][0][0]
-        or "FAIL" in cols["/report"]["TextDocument:text"][0][0]
-    )
 
 
 @pytest.mark.parametrize("compression", ["lz4", "zstd"])
