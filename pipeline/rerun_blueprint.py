@@ -45,7 +45,9 @@ VIEW_LOG = "Log"
 _EYE_ELEVATION = np.radians(10.0)
 
 
-def station_eye(points_m: np.ndarray, *, up: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> rrb.EyeControls3D:
+def station_eye(
+    points_m: np.ndarray, *, up: tuple[float, float, float] = (0.0, 0.0, 1.0)
+) -> rrb.EyeControls3D:
     """A 3-D eye that shows all of ``points_m`` (N, 3), metres, global frame.
 
     It looks at the centre of their bounding box along the normal of their
@@ -83,7 +85,9 @@ def station_eye(points_m: np.ndarray, *, up: tuple[float, float, float] = (0.0, 
     )
 
 
-def default_blueprint(*, residual_scale: float = 1000.0, eye: rrb.EyeControls3D | None = None) -> rrb.Blueprint:
+def default_blueprint(
+    *, residual_scale: float = 1000.0, eye: rrb.EyeControls3D | None = None
+) -> rrb.Blueprint:
     """The session layout: 3-D station, both camera images, residual and
     characteristic plots, report / session / log tabs.
 

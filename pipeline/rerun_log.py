@@ -125,7 +125,6 @@ _LOG_LEVELS = {
 }
 
 
-
 def default_blueprint(residual_scale: float = RESIDUAL_SCALE, eye: Any = None) -> Any:
     """The default layout (:func:`pipeline.rerun_blueprint.default_blueprint`)."""
     return bp.default_blueprint(residual_scale=residual_scale, eye=eye)
@@ -179,8 +178,10 @@ def fit_reference_axes(plan: Any, reference: Any) -> dict[str, AxisFit]:
         xyz = np.array([p.xyz for p in probes], dtype=np.float64)
         sigma = max(float(p.sigma_mm) for p in probes)
         try:
-            axes[spec.id] = fit_cylinder_axis(xyz, sigma_mm=sigma) if spec.fit == "cylinder" else fit_line(
-                xyz, sigma_mm=sigma
+            axes[spec.id] = (
+                fit_cylinder_axis(xyz, sigma_mm=sigma)
+                if spec.fit == "cylinder"
+                else fit_line(xyz, sigma_mm=sigma)
             )
         except ValueError:
             continue
@@ -330,7 +331,11 @@ class RerunLogger:
         rec.log(WORLD, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         rec.log(ORIGIN, rr.TransformAxes3D(_AXIS_AXES_M), static=True)
         for camera in CAMERAS:
-            rec.log(IMAGE[camera], pinhole(session.calibration.camera(camera), colour=_FRUSTUM[camera]), static=True)
+            rec.log(
+                IMAGE[camera],
+                pinhole(session.calibration.camera(camera), colour=_FRUSTUM[camera]),
+                static=True,
+            )
         rec.log(LOWER, lower_in_upper(session.calibration), static=True)
         rec.log(RMS, rr.SeriesLines(names="RMS", widths=3.0, colors=(255, 255, 255)), static=True)
         rec.log(
@@ -526,7 +531,9 @@ class RerunLogger:
         centres = uv[keep] + PIXEL_OFFSET
         self.rec.log(
             f"{base}/centroids",
-            rr.Points2D(centres, labels=labels, colors=colours, radii=rr.Radius.ui_points(1.5), show_labels=True),
+            rr.Points2D(
+                centres, labels=labels, colors=colours, radii=rr.Radius.ui_points(1.5), show_labels=True
+            ),
         )
         # A ring around each blob (twice its equivalent radius) that leaves the target visible.
         area = np.nan_to_num(np.asarray(cs.area_px, dtype=np.float64)[keep], nan=0.0)
@@ -640,8 +647,11 @@ class RerunLogger:
             controls = [by_label[c].xyz for c in getattr(self._plan, "control_ids", ()) if c in by_label]
             if controls:
                 elements.append(np.mean(np.asarray(controls, dtype=np.float64), axis=0))
-            elements += [np.asarray(by_label[r].xyz) for r in getattr(self._plan, "reference_point_ids", ())
-                         if r in by_label]
+            elements += [
+                np.asarray(by_label[r].xyz)
+                for r in getattr(self._plan, "reference_point_ids", ())
+                if r in by_label
+            ]
             for line_id, axis in self._axes.items():
                 elements += list(self._axis_extent(line_id, axis, self._reference))
         scene = np.array(elements, dtype=np.float64).reshape(-1, 3) * _M_PER_MM
@@ -760,7 +770,15 @@ class RerunLogger:
         verdict = "PASS" if summary.passed else "FAIL"
         failed = [f for f in summary.frames if f.error]
         simulated = any(c.error_mm is not None for c in summary.characteristics)
-        columns = ["characteristic", "n", "measured ± u (mm)", "nominal (mm)", "deviation (mm)", "tol (mm)", "result"]
+        columns = [
+            "characteristic",
+            "n",
+            "measured ± u (mm)",
+            "nominal (mm)",
+            "deviation (mm)",
+            "tol (mm)",
+            "result",
+        ]
         columns += ["error (mm)"] if simulated else []
         lines = [
             f"# {verdict}: session {summary.info.session_id}",
@@ -786,8 +804,10 @@ class RerunLogger:
             rms_reg = [r.fit.rms_mm for r in registrations]
             lines += [
                 "",
-                f"Registration RMS over {len(rms_reg)} pairs: mean {_fmt(float(np.mean(rms_reg)))} mm, "
-                f"max {_fmt(float(np.max(rms_reg)))} mm.",
+                (
+                    f"Registration RMS over {len(rms_reg)} pairs: mean {_fmt(float(np.mean(rms_reg)))} mm, "
+                    f"max {_fmt(float(np.max(rms_reg)))} mm."
+                ),
             ]
         if failed:
             lines += ["", "## Failed frames", ""] + [f"* {f.error}" for f in failed]

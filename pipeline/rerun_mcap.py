@@ -98,7 +98,8 @@ def centroid_set(doc: Mapping[str, Any]) -> CentroidSet:
         roundness=_array(doc["roundness"], (n,)),
         peak=_array(doc["peak"], (n,)),
         rejected=tuple(
-            RejectedBlob((_nan(b["uv"][0]), _nan(b["uv"][1])), str(b["reason"])) for b in doc.get("rejected", ())
+            RejectedBlob((_nan(b["uv"][0]), _nan(b["uv"][1])), str(b["reason"]))
+            for b in doc.get("rejected", ())
         ),
         method=str(doc.get("method", "")),
     )
@@ -205,10 +206,14 @@ def image(message: Any, where: str) -> np.ndarray:
     """(H, W) pixels of a decoded foxglove.RawImage (mono16 little-endian or mono8)."""
     dtype = _DTYPES.get(message.encoding)
     if dtype is None:
-        raise RecordingError(f"{where}: image encoding {message.encoding!r}; crossfield writes mono16 or mono8")
+        raise RecordingError(
+            f"{where}: image encoding {message.encoding!r}; crossfield writes mono16 or mono8"
+        )
     height, width = int(message.height), int(message.width)
     if message.step != width * dtype.itemsize or len(message.data) != height * message.step:
-        raise RecordingError(f"{where}: image size {width}x{height} does not match its {len(message.data)} bytes")
+        raise RecordingError(
+            f"{where}: image size {width}x{height} does not match its {len(message.data)} bytes"
+        )
     return np.frombuffer(message.data, dtype=dtype).reshape(height, width)
 
 
@@ -231,8 +236,12 @@ def session_info(recording: Recording) -> SessionInfo:
             raise RecordingError(f"{path}: attachment {name!r} is missing")
     try:
         config = parse_config(recording.metadata_doc("crossfield.config"), f"{path} (recorded config)")
-        plan = parse_plan(attachments["plan.toml"].text, str(session.get("plan_source") or f"{path}:plan.toml"))
-        calibration = stereo_calibration_from_yaml(attachments["calibration.yml"].text, f"{path}:calibration.yml")
+        plan = parse_plan(
+            attachments["plan.toml"].text, str(session.get("plan_source") or f"{path}:plan.toml")
+        )
+        calibration = stereo_calibration_from_yaml(
+            attachments["calibration.yml"].text, f"{path}:calibration.yml"
+        )
     except CrossfieldError as exc:
         raise RecordingError(f"{path}: {exc}") from None
     truth = None
@@ -290,14 +299,20 @@ def _events(recording: Recording, logger: RerunLogger) -> Iterator[tuple[str, An
             p.images[camera] = image(RawImage.FromString(m.data), where)
             p.bit_depth = int(m.channel_metadata.get("bit_depth", 16))
             if all(c in p.images for c in CAMERAS):
-                yield "frame", StereoFrame(
-                    p.sequence, p.timestamp_ns, p.images["upper"], p.images["lower"], p.bit_depth
+                yield (
+                    "frame",
+                    StereoFrame(
+                        p.sequence, p.timestamp_ns, p.images["upper"], p.images["lower"], p.bit_depth
+                    ),
                 )
                 p.images = {}
             continue
         if topic == "/log":
             message = Log.FromString(m.data)
-            yield "log", (_FOXGLOVE_LEVELS.get(int(message.level), "info"), message.message, int(m.log_time_ns))
+            yield (
+                "log",
+                (_FOXGLOVE_LEVELS.get(int(message.level), "info"), message.message, int(m.log_time_ns)),
+            )
             continue
         try:
             doc = json.loads(m.data)
@@ -315,18 +330,23 @@ def _events(recording: Recording, logger: RerunLogger) -> Iterator[tuple[str, An
             elif topic == "/measurement":
                 pair(m).measurement = measurement(doc)
             elif topic == "/frames":
-                p = pairs.pop(int(doc["sequence"]), None) or _Pair(int(doc["sequence"]), int(doc["timestamp_ns"]))
+                p = pairs.pop(int(doc["sequence"]), None) or _Pair(
+                    int(doc["sequence"]), int(doc["timestamp_ns"])
+                )
                 centroids = None
                 if all(c in p.centroids for c in CAMERAS):
                     centroids = StereoCentroids(p.sequence, p.centroids["upper"], p.centroids["lower"])
-                yield "done", FrameResult(
-                    p.sequence,
-                    int(doc["timestamp_ns"]),
-                    centroids,
-                    p.points,
-                    p.registration,
-                    p.measurement,
-                    error=doc.get("error"),
+                yield (
+                    "done",
+                    FrameResult(
+                        p.sequence,
+                        int(doc["timestamp_ns"]),
+                        centroids,
+                        p.points,
+                        p.registration,
+                        p.measurement,
+                        error=doc.get("error"),
+                    ),
                 )
         except (KeyError, TypeError, ValueError) as exc:
             raise RecordingError(f"{where}: unexpected content: {exc!r}") from None
@@ -356,7 +376,9 @@ def log_recording(mcap_path: str | Path, logger: RerunLogger) -> SessionSummary:
             level, text, time_ns = payload
             logger.on_log(level=level, message=text, timestamp_ns=time_ns)
     # The session's end as recorded (crossfield.result), or where the recording stops.
-    result = recording.metadata_doc("crossfield.result") if "crossfield.result" in recording.metadata() else {}
+    result = (
+        recording.metadata_doc("crossfield.result") if "crossfield.result" in recording.metadata() else {}
+    )
     incomplete = result.get("incomplete")
     if not recording.complete or not result:
         incomplete = f"the recording ends early ({recording.damage or 'no session result recorded'})"

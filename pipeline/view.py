@@ -30,7 +30,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 import numpy as np
 
@@ -112,12 +112,14 @@ class HeadlessViewer:
     the viewer may take to answer. The viewer is stopped (by its pid) on exit.
     """
 
-    def __init__(self, *, window_size: tuple[int, int] = DEFAULT_WINDOW_SIZE, startup_timeout_s: float = 30.0):
+    def __init__(
+        self, *, window_size: tuple[int, int] = DEFAULT_WINDOW_SIZE, startup_timeout_s: float = 30.0
+    ):
         self.window_size = (int(window_size[0]), int(window_size[1]))
         self.port = free_port()
         self.startup_timeout_s = float(startup_timeout_s)
         self._process: subprocess.Popen | None = None
-        self._stderr = tempfile.TemporaryFile()
+        self._stderr = tempfile.TemporaryFile()  # noqa: SIM115 - the viewer's stderr, closed by close()
         self.client: Any = None
 
     @property
@@ -141,7 +143,10 @@ class HeadlessViewer:
             "--hide-welcome-screen",
         ]
         self._process = subprocess.Popen(
-            command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=self._stderr,
+            command,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=self._stderr,
             env={**os.environ, **VIEWER_ENV},
         )
         deadline = time.monotonic() + self.startup_timeout_s
@@ -156,7 +161,9 @@ class HeadlessViewer:
             except Exception as exc:  # noqa: BLE001 - not listening yet
                 if time.monotonic() > deadline:
                     self.close()
-                    raise ViewerError(f"the headless Rerun viewer did not answer on {self.url}: {exc}") from None
+                    raise ViewerError(
+                        f"the headless Rerun viewer did not answer on {self.url}: {exc}"
+                    ) from None
                 time.sleep(0.1)
 
     def _error_text(self) -> str:
@@ -238,7 +245,9 @@ class HeadlessViewer:
         """Every warning and error the views of the current blueprint reported when last shown."""
         state = self.client.get_state()
         return [
-            ViewReport(v.name, v.view_class, r.severity, r.summary, r.details) for v in state.views for r in v.reports
+            ViewReport(v.name, v.view_class, r.severity, r.summary, r.details)
+            for v in state.views
+            for r in v.reports
         ]
 
     def view_names(self) -> list[str]:
@@ -262,7 +271,7 @@ class HeadlessViewer:
         self.client = None
         self._stderr.close()
 
-    def __enter__(self) -> HeadlessViewer:
+    def __enter__(self) -> Self:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:
@@ -305,8 +314,13 @@ def mcap_to_rrd(mcap_path: str | Path, rrd_path: str | Path, *, image_every: int
 
 
 @contextlib.contextmanager
-def session_rrd(path: str | Path, *, save: str | Path | None = None, image_every: int | None = None,
-                say: Callable[[str], None] = print) -> Iterator[Path]:
+def session_rrd(
+    path: str | Path,
+    *,
+    save: str | Path | None = None,
+    image_every: int | None = None,
+    say: Callable[[str], None] = print,
+) -> Iterator[Path]:
     """The .rrd to open for ``path``: the file itself, or a .rrd made from an MCAP
     recording (``save``, else a temporary file removed afterwards)."""
     source = resolve_session_path(path)
@@ -339,7 +353,10 @@ def screenshot(
 ) -> list[ViewReport]:
     """Render a session headless with its default blueprint, at pair ``frame`` (default:
     the last), and write the PNG. Returns the views' reports (warnings and errors)."""
-    with session_rrd(path, save=save, image_every=image_every, say=say) as rrd, HeadlessViewer(window_size=window_size) as viewer:
+    with (
+        session_rrd(path, save=save, image_every=image_every, say=say) as rrd,
+        HeadlessViewer(window_size=window_size) as viewer,
+    ):
         viewer.open(rrd)
         viewer.show("frame", frame)
         png = viewer.screenshot(png_path)
@@ -353,8 +370,15 @@ def serve_web(rrd: Path, *, port: int = DEFAULT_WEB_PORT, say: Callable[[str], N
     """Serve the web viewer with ``rrd`` on http://127.0.0.1:port until interrupted."""
     grpc_port = free_port()
     command = [
-        rerun_executable(), "--web-viewer", "--bind", "127.0.0.1", "--port", str(grpc_port),
-        "--web-viewer-port", str(port), str(rrd),
+        rerun_executable(),
+        "--web-viewer",
+        "--bind",
+        "127.0.0.1",
+        "--port",
+        str(grpc_port),
+        "--web-viewer-port",
+        str(port),
+        str(rrd),
     ]
     process = subprocess.Popen(command, env={**os.environ, **VIEWER_ENV, "RUST_LOG": "warn"})
     say(f"web viewer: http://127.0.0.1:{port}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A{grpc_port}%2Fproxy")
@@ -369,7 +393,9 @@ def serve_web(rrd: Path, *, port: int = DEFAULT_WEB_PORT, say: Callable[[str], N
 
 def open_native(rrd: Path) -> int:
     """The native viewer on ``rrd``; returns when it is closed."""
-    return subprocess.call([rerun_executable(), str(rrd)], env={**os.environ, **VIEWER_ENV, "RUST_LOG": "warn"})
+    return subprocess.call(
+        [rerun_executable(), str(rrd)], env={**os.environ, **VIEWER_ENV, "RUST_LOG": "warn"}
+    )
 
 
 def view(
@@ -388,7 +414,13 @@ def view(
     if screenshot_to is not None:
         t0 = time.perf_counter()
         reports = screenshot(
-            path, screenshot_to, window_size=window_size, frame=frame, save=save, image_every=image_every, say=say
+            path,
+            screenshot_to,
+            window_size=window_size,
+            frame=frame,
+            save=save,
+            image_every=image_every,
+            say=say,
         )
         say(f"screenshot written to {screenshot_to} ({time.perf_counter() - t0:.1f} s)")
         for report in reports:
@@ -416,4 +448,3 @@ def parse_window_size(text: str) -> tuple[int, int]:
     if width < 200 or height < 200:
         raise CrossfieldError(f"--window-size {text!r}: at least 200x200")
     return width, height
-

@@ -67,10 +67,15 @@ def rrd_rows(path: Path) -> dict[str, list[tuple[int | None, dict]]]:
     for chunk in rrc.RrdReader(path).stream():
         batch = chunk.to_record_batch()
         columns = {n: batch.column(n).to_pylist() for n in batch.schema.names if ":" in n}
-        frames = batch.column("frame").to_pylist() if "frame" in batch.schema.names else [None] * batch.num_rows
+        frames = (
+            batch.column("frame").to_pylist() if "frame" in batch.schema.names else [None] * batch.num_rows
+        )
         for row in range(batch.num_rows):
             out[chunk.entity_path].append(
-                (frames[row], {name: values[row] for name, values in columns.items() if values[row] is not None})
+                (
+                    frames[row],
+                    {name: values[row] for name, values in columns.items() if values[row] is not None},
+                )
             )
     return out
 
@@ -79,9 +84,10 @@ def latest(rows: dict, entity: str, column: str, frame: int | None = None):
     """The value of ``column`` at ``frame`` (latest at; static if frame is None)."""
     found = None
     for f, values in rows.get(entity, ()):
-        if column in values and (f is None or (frame is not None and f <= frame)):
-            if found is None or f is None or found[0] is None or f >= found[0]:
-                found = (f, values[column])
+        at = f is None or (frame is not None and f <= frame)
+        later = found is None or f is None or found[0] is None or f >= found[0]
+        if column in values and at and later:
+            found = (f, values[column])
     assert found is not None, f"{entity}: no {column} at frame {frame}"
     return found[1]
 
@@ -96,7 +102,11 @@ def by_frame(rows: dict, entity: str) -> dict:
 
 def rerun_verify(path: Path) -> None:
     proc = subprocess.run(
-        [rerun_executable(), "rrd", "verify", str(path)], capture_output=True, text=True, timeout=120,
+        [rerun_executable(), "rrd", "verify", str(path)],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=120,
         env={**os.environ, "RERUN_ANALYTICS": "0"},
     )
     assert proc.returncode == 0, proc.stdout + proc.stderr
@@ -118,7 +128,11 @@ def test_session_rrd_verifies_and_holds_the_session(sim):
 
     # Cameras: pinholes (+0.5 px), the lower camera's pose, T_global_camera per pair.
     for camera in ("upper", "lower"):
-        K = np.array(latest(rows, f"/world/camera/{camera}/image", "Pinhole:image_from_camera")[0]).reshape(3, 3).T
+        K = (
+            np.array(latest(rows, f"/world/camera/{camera}/image", "Pinhole:image_from_camera")[0])
+            .reshape(3, 3)
+            .T
+        )
         expected = info.calibration.camera(camera).camera_matrix + [[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]]
         assert np.allclose(K, expected, rtol=1e-6)
     fit = last.registration.fit
@@ -137,7 +151,9 @@ def test_session_rrd_verifies_and_holds_the_session(sim):
 
     # CMM elements (static): controls, reference points, line probes, by their plan labels.
     assert set(latest(rows, "/world/cmm/controls", "Points3D:labels")) == set(info.plan.control_ids)
-    assert latest(rows, "/world/cmm/reference_points", "Points3D:labels") == list(info.plan.reference_point_ids)
+    assert latest(rows, "/world/cmm/reference_points", "Points3D:labels") == list(
+        info.plan.reference_point_ids
+    )
     probes = latest(rows, "/world/cmm/line_probes", "Points3D:labels")
     assert probes == [label for label in info.plan.probing_order() if label.startswith("L3.")]
 
@@ -171,7 +187,9 @@ def test_session_rrd_verifies_and_holds_the_session(sim):
     rms = [values["Scalars:scalars"][0] for f, values in rows["/registration/rms_mm"] if f is not None]
     assert rms == [f.registration.fit.rms_mm for f in summary.frames]
     for cid in corr.control_ids:
-        assert len([1 for f, v in rows[f"/registration/residual_mm/{cid}"] if "Scalars:scalars" in v]) == FRAMES
+        assert (
+            len([1 for f, v in rows[f"/registration/residual_mm/{cid}"] if "Scalars:scalars" in v]) == FRAMES
+        )
     report = latest(rows, "/report", "TextDocument:text")[0]
     assert report.startswith("# PASS" if summary.passed else "# FAIL")
     for c in summary.characteristics:
@@ -197,9 +215,15 @@ def test_image_every_n_from_the_session_config(tmp_path):
     rows = rrd_rows(summary.info.out_dir / "session.rrd")
     assert [f for f, v in rows["/world/camera/upper/image"] if "Image:buffer" in v] == [0, 2]
     # centroids and points of every pair regardless
-    assert [f for f, v in rows["/world/camera/upper/image/centroids"] if "Points2D:positions" in v] == [0, 1, 2]
+    assert [f for f, v in rows["/world/camera/upper/image/centroids"] if "Points2D:positions" in v] == [
+        0,
+        1,
+        2,
+    ]
     with pytest.raises(ConfigError, match="rerun_image_every"):
-        run_session(session_config(tmp_path, "bad", record=False, rerun_image_every=-1), make_plugin_manager())
+        run_session(
+            session_config(tmp_path, "bad", record=False, rerun_image_every=-1), make_plugin_manager()
+        )
 
 
 def test_a_failed_stage_clears_the_older_result(sim, tmp_path):
@@ -230,7 +254,9 @@ def test_the_mcap_recording_gives_the_same_view_as_the_live_logger(sim, tmp_path
     replayed = log_recording(folder / "session.mcap", logger)
     assert logger.closed
     rerun_verify(rrd)
-    assert [c.measured_mm for c in replayed.characteristics] == [c.measured_mm for c in summary.characteristics]
+    assert [c.measured_mm for c in replayed.characteristics] == [
+        c.measured_mm for c in summary.characteristics
+    ]
     live, shown = rrd_rows(folder / "session.rrd"), rrd_rows(rrd)
     entities = {e for e in live if e.startswith(("/world", "/registration", "/measurement"))}
     assert entities == {e for e in shown if e.startswith(("/world", "/registration", "/measurement"))}
@@ -301,7 +327,9 @@ def test_fitted_axis_is_the_measurement_plugins_fit(sim):
 # --------------------------------------------------------------------------
 
 
-def colour_pixels(png: bytes, colour: tuple[int, int, int], box: tuple[float, float, float, float], tol: int = 40) -> int:
+def colour_pixels(
+    png: bytes, colour: tuple[int, int, int], box: tuple[float, float, float, float], tol: int = 40
+) -> int:
     """Pixels within ``tol`` of an RGB colour inside a box given as fractions (x0, y0, x1, y1)."""
     image = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[:, :, ::-1].astype(int)
     h, w = image.shape[:2]
@@ -332,8 +360,18 @@ def test_default_blueprint_renders_in_the_viewer_without_errors(sim, tmp_path):
 def test_crossfield_view_screenshot_of_an_mcap_recording(sim, tmp_path, capsys):
     _, folder = sim
     png, rrd = tmp_path / "mcap.png", tmp_path / "kept.rrd"
-    status = main(["view", str(folder / "session.mcap"), "--screenshot", str(png), "--save", str(rrd),
-                   "--window-size", "1200x800"])
+    status = main(
+        [
+            "view",
+            str(folder / "session.mcap"),
+            "--screenshot",
+            str(png),
+            "--save",
+            str(rrd),
+            "--window-size",
+            "1200x800",
+        ]
+    )
     out = capsys.readouterr().out
     assert status == 0, out
     assert "screenshot written" in out and "error" not in out
@@ -365,8 +403,24 @@ def test_the_mcap_file_is_viewable_without_our_code(sim, tmp_path):
 
 def test_run_view_streams_live_to_a_viewer(tmp_path, capsys):
     with HeadlessViewer(window_size=(1200, 800)) as viewer:
-        status = main(["run", "--frames", "2", "--seed", "3", "-o", str(tmp_path), "--name", "live",
-                       "--no-record", "--no-rerun", "-q", "--view", viewer.url])
+        status = main(
+            [
+                "run",
+                "--frames",
+                "2",
+                "--seed",
+                "3",
+                "-o",
+                str(tmp_path),
+                "--name",
+                "live",
+                "--no-record",
+                "--no-rerun",
+                "-q",
+                "--view",
+                viewer.url,
+            ]
+        )
         assert status in (0, 1), capsys.readouterr().err
         viewer.wait_for(lambda: viewer.timeline_end("frame") == 1, what="frame 1")
         paths = set(viewer.entity_paths())
@@ -375,9 +429,18 @@ def test_run_view_streams_live_to_a_viewer(tmp_path, capsys):
         reports = viewer.reports()
         names = viewer.view_names()
     assert not (tmp_path / "live" / "session.rrd").exists()  # --no-rerun: streamed only
-    for entity in ("/world/camera", "/world/camera/upper/image", "/world/camera/upper/image/centroids",
-                   "/world/cmm/controls", "/world/cmm/axes/L3", "/world/registration/residuals",
-                   "/world/targets", "/world/characteristics/P1-L3", "/registration/rms_mm", "/report"):
+    for entity in (
+        "/world/camera",
+        "/world/camera/upper/image",
+        "/world/camera/upper/image/centroids",
+        "/world/cmm/controls",
+        "/world/cmm/axes/L3",
+        "/world/registration/residuals",
+        "/world/targets",
+        "/world/characteristics/P1-L3",
+        "/registration/rms_mm",
+        "/report",
+    ):
         assert entity in paths, entity
     assert any(n.startswith(VIEW_3D) for n in names)
     assert not png_is_blank(png)
