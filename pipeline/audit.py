@@ -40,6 +40,8 @@ from .integrity import TOPIC_INTEGRITY, IntegrityResult, file_sha256, name_messa
 from .recording import open_recording
 from .registry import STAGES, implementations
 
+LOG_TOPIC = "/log"
+
 #: Raw inputs: replay reads them, so they are not "reproduced".
 RAW_TOPICS = frozenset({"/camera/upper/image", "/camera/lower/image", "/cmm/raw", TOPIC_INTEGRITY})
 
@@ -278,7 +280,27 @@ def reproduction(path: Path, pm: pluggy.PluginManager, *, limit: int = 500) -> d
         for m in rec.messages(decode=False, file_order=True)
         if m.topic not in RAW_TOPICS
     ]
-    a, b = _keyed(recorded_messages), _keyed(capture.messages)
+    # The log is compared apart: a live run may log device events (a link
+    # lost and back, a timeout) that a replay of the recorded bytes cannot
+    # see; every result a log line reports is also on /frames, /reference or
+    # /report, which are compared.
+    logs_a = {k: v for k, v in _keyed(recorded_messages).items() if k[0] == LOG_TOPIC}
+    logs_b = {k: v for k, v in _keyed(capture.messages).items() if k[0] == LOG_TOPIC}
+    a = {k: v for k, v in _keyed(recorded_messages).items() if k[0] != LOG_TOPIC}
+    b = {k: v for k, v in _keyed(capture.messages).items() if k[0] != LOG_TOPIC}
+    log_notes = [
+        {
+            "log_time_ns": k[2],
+            "recorded": _decode_log(v) if v is not None else None,
+            "replayed": _decode_log(logs_b[k]) if k in logs_b else None,
+        }
+        for k, v in logs_a.items()
+        if logs_b.get(k) != v
+    ] + [
+        {"log_time_ns": k[2], "recorded": None, "replayed": _decode_log(v)}
+        for k, v in logs_b.items()
+        if k not in logs_a
+    ]
     differences: list[dict[str, Any]] = []
     identical = 0
     for key in a:
@@ -289,18 +311,6 @@ def reproduction(path: Path, pm: pluggy.PluginManager, *, limit: int = 500) -> d
             continue
         topic, sequence, log_time, _ = key
         ignored = IGNORED.get(topic, ())
-        if topic == "/log":
-            differences.append(
-                {
-                    "topic": topic,
-                    "sequence": sequence,
-                    "log_time_ns": log_time,
-                    "path": "message",
-                    "recorded": _decode_log(a[key]),
-                    "replayed": _decode_log(b[key]),
-                }
-            )
-            continue
         try:
             ja, jb = json.loads(a[key]), json.loads(b[key])
         except ValueError:
@@ -354,6 +364,8 @@ def reproduction(path: Path, pm: pluggy.PluginManager, *, limit: int = 500) -> d
             else None
         ),
         "ignored": {k: list(v) for k, v in IGNORED.items()},
+        "log_lines_identical": len(logs_a) - sum(1 for n in log_notes if n["recorded"] is not None),
+        "log_differences": log_notes[:limit],
         "replay_incomplete": summary.incomplete,
     }
 
@@ -483,6 +495,11 @@ def format_report(report: AuditReport, *, limit: int = 40) -> str:
         for m in repro["only_recorded"][:limit]:
             lines.append(
                 f"  - only in the recording: {name_message(m['topic'], m['sequence'], m['log_time_ns'])}"
+            )
+        for n in repro.get("log_differences", [])[:limit]:
+            lines.append(
+                f"  note: /log at {n['log_time_ns']} ns: recorded {n['recorded']!r}, "
+                f"replayed {n['replayed']!r} (log lines are not results)"
             )
         if repro["only_replayed"] and repro.get("only_replayed_note"):
             lines.append(f"  - {len(repro['only_replayed'])} message(s) {repro['only_replayed_note']}")

@@ -68,9 +68,12 @@ def rewrite_mcap(
     dst: Path,
     messages: Callable[[list[Msg]], list[Msg]] = lambda m: m,
     metadata: Callable[[list[tuple[str, dict[str, str]]]], list[tuple[str, dict[str, str]]]] = lambda m: m,
+    new_channels: dict[str, tuple[str, Any]] | None = None,
 ) -> None:
     """Copy ``src`` to ``dst`` through ``messages`` / ``metadata`` edits (message
-    order kept unless the edit changes it; /integrity messages are copied as they are)."""
+    order kept unless the edit changes it; /integrity messages are copied as they are).
+    new_channels: topic -> (message encoding, pipeline.recorder.SchemaSpec or None)
+    for topics the edit adds."""
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
     msgs: list[Msg] = []
@@ -106,6 +109,9 @@ def rewrite_mcap(
             )
             for topic, c in channel_of.items()
         }
+        for topic, (encoding, spec) in (new_channels or {}).items():
+            schema_id = writer.register_schema(spec.name, spec.encoding, spec.data) if spec else 0
+            channel_ids[topic] = writer.register_channel(topic, encoding, schema_id)
         for name, record in meta:
             writer.add_metadata(name, record)
         for a in attachments:

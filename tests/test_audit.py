@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 import pytest
-from session_tools import edit_json, record_session, rewrite_mcap
+from session_tools import Msg, edit_json, record_session, rewrite_mcap
 
 from pipeline.audit import audit, format_report
 from pipeline.cli import main
@@ -179,6 +179,32 @@ def test_a_removed_integrity_record_is_named(recorded, tmp_path):
     details = [p.detail for p in verify(edited).problems]
     assert any("/integrity record #3 found where #2 was expected" in d for d in details)
     assert any("does not link to the record before it" in d for d in details)
+
+
+def test_a_log_line_the_replay_cannot_see_is_a_note_not_a_failure(recorded, tmp_path):
+    """A live run may log device events (link lost and back) that a replay of the
+    recorded bytes cannot see: the chain still names the line, the reproduction
+    lists it as a note and passes."""
+    from foxglove_schemas_protobuf.Log_pb2 import Log
+
+    from pipeline.recorder import log_message, protobuf_schema
+
+    def add(ms):
+        at = next(k for k, m in enumerate(ms) if m.topic == "/reference")
+        t = ms[at].log_time
+        ms.insert(
+            at, Msg("/log", t, 0, log_message("warning", "romer-serial: link lost, back after 0.4 s", t))
+        )
+        return ms
+
+    edited = tmp_path / "log.mcap"
+    rewrite_mcap(recorded, edited, add, new_channels={"/log": ("protobuf", protobuf_schema(Log))})
+    report = audit(edited, make_plugin_manager())
+    assert [(p.kind, p.topic) for p in report.integrity.problems] == [("added", "/log")]
+    repro = report.reproduction
+    assert repro["passed"] and repro["differences"] == []
+    assert [n["recorded"] for n in repro["log_differences"]] == ["romer-serial: link lost, back after 0.4 s"]
+    assert "log lines are not results" in format_report(report)
 
 
 def test_cli_audit_json_and_exit_status(recorded, tmp_path, capsys):
