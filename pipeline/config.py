@@ -47,7 +47,7 @@ SESSION_DEFAULTS: dict[str, Any] = {
     "plan": "",
     "record": True,
     "rerun": True,
-    "rerun_image_every": 1,  # session.rrd: images of every n-th pair (0 = none); docs/visualisation.md
+    "rerun_image_every": 5,  # session.rrd: images of every n-th pair (0 = none); docs/visualisation.md
     "match_tolerance_mm": 0.5,  # rigid-distance agreement for control-point matching
 }
 

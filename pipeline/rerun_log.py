@@ -41,8 +41,10 @@ Images: Rerun shows a 16-bit image over the full 0..65535 range, so a
 12-bit image would look black; the logged copy is scaled by
 2**(16 - bit_depth) (an exact bit shift: divide the values Rerun shows by
 16 for 12-bit DN). The MCAP recording keeps the raw values. Images cost
-about 40 ms of CPU per pair in Rerun's file sink: ``image_every`` (or the
-session key ``rerun_image_every``) logs every n-th pair's images only.
+about 45 ms of CPU per pair in Rerun's file sink (15 pairs/s, at the
+station camera's 14 frames/s): ``image_every`` (or the session key
+``rerun_image_every``, default 5: 60 pairs/s) logs every n-th pair's
+images only (``bench/bench_rerun.py``; ``docs/visualisation.md``).
 
 Pixels: Rerun puts the centre of the top-left pixel at (0.5, 0.5)
 (rerun-io/rerun#3896), OpenCV at (0, 0); centroids and the pinholes'
@@ -62,6 +64,7 @@ import numpy as np
 import rerun as rr
 
 from . import rerun_blueprint as bp
+from .config import SESSION_DEFAULTS
 from .errors import ConfigError, RecordingError
 from .geometry import AxisFit, fit_cylinder_axis, fit_line
 from .hookspecs import hookimpl
@@ -236,7 +239,8 @@ class RerunLogger:
     None: none). At least one of the two.
     image_every: log the images of every n-th stereo pair (1 = all, 0 =
     none; the MCAP recording keeps every image regardless). None: the
-    session config's ``[session] rerun_image_every`` (default 1).
+    session config's ``[session] rerun_image_every`` (default 5); every
+    image if no session start was seen.
     residual_scale: magnification of the residual vectors in the 3-D view.
     scale_images: shift images of ``bit_depth`` < 16 to the 16-bit range for display.
     application_id: the Rerun application id; every logger makes its own recording id.
@@ -315,7 +319,7 @@ class RerunLogger:
     def on_session_start(self, session: Any) -> None:
         rec = self.rec
         if self.image_every is None:
-            every = session.config.session.get("rerun_image_every", 1)
+            every = session.config.session.get("rerun_image_every", SESSION_DEFAULTS["rerun_image_every"])
             if isinstance(every, bool) or not isinstance(every, int) or every < 0:
                 raise ConfigError(
                     f"{session.config.source}: [session] key 'rerun_image_every' must be an integer >= 0 "
