@@ -25,12 +25,12 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.config import parse_config  # noqa: E402
-from pipeline.recording import open_recording  # noqa: E402
-from pipeline.registry import make_plugin_manager  # noqa: E402
-from pipeline.rerun_log import RerunLogger  # noqa: E402
-from pipeline.rerun_mcap import _events, session_info  # noqa: E402
-from pipeline.runner import run_session  # noqa: E402
+from pipeline.config import parse_config
+from pipeline.recording import open_recording
+from pipeline.registry import make_plugin_manager
+from pipeline.rerun_log import RerunLogger
+from pipeline.rerun_mcap import _events, session_info
+from pipeline.runner import run_session
 
 
 class _AllImages:
@@ -70,7 +70,11 @@ def feed(events: list, info, path: Path, image_every: int) -> dict[str, float]:
             logger.on_log(level=level, message=text, timestamp_ns=t)
     logger.close()
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    return {"pairs_per_s": pairs / wall, "cpu_ms_per_pair": 1e3 * cpu / pairs, "mb": path.stat().st_size / 1e6}
+    return {
+        "pairs_per_s": pairs / wall,
+        "cpu_ms_per_pair": 1e3 * cpu / pairs,
+        "mb": path.stat().st_size / 1e6,
+    }
 
 
 def main() -> int:
@@ -99,8 +103,10 @@ def main() -> int:
                 t0 = time.perf_counter()
                 view(out / "r1-0.rrd", screenshot_to=out / f"shot{k}.png", say=lambda _: None)
                 times.append(time.perf_counter() - t0)
-            print(f"crossfield view --screenshot (1600x1000, {args.frames} pairs): "
-                  f"{statistics.median(times):.1f} s (min {min(times):.1f}, max {max(times):.1f})")
+            print(
+                f"crossfield view --screenshot (1600x1000, {args.frames} pairs): "
+                f"{statistics.median(times):.1f} s (min {min(times):.1f}, max {max(times):.1f})"
+            )
     return 0
 
 

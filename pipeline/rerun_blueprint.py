@@ -36,7 +36,7 @@ VIEW_3D = "Station: global (CMM) frame"
 VIEW_CAMERA = {"upper": "Upper camera", "lower": "Lower camera"}
 VIEW_RESIDUALS = "Registration residuals (mm)"
 VIEW_DEVIATION = "Deviation from nominal (mm)"
-VIEW_ERROR = "Error against simulator truth (mm)"
+VIEW_ERROR = "Error vs truth (mm)"
 VIEW_REPORT = "Report"
 VIEW_SESSION = "Session"
 VIEW_LOG = "Log"
@@ -53,7 +53,7 @@ def station_eye(
     It looks at the centre of their bounding box along the normal of their
     best-fit plane (the smallest principal axis, so the scene spreads out
     across the picture), tilted towards ``up`` by 10 degrees, from a
-    distance of 1.1 times the bounding-box diagonal.
+    distance of 0.85 times the bounding-box diagonal.
     """
     P = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
     P = P[np.isfinite(P).all(axis=1)]
@@ -76,7 +76,7 @@ def station_eye(
         horizontal = np.cross(up_v, [1.0, 0.0, 0.0] if abs(up_v[0]) < 0.9 else [0.0, 1.0, 0.0])
     horizontal /= np.linalg.norm(horizontal)
     direction = np.cos(_EYE_ELEVATION) * horizontal + np.sin(_EYE_ELEVATION) * up_v
-    position = centre + 1.1 * diagonal * direction
+    position = centre + 0.85 * diagonal * direction
     return rrb.EyeControls3D(
         kind=rrb.Eye3DKind.Orbital,
         position=position.tolist(),
@@ -131,7 +131,7 @@ def default_blueprint(
     return rrb.Blueprint(
         rrb.Vertical(
             rrb.Horizontal(station, cameras, column_shares=[3, 2]),
-            rrb.Horizontal(residuals, rrb.Tabs(deviation, error), text, column_shares=[1, 1, 1]),
+            rrb.Horizontal(residuals, rrb.Tabs(deviation, error), text, column_shares=[2, 2, 3]),
             row_shares=[3, 2],
         ),
         collapse_panels=True,

@@ -97,6 +97,10 @@ REPORT = bp.REPORT
 PIXEL_OFFSET = 0.5
 #: The residual vectors are drawn this many times longer than they are.
 RESIDUAL_SCALE = 1000.0
+#: The frusta reach this fraction of the working distance.
+FRUSTUM_FRACTION = 1.0 / 3.0
+#: Labels of targets and characteristics are shown in 3-D up to this many (else on hover).
+MAX_3D_LABELS = 6
 _M_PER_MM = 1e-3
 _DEFAULT_IMAGE_PLANE_M = 0.05
 _AXIS_AXES_M = 0.1
@@ -377,7 +381,7 @@ class RerunLogger:
                     xyz * _M_PER_MM,
                     labels=[p.label for p in points],
                     colors=COLOURS[key],
-                    radii=rr.Radius.ui_points(5.0 if key != "probe" else 3.0),
+                    radii=rr.Radius.ui_points({"control": 3.5, "reference": 5.0, "probe": 3.0}[key]),
                     show_labels=show,
                 ),
                 static=True,
@@ -581,9 +585,9 @@ class RerunLogger:
             ),
         )
         if not self._plane_set and keep.any() and self._calibration is not None:
-            # Draw each frustum out to the working distance (median depth of the points),
-            # so that the 3-D view shows what the cameras see.
-            depth_m = float(np.median(xyz[keep, 2])) * _M_PER_MM
+            # Draw each frustum a third of the way to the working distance (median depth of
+            # the points): long enough to show where the cameras look, short of the targets.
+            depth_m = FRUSTUM_FRACTION * float(np.median(xyz[keep, 2])) * _M_PER_MM
             if depth_m > 0:
                 for camera in CAMERAS:
                     intrinsics = self._calibration.camera(camera)
@@ -685,7 +689,7 @@ class RerunLogger:
                 labels=[i for i, k in zip(ids, keep) if k],
                 colors=COLOURS["target"],
                 radii=rr.Radius.ui_points(5.0),
-                show_labels=True,
+                show_labels=len(ids) <= MAX_3D_LABELS,
             ),
         )
         shown = set()
@@ -702,7 +706,7 @@ class RerunLogger:
                     labels=[f"{c.name} {c.measured_mm:.4f} mm ({c.deviation_mm:+.4f})"],
                     colors=COLOURS["pass" if c.passed else "fail"],
                     radii=rr.Radius.ui_points(1.0 if c.kind == "depth" else 1.5),
-                    show_labels=True,
+                    show_labels=len(measurement.characteristics) <= MAX_3D_LABELS,
                 ),
             )
             shown.add(c.name)
@@ -779,8 +783,7 @@ class RerunLogger:
             "n",
             "measured ± u (mm)",
             "nominal (mm)",
-            "deviation (mm)",
-            "tol (mm)",
+            "deviation (± tol) (mm)",
             "result",
         ]
         columns += ["error (mm)"] if simulated else []
@@ -795,8 +798,9 @@ class RerunLogger:
         ]
         for c in summary.characteristics:
             u = f" ± {_fmt(c.uncertainty_mm)}" if c.uncertainty_mm is not None else ""
-            cells = [c.name, str(c.n), _fmt(c.measured_mm) + u, _fmt(c.nominal_mm), _fmt(c.deviation_mm)]
-            cells += [_fmt(c.tolerance_mm), "pass" if c.passed else "**FAIL**"]
+            deviation = "-" if not math.isfinite(c.deviation_mm) else f"{c.deviation_mm:+.4f}"
+            cells = [c.name, str(c.n), _fmt(c.measured_mm) + u, _fmt(c.nominal_mm)]
+            cells += [f"{deviation} (± {_fmt(c.tolerance_mm)})", "pass" if c.passed else "**FAIL**"]
             cells += [_fmt(c.error_mm)] if simulated else []
             lines.append("| " + " | ".join(cells) + " |")
         lines += ["", "u: standard uncertainty of the mean; std (repeatability) and more in the HTML report."]

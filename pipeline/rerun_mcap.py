@@ -19,6 +19,7 @@ reference axes drawn are fitted to the recorded CMM points
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from collections.abc import Iterator, Mapping
@@ -371,7 +372,9 @@ def log_recording(mcap_path: str | Path, logger: RerunLogger) -> SessionSummary:
             logger.on_frame(frame=payload)
         elif kind == "done":
             logger.on_frame_done(result=payload)
-            results.append(payload)
+            results.append(
+                dataclasses.replace(payload, centroids=None, points=None)
+            )  # what the summary needs
         else:
             level, text, time_ns = payload
             logger.on_log(level=level, message=text, timestamp_ns=time_ns)

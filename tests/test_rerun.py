@@ -27,9 +27,17 @@ from pipeline.cli import main
 from pipeline.config import parse_config
 from pipeline.errors import ConfigError, RecordingError
 from pipeline.geometry import fit_cylinder_axis
+from pipeline.hookspecs import hookimpl
 from pipeline.recording import open_recording
 from pipeline.registry import make_plugin_manager
-from pipeline.rerun_blueprint import VIEW_3D, VIEW_CAMERA, station_eye
+from pipeline.rerun_blueprint import (
+    VIEW_3D,
+    VIEW_CAMERA,
+    VIEW_DEVIATION,
+    VIEW_REPORT,
+    VIEW_RESIDUALS,
+    station_eye,
+)
 from pipeline.rerun_log import COLOURS, RESIDUAL_SCALE, RerunLogger, characteristic_segment
 from pipeline.rerun_mcap import log_recording
 from pipeline.runner import run_session
@@ -50,13 +58,25 @@ def session_config(out: Path, name: str, **session) -> object:
     )
 
 
+class FrameResults:
+    """Observer keeping every pair's complete result (the summary may keep less)."""
+
+    def __init__(self):
+        self.results = []
+
+    @hookimpl
+    def on_frame_done(self, result):
+        self.results.append(result)
+
+
 @pytest.fixture(scope="module")
 def sim(tmp_path_factory):
-    """A recorded simulator session: (summary, session folder)."""
+    """A recorded simulator session: (summary with every pair's full result, session folder)."""
     out = tmp_path_factory.mktemp("rerun")
-    summary = run_session(session_config(out, "station"), make_plugin_manager())
+    collected = FrameResults()
+    summary = run_session(session_config(out, "station"), make_plugin_manager(), observers=[collected])
     assert not any(f.error for f in summary.frames)
-    return summary, summary.info.out_dir
+    return dataclasses.replace(summary, frames=tuple(collected.results)), summary.info.out_dir
 
 
 def rrd_rows(path: Path) -> dict[str, list[tuple[int | None, dict]]]:
@@ -297,17 +317,19 @@ def test_characteristic_segments_measure_what_their_kind_says():
     assert characteristic_segment("point_point", a) is None
 
 
-def test_station_eye_sees_every_element():
-    rng = np.random.default_rng(3)
-    points = rng.normal(size=(6, 3)) * [0.3, 0.1, 0.2] + [1.0, -0.5, 0.6]
+def test_station_eye_looks_across_the_scene_plane_from_slightly_above():
+    """Points in the vertical plane y = -0.5 m: the eye looks at their bounding-box
+    centre along the plane's normal, 10 degrees from the horizontal, from 0.85 diagonals."""
+    points = np.array([[0.8, -0.5, 0.3], [1.2, -0.5, 0.6], [0.9, -0.5, 0.7], [1.1, -0.5, 0.35]])
     eye = station_eye(points)
     position = np.array(eye.position.as_arrow_array().to_pylist()[0])
     target = np.array(eye.look_target.as_arrow_array().to_pylist()[0])
-    view = (target - position) / np.linalg.norm(target - position)
-    for p in points:  # within a 30 degree half-angle cone around the line of sight
-        d = (p - position) / np.linalg.norm(p - position)
-        assert math.degrees(math.acos(float(np.clip(d @ view, -1, 1)))) < 30.0
-    assert position[2] > target[2]  # looks slightly down
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    assert np.allclose(target, (lo + hi) / 2)
+    sight = target - position
+    assert np.linalg.norm(sight) == pytest.approx(0.85 * np.linalg.norm(hi - lo))
+    assert abs(sight[0]) < 1e-9  # no component along the plane: perpendicular to it
+    assert math.degrees(math.atan2(-sight[2], abs(sight[1]))) == pytest.approx(10.0)
 
 
 def test_fitted_axis_is_the_measurement_plugins_fit(sim):
@@ -350,7 +372,7 @@ def test_default_blueprint_renders_in_the_viewer_without_errors(sim, tmp_path):
     assert [r for r in reports if r.severity == "error"] == []
     assert any(n.startswith(VIEW_3D) for n in names)
     assert set(VIEW_CAMERA.values()) <= set(names)
-    assert {"Registration residuals (mm)", "Deviation from nominal (mm)", "Report"} <= set(names)
+    assert {VIEW_RESIDUALS, VIEW_DEVIATION, VIEW_REPORT} <= set(names)
     # The camera views (right column) show the orange rings of the matched control targets,
     # the 3-D view (left) the yellow fitted axis.
     assert colour_pixels(png, COLOURS["control"], (0.6, 0.03, 1.0, 0.6)) > 200
