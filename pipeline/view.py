@@ -383,12 +383,23 @@ def serve_web(rrd: Path, *, port: int = DEFAULT_WEB_PORT, say: Callable[[str], N
     process = subprocess.Popen(command, env={**os.environ, **VIEWER_ENV, "RUST_LOG": "warn"})
     say(f"web viewer: http://127.0.0.1:{port}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A{grpc_port}%2Fproxy")
     say("(Ctrl-C to stop)")
+
+    def stop(signum: int, _frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, stop)  # SIGTERM like Ctrl-C: stop the server, clean up
     try:
         return process.wait()
     except KeyboardInterrupt:
         process.send_signal(signal.SIGTERM)
-        process.wait(timeout=10)
+        try:
+            process.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
         return 0
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def open_native(rrd: Path) -> int:

@@ -472,3 +472,35 @@ def test_run_view_streams_live_to_a_viewer(tmp_path, capsys):
     assert any(n.startswith(VIEW_3D) for n in names)
     assert not png_is_blank(png)
     assert [r for r in reports if r.severity == "error"] == []
+
+
+def test_view_web_serves_the_web_viewer_on_localhost(sim):
+    import sys
+    import time
+    import urllib.request
+
+    from pipeline.view import free_port
+
+    _, folder = sim
+    port = free_port()
+    crossfield = str(Path(sys.executable).parent / "crossfield")
+    process = subprocess.Popen(
+        [crossfield, "view", str(folder / "session.rrd"), "--web", "--port", str(port)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    try:
+        deadline, page = time.monotonic() + 30, ""
+        while time.monotonic() < deadline and not page:
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=2) as response:
+                    page = response.read().decode()
+            except OSError:
+                time.sleep(0.2)
+        assert "Rerun" in page
+    finally:
+        process.terminate()  # SIGTERM: crossfield stops the web viewer it started
+        out, _ = process.communicate(timeout=20)
+    assert process.returncode == 0, out
+    assert f"http://127.0.0.1:{port}/" in out
