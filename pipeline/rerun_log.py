@@ -636,7 +636,7 @@ class RerunLogger:
                     measured * _M_PER_MM,
                     labels=[str(c) for c in corr.control_ids],
                     colors=COLOURS["camera_control"],
-                    radii=rr.Radius.ui_points(3.5),
+                    radii=rr.Radius.ui_points(2.0),  # inside the orange CMM point
                     show_labels=False,
                 ),
             )
