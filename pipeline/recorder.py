@@ -831,9 +831,10 @@ class McapRecorder:
                 self._error = exc
                 raise RecordingError(f"{self.path}: recording failed: {exc}") from exc
 
-    def _message(self, spec: ChannelSpec, log_time: int, data: bytes, sequence: int = 0) -> None:
+    def _message(self, spec: ChannelSpec, log_time: int, data: bytes, sequence: int = 0, *, advances_clock: bool = True) -> None:
         log_time = int(log_time)
-        self._latest_time_ns = max(self._latest_time_ns, log_time)
+        if advances_clock:
+            self._latest_time_ns = max(self._latest_time_ns, log_time)
         self._submit("message", spec, log_time, data, sequence)
 
     def _json(self, topic: str, schema_name: str, doc: Any, log_time: int, sequence: int = 0) -> None:
@@ -1091,7 +1092,10 @@ class McapRecorder:
     @hookimpl
     def on_log(self, level: str, message: str, timestamp_ns: int) -> None:
         t = int(timestamp_ns) or self._now()
-        self._message(_protobuf_channel(TOPIC_LOG, Log), t, log_message(level, message, t))
+        # Device events (link down, dropped frame) are logged at wall-clock
+        # times a replay cannot know: they must not move the time stamps of
+        # the results, which a replay reproduces from the data's own times.
+        self._message(_protobuf_channel(TOPIC_LOG, Log), t, log_message(level, message, t), advances_clock=False)
 
     @hookimpl
     def on_session_end(self, summary: Any) -> None:

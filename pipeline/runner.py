@@ -198,6 +198,8 @@ def _unique_dir(base: Path, session_id: str) -> Path:
 
 @contextlib.contextmanager
 def _registered(pm: pluggy.PluginManager, observers: Iterable[object]) -> Iterator[None]:
+    """Register the session's observers; unregister and close them at the end,
+    also when the session fails (a recorder then finishes its file)."""
     added = []
     try:
         for obs in observers:
@@ -207,6 +209,9 @@ def _registered(pm: pluggy.PluginManager, observers: Iterable[object]) -> Iterat
     finally:
         for obs in reversed(added):
             pm.unregister(obs)
+            close = getattr(obs, "close", None)
+            if callable(close):
+                close()
 
 
 def _session_observers(
@@ -252,6 +257,7 @@ def run_session(
     stages = Stages.build(pm, config)
     acquire_impl = stages.implementations["acquire"]
     acquisition = acquire_impl.create(dict(config.stages["acquire"].options), f"{config.source}: [acquire]")
+    _connect_log(acquisition, pm.hook)
     try:
         plan = resolve_plan(config, acquisition)
         description = acquisition.describe()
@@ -281,6 +287,14 @@ def run_session(
 ReferenceImport = Callable[[Any], tuple[ReferenceData, int | None]]
 
 
+def _connect_log(device: Any, hook: Any) -> Any:
+    """Device plugins with a ``log`` attribute (dropped frames, link down/up)
+    report through the ``on_log`` hook, so the session records them."""
+    if hasattr(device, "log"):
+        device.log = hook.on_log
+    return device
+
+
 def _live_reference(
     config: Config, stages: Stages, acquisition: Any, plan: MeasurementPlan
 ) -> ReferenceImport:
@@ -301,9 +315,10 @@ def _live_reference(
             if not hasattr(acquisition, "serve_arm"):
                 raise ConfigError(f"{where}: port = {SIMULATED_PORT!r} needs the simulator as the acquire source")
             with acquisition.serve_arm() as port:
-                reference = impl.create({**options, "port": port}, where).acquire(plan, sink)
+                reader = _connect_log(impl.create({**options, "port": port}, where), hook)
+                reference = reader.acquire(plan, sink)
         else:
-            reference = impl.create(options, where).acquire(plan, sink)
+            reference = _connect_log(impl.create(options, where), hook).acquire(plan, sink)
         return reference, (last[0] if last else None)
 
     return import_reference
@@ -352,7 +367,7 @@ def run_pipeline(
             frame, stages, info.calibration, info.plan, reference, info.ground_truth, hook, match_tolerance_mm
         )
         hook.on_frame_done(result=result)
-        results.append(result)
+        results.append(result.slim())
     return finish_session(hook, stages, info, reference, results, incomplete())
 
 

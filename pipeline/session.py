@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,7 +48,8 @@ class SessionInfo:
 @dataclass(frozen=True)
 class FrameResult:
     """Everything computed from one stereo pair. Stages after a failure are None
-    and ``error`` says what failed."""
+    and ``error`` says what failed. n_camera_points: how many points were
+    triangulated (kept when :meth:`slim` drops the points themselves)."""
 
     sequence: int
     timestamp_ns: int
@@ -56,6 +58,16 @@ class FrameResult:
     registration: Registration | None = None
     measurement: Measurement | None = None
     error: str | None = None
+    n_camera_points: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.points is not None and self.n_camera_points is None:
+            object.__setattr__(self, "n_camera_points", len(self.points))
+
+    def slim(self) -> "FrameResult":
+        """This result without the centroids and camera points: what a session
+        keeps per frame for its report (the observers had everything)."""
+        return dataclasses.replace(self, centroids=None, points=None)
 
 
 @dataclass(frozen=True)

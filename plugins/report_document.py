@@ -225,7 +225,7 @@ def _frame_entry(frame: FrameResult) -> dict[str, Any]:
         "sequence": int(frame.sequence),
         "timestamp_ns": int(frame.timestamp_ns),
         "error": frame.error,
-        "n_camera_points": None if frame.points is None else len(frame.points),
+        "n_camera_points": frame.n_camera_points,
         "registration_rms_mm": None if registration is None else number(registration.fit.rms_mm),
         "n_controls": None if registration is None else len(registration.correspondence.control_ids),
         "missing_targets": [] if measurement is None else list(measurement.missing_targets),

@@ -34,6 +34,7 @@ from pypylon import pylon
 
 from pipeline.calibration_io import write_stereo_calibration
 from pipeline.errors import ConfigError, PluginError
+from pipeline.hookspecs import hookimpl
 from pipeline.registry import get_implementation, make_plugin_manager
 from plugins.acquire_basler import BaslerStereoSource, select_device
 from plugins.acquire_simulator import SimulatorSource
@@ -41,6 +42,17 @@ from plugins.acquire_simulator import SimulatorSource
 N_FRAMES = 3
 SEED = 5
 UPPER, LOWER = "0815-0000", "0815-0001"
+
+
+class FrameCollector:
+    """Observer keeping every full FrameResult (with centroids and points)."""
+
+    def __init__(self) -> None:
+        self.results = []
+
+    @hookimpl
+    def on_frame_done(self, result) -> None:
+        self.results.append(result)
 
 
 @pytest.fixture(scope="module")
@@ -337,6 +349,7 @@ def test_session_over_emulated_cameras_reports_what_the_simulator_source_reports
 
     root, frames, simulator = station
     common = {"record": False, "rerun": False, "output_dir": str(tmp_path)}
+    full = {"simulator": FrameCollector(), "basler": FrameCollector()}
     simulated = run_session(
         parse_config({
             "session": common | {"name": "simulator"},
@@ -344,6 +357,7 @@ def test_session_over_emulated_cameras_reports_what_the_simulator_source_reports
             "reference": {"plugin": "romer-serial", "port": "simulator"},
         }, "<simulator>"),
         make_plugin_manager(),
+        observers=[full["simulator"]],
     )
     with simulator.serve_arm() as port:  # the same arm points (same seed) on a fresh pty
         basler = run_session(
@@ -358,6 +372,7 @@ def test_session_over_emulated_cameras_reports_what_the_simulator_source_reports
                 "reference": {"plugin": "romer-serial", "port": port},
             }, "<basler>"),
             make_plugin_manager(),
+            observers=[full["basler"]],
         )
     assert basler.info.acquisition["source"] == "basler"
     assert basler.info.acquisition["cameras"]["upper"]["serial"] == UPPER
@@ -365,7 +380,10 @@ def test_session_over_emulated_cameras_reports_what_the_simulator_source_reports
     assert [f.sequence for f in basler.frames] == list(range(N_FRAMES))
     assert [f.sequence for f in simulated.frames] == list(range(N_FRAMES))
     assert not any(f.error for f in basler.frames + simulated.frames)
-    for b, s in zip(basler.frames, simulated.frames):
+    # The session keeps slim per-frame results; the centroids and points are
+    # compared as the observers saw them.
+    assert len(full["basler"].results) == len(full["simulator"].results) == N_FRAMES
+    for b, s in zip(full["basler"].results, full["simulator"].results):
         np.testing.assert_array_equal(b.centroids.upper.uv, s.centroids.upper.uv)
         np.testing.assert_array_equal(b.points.xyz, s.points.xyz)
         np.testing.assert_array_equal(b.registration.fit.R, s.registration.fit.R)

@@ -62,7 +62,7 @@ def test_every_target_found_and_triangulated_near_truth(table3):
     truth = table3.info.ground_truth
     for frame in table3.frames:
         assert frame.error is None
-        assert len(frame.points) == 18
+        assert frame.n_camera_points == 18
         assert set(frame.measurement.target_points) == {f"P{k}" for k in range(1, 11)}
         for pid, xyz in frame.measurement.target_points.items():
             assert np.linalg.norm(np.asarray(xyz) - truth.points_global[pid]) < 0.1
