@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import shutil
 import signal
 import socket
@@ -41,6 +42,8 @@ from .errors import CrossfieldError
 VIEWER_ENV = {"RERUN_APP_ONLY": "true", "RERUN_ANALYTICS": "0", "RUST_LOG": "error"}
 DEFAULT_WINDOW_SIZE = (1600, 1000)
 DEFAULT_WEB_PORT = 9090
+#: Where ``crossfield run --view`` finds or starts its viewer (Rerun's default port).
+LIVE_VIEWER_PORT = 9876
 
 
 class ViewerError(CrossfieldError):
@@ -65,6 +68,12 @@ def rerun_executable() -> str:
     if not found:
         raise ViewerError("the Rerun viewer is not installed (pip install rerun-sdk)")
     return found
+
+
+def _lines(output: bytes) -> list[str]:
+    """The non-empty lines of a viewer's stderr, without terminal colour codes."""
+    text = re.sub(r"\x1b\[[0-9;]*m", "", output.decode(errors="replace"))
+    return [line.strip() for line in text.splitlines() if line.strip()]
 
 
 def free_port() -> int:
@@ -168,7 +177,7 @@ class HeadlessViewer:
 
     def _error_text(self) -> str:
         self._stderr.seek(0)
-        lines = [line for line in self._stderr.read().decode(errors="replace").splitlines() if line.strip()]
+        lines = _lines(self._stderr.read())
         hint = ""
         if any("graphics adapter" in line.lower() for line in lines):
             hint = " (no Vulkan adapter: apt-get install mesa-vulkan-drivers libvulkan1)"
@@ -443,12 +452,56 @@ def view(
         return open_native(rrd)
 
 
-def spawn_live_viewer(port: int = 9876) -> str:
-    """Start a native viewer listening on ``port`` (or use the one already there); its URL."""
-    import rerun as rr
+def _listening(port: int) -> bool:
+    with socket.socket() as s:
+        s.settimeout(0.5)
+        return s.connect_ex(("127.0.0.1", port)) == 0
 
-    rr.spawn(port=port, connect=False, memory_limit="50%")
-    return f"rerun+http://127.0.0.1:{port}/proxy"
+
+def spawn_live_viewer(port: int | None = None, timeout_s: float = 15.0) -> str:
+    """A native viewer listening on 127.0.0.1:``port``: the one already there, or a new
+    one (detached: it stays open after the session). Returns its URL.
+
+    :class:`ViewerError` when it cannot start (no display: use ``--view URL``
+    with a viewer running elsewhere, or ``crossfield view`` afterwards).
+    """
+    port = LIVE_VIEWER_PORT if port is None else int(port)
+    url = f"rerun+http://127.0.0.1:{port}/proxy"
+    if _listening(port):
+        return url
+    log = tempfile.TemporaryFile()  # noqa: SIM115 - read below if the viewer dies at start
+    process = subprocess.Popen(
+        [
+            rerun_executable(),
+            "--port",
+            str(port),
+            "--bind",
+            "127.0.0.1",
+            "--memory-limit",
+            "50%",
+            "--expect-data-soon",
+        ],
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.DEVNULL,
+        stderr=log,
+        env={**os.environ, **VIEWER_ENV, "RUST_LOG": "warn"},
+        start_new_session=True,
+    )
+    deadline = time.monotonic() + timeout_s
+    while not _listening(port):
+        if process.poll() is not None or time.monotonic() > deadline:
+            log.seek(0)
+            lines = _lines(log.read())
+            log.close()
+            if process.poll() is None:
+                process.terminate()
+            raise ViewerError(
+                f"could not start the Rerun viewer on port {port}: {lines[-1] if lines else 'no message'} "
+                "(no display? stream to a running viewer with --view URL, or run `crossfield view` later)"
+            )
+        time.sleep(0.2)
+    log.close()
+    return url
 
 
 def parse_window_size(text: str) -> tuple[int, int]:

@@ -504,3 +504,16 @@ def test_view_web_serves_the_web_viewer_on_localhost(sim):
         out, _ = process.communicate(timeout=20)
     assert process.returncode == 0, out
     assert f"http://127.0.0.1:{port}/" in out
+
+
+def test_run_view_without_a_display_is_a_clear_error(monkeypatch, capsys, tmp_path):
+    from pipeline.view import free_port
+
+    for name in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setattr("pipeline.view.LIVE_VIEWER_PORT", free_port())
+    status = main(["run", "--frames", "1", "-o", str(tmp_path), "--no-record", "--no-rerun", "-q", "--view"])
+    err = capsys.readouterr().err
+    assert status == 2
+    assert "could not start the Rerun viewer" in err and "--view URL" in err
+    assert list(tmp_path.iterdir()) == []  # no session was started
