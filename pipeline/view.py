@@ -259,6 +259,51 @@ class HeadlessViewer:
             for r in v.reports
         ]
 
+    def reports_of_every_view(self) -> tuple[list[ViewReport], set[str]]:
+        """Show every view once and return their reports and the names of the views shown.
+
+        A view in a tab container reports only when its tab is shown, so each
+        tab of each container is made the active one in turn (through the
+        blueprint) and drawn; the blueprint is restored afterwards.
+        """
+        import copy
+
+        def key(view_path: str) -> str:  # "/view/<uuid>" or "<uuid>" -> bare hex
+            return view_path.rsplit("/", 1)[-1].replace("-", "")
+
+        doc = self.client.get_blueprint(of="recording").blueprint
+        tab_containers = [
+            path
+            for path, entry in doc.items()
+            if entry.get("ContainerBlueprint", {}).get("container_kind") == "Tabs"
+        ]
+        hidden = {  # views in a tab that is not the active one
+            key(tab)
+            for path in tab_containers
+            for tab in doc[path]["ContainerBlueprint"].get("contents", [])
+            if tab != doc[path]["ContainerBlueprint"].get("active_tab")
+        }
+        state = self.client.get_state()
+        names = {v.name for v in state.views if v.visible and key(v.view_id) not in hidden}
+        reports = {(r.view, r.summary, r.severity): r for r in self.reports()}
+        try:
+            for path in tab_containers:
+                for tab in doc[path]["ContainerBlueprint"].get("contents", []):
+                    variant = copy.deepcopy(doc)
+                    variant[path]["ContainerBlueprint"]["active_tab"] = tab
+                    self.client.set_blueprint(variant, of="recording")
+                    self.settled_png()
+                    for view in self.client.get_state().views:
+                        if key(view.view_id) == key(tab):
+                            names.add(view.name)
+                        for r in view.reports:
+                            reports[(view.name, r.summary, r.severity)] = ViewReport(
+                                view.name, view.view_class, r.severity, r.summary, r.details
+                            )
+        finally:
+            self.client.set_blueprint(doc, of="recording")
+        return list(reports.values()), names
+
     def view_names(self) -> list[str]:
         return [v.name for v in self.client.get_state().views]
 
@@ -361,7 +406,8 @@ def screenshot(
     say: Callable[[str], None] = print,
 ) -> list[ViewReport]:
     """Render a session headless with its default blueprint, at pair ``frame`` (default:
-    the last), and write the PNG. Returns the views' reports (warnings and errors)."""
+    the last), and write the PNG. Returns the reports (warnings and errors) of every
+    view of the blueprint, those in inactive tabs included."""
     with (
         session_rrd(path, save=save, image_every=image_every, say=say) as rrd,
         HeadlessViewer(window_size=window_size) as viewer,
@@ -369,7 +415,7 @@ def screenshot(
         viewer.open(rrd)
         viewer.show("frame", frame)
         png = viewer.screenshot(png_path)
-        reports = viewer.reports()
+        reports, _ = viewer.reports_of_every_view()  # after the picture: it shows the other tabs
     if png_is_blank(png):
         raise ViewerError(f"{png_path}: the viewer rendered a blank picture")
     return reports

@@ -257,6 +257,7 @@ def test_a_failed_stage_clears_the_older_result(sim, tmp_path):
     logger.on_frame_done(result=first)
     logger.on_frame_done(result=failed)
     logger.on_session_end(summary=dataclasses.replace(summary, frames=(first, failed)))
+    rerun_verify(tmp_path / "failed.rrd")
     rows = rrd_rows(tmp_path / "failed.rrd")
     for entity in ("/world/registration", "/world/targets", "/world/characteristics"):
         cleared = [f for f, v in rows[entity] if v.get("Clear:is_recursive") == [True]]
@@ -366,10 +367,11 @@ def test_default_blueprint_renders_in_the_viewer_without_errors(sim, tmp_path):
         viewer.open(folder / "session.rrd")
         viewer.show("frame")
         png = viewer.screenshot(tmp_path / "shot.png")  # the screenshot first, then the reports
-        reports = viewer.reports()
+        reports, shown = viewer.reports_of_every_view()  # each tab shown in turn
         names = viewer.view_names()
     assert (tmp_path / "shot.png").read_bytes() == png and not png_is_blank(png)
     assert [r for r in reports if r.severity == "error"] == []
+    assert shown == set(names) and len(names) == 9  # every view of the blueprint was drawn
     assert any(n.startswith(VIEW_3D) for n in names)
     assert set(VIEW_CAMERA.values()) <= set(names)
     assert {VIEW_RESIDUALS, VIEW_DEVIATION, VIEW_REPORT} <= set(names)
@@ -517,3 +519,30 @@ def test_run_view_without_a_display_is_a_clear_error(monkeypatch, capsys, tmp_pa
     assert status == 2
     assert "could not start the Rerun viewer" in err and "--view URL" in err
     assert list(tmp_path.iterdir()) == []  # no session was started
+
+
+def test_an_error_in_a_hidden_tab_is_reported(tmp_path):
+    """The view check is not blind: a 3-D view forced to draw a 2-D image without a
+    pinhole, in a tab that is not shown at first, is reported as an error."""
+    import uuid
+
+    import rerun as rr
+    import rerun.blueprint as rrb
+
+    rec = rr.RecordingStream("crossfield-test", recording_id=uuid.uuid4())
+    rec.save(str(tmp_path / "bad.rrd"))
+    bad = rrb.Spatial3DView(origin="/", name="Bad 3-D", overrides={"img": [rrb.Visualizer("Image")]})
+    rec.send_blueprint(rrb.Blueprint(rrb.Tabs(rrb.TextDocumentView(origin="doc", name="Doc"), bad)))
+    rec.log("doc", rr.TextDocument("shown first"), static=True)
+    rec.set_time("frame", sequence=0)
+    rec.log("img", rr.Image(np.zeros((4, 4), np.uint8)))
+    rec.flush()
+    rec.disconnect()
+    with HeadlessViewer(window_size=(800, 600)) as viewer:
+        viewer.open(tmp_path / "bad.rrd")
+        viewer.show("frame")
+        viewer.settled_png()
+        assert viewer.reports() == []  # the bad view is in the hidden tab
+        reports, shown = viewer.reports_of_every_view()
+    assert shown == {"Doc", "Bad 3-D"}
+    assert [(r.view, r.severity) for r in reports] == [("Bad 3-D", "error")]
