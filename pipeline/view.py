@@ -360,6 +360,8 @@ def mcap_to_rrd(mcap_path: str | Path, rrd_path: str | Path, *, image_every: int
     from .rerun_log import RerunLogger
     from .rerun_mcap import log_recording
 
+    if image_every is not None and image_every < 0:
+        raise CrossfieldError(f"--image-every {image_every}: expected 0 (no images) or more")
     logger = RerunLogger(rrd_path, image_every=image_every)
     try:
         return log_recording(mcap_path, logger)
