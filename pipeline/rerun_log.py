@@ -807,7 +807,7 @@ class RerunLogger:
         rms = summary.rms_error_mm()
         if rms is not None:
             lines += ["", f"RMS error against the simulator's ground truth: {_fmt(rms)} mm"]
-        registrations = summary.registrations
+        registrations = [f.registration for f in summary.frames if f.registration is not None]
         if registrations:
             rms_reg = [r.fit.rms_mm for r in registrations]
             lines += [
