@@ -57,6 +57,7 @@ IGNORED: dict[str, tuple[str, ...]] = {
         "config.session.output_dir",
         "config.session.record",
         "config.session.rerun",
+        "config.session.rerun_image_every",
         "config_source",
         "reference.source",
         "packages",

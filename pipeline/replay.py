@@ -47,7 +47,7 @@ from .types import CAMERAS, GroundTruth, Line3D, ReferenceData, StereoCalibratio
 READABLE_FORMATS = ("crossfield-mcap/1",)
 
 #: Session keys that say where and how a replay is written, not what it computes.
-OUTPUT_KEYS = ("name", "output_dir", "record", "rerun")
+OUTPUT_KEYS = ("name", "output_dir", "record", "rerun", "rerun_image_every")
 
 _IMAGE_TOPICS = tuple(f"/camera/{camera}/image" for camera in CAMERAS)
 _DTYPES = {"mono16": np.dtype("<u2"), "mono8": np.dtype("u1")}
