@@ -23,12 +23,13 @@ from typing import Any, Callable, Iterable, Iterator
 import numpy as np
 import pluggy
 
+from .aggregate import SessionAccumulator
 from .config import Config
 from .correspondence import match_control_points
 from .errors import ConfigError, CrossfieldError
 from .plan import MeasurementPlan, load_plan
 from .registry import STAGES, Implementation, get_implementation
-from .session import FrameResult, SessionInfo, SessionSummary, summarise
+from .session import FrameResult, SessionInfo, SessionSummary
 from .stages import Acquisition
 from .types import (
     CameraPoints,
@@ -360,25 +361,36 @@ def run_pipeline(
     for problem in reference.problems:
         hook.on_log(level="warning", message=f"reference: {problem}", timestamp_ns=t)
     hook.on_reference(reference=reference)
-    results = []
+    # Aggregated frame by frame: memory does not grow with the session's length
+    # (the first rows are kept for the report; the recording has every frame).
+    accumulator = SessionAccumulator(info.plan)
     for frame in frames:
         hook.on_frame(frame=frame)
         result = process_frame(
             frame, stages, info.calibration, info.plan, reference, info.ground_truth, hook, match_tolerance_mm
         )
         hook.on_frame_done(result=result)
-        results.append(result.slim())
-    return finish_session(hook, stages, info, reference, results, incomplete())
+        accumulator.add(result)
+    return finish_session(hook, stages, info, reference, accumulator, incomplete())
 
 
-def finish_session(hook: Any, stages: Stages, info: SessionInfo, reference: ReferenceData, results: list[FrameResult], incomplete: str | None = None) -> SessionSummary:
-    """Aggregate, write the report, tell the observers; returns the summary."""
+def finish_session(
+    hook: Any,
+    stages: Stages,
+    info: SessionInfo,
+    reference: ReferenceData,
+    accumulator: SessionAccumulator,
+    incomplete: str | None = None,
+) -> SessionSummary:
+    """Summarise the aggregated frames, write the report, tell the observers; returns the summary."""
+    aggregate = accumulator.result()
     summary = SessionSummary(
         info=info,
         reference=reference,
-        frames=tuple(results),
-        characteristics=summarise(results, info.plan),
+        frames=accumulator.rows,
+        characteristics=aggregate.characteristics,
         incomplete=incomplete,
+        aggregate=aggregate,
     )
     files = stages.report.write(summary, info.out_dir)
     summary = dataclasses.replace(summary, report_files=tuple(files))

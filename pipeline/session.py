@@ -1,4 +1,7 @@
-"""Session-level data: what a session is, one frame's results, the summary."""
+"""Session-level data: what a session is, one frame's results, the summary.
+
+The aggregation over frames is :mod:`pipeline.aggregate` (CharacteristicSummary
+is defined there and re-exported here)."""
 
 from __future__ import annotations
 
@@ -6,10 +9,9 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Iterable, Mapping
 
-import numpy as np
-
+from .aggregate import CharacteristicSummary, SessionAccumulator, SessionAggregate, aggregate_frames
 from .config import Config
 from .plan import MeasurementPlan
 from .types import (
@@ -71,53 +73,60 @@ class FrameResult:
 
 
 @dataclass(frozen=True)
-class CharacteristicSummary:
-    """One characteristic over all frames of a session (mm).
+class SessionSummary:
+    """A finished session: what the report stage and the ``on_session_end`` observers get.
 
-    measured_mm: mean over the n frames that measured it; std_mm: their
-    sample standard deviation (repeatability, 0 for n = 1);
-    uncertainty_mm: standard uncertainty of the mean, the larger of
-    std/sqrt(n) and the mean per-frame propagated uncertainty. The latter is
-    *not* divided by sqrt(n): most of it comes from the CMM data (control
-    points, reference fits), imported once and shared by every frame, so it
-    does not average down. This is conservative for the camera part.
+    frames: the per-frame results kept for the report, slim (no centroids, no
+    camera points): the first :data:`~pipeline.aggregate.FRAME_ROWS_KEPT` of
+    a session run by the runner, so that a session of any length holds a
+    bounded number. Every frame's results are in the recording (session.mcap).
+    aggregate: the whole session (every frame): counts, failed frames' errors,
+    characteristics, registration, targets not found. None when constructing
+    by hand: then it is aggregated from ``frames``, which must hold every frame.
+    characteristics: Table 3, normally ``aggregate.characteristics``.
     """
 
-    name: str
-    kind: str
-    elements: tuple[str, ...]
-    n: int
-    measured_mm: float
-    std_mm: float
-    uncertainty_mm: float | None
-    nominal_mm: float
-    tolerance_mm: float
-    deviation_mm: float
-    passed: bool
-    actual_mm: float | None = None
-    error_mm: float | None = None
-
-
-@dataclass(frozen=True)
-class SessionSummary:
     info: SessionInfo
     reference: ReferenceData
     frames: tuple[FrameResult, ...]
     characteristics: tuple[CharacteristicSummary, ...] = ()
     report_files: tuple[Path, ...] = field(default_factory=tuple)
     incomplete: str | None = None
+    aggregate: SessionAggregate = None  # type: ignore[assignment]  # None: from ``frames``
+
+    def __post_init__(self) -> None:
+        if self.aggregate is None:
+            object.__setattr__(self, "aggregate", aggregate_frames(self.frames, self.info.plan))
 
     @property
     def registrations(self) -> list[Registration]:
+        """The registrations of the kept rows (:attr:`frames`)."""
         return [f.registration for f in self.frames if f.registration is not None]
+
+    @property
+    def frames_processed(self) -> int:
+        """Every frame the session processed (also those not kept in :attr:`frames`)."""
+        return self.aggregate.frames_processed
+
+    @property
+    def frames_failed(self) -> int:
+        """Every frame that failed (``aggregate.frame_errors`` has the first ones' errors)."""
+        return self.aggregate.frames_failed
+
+    @property
+    def frames_omitted(self) -> int:
+        """Frames processed but not kept in :attr:`frames`."""
+        return max(0, self.aggregate.frames_processed - len(self.frames))
 
     @property
     def passed(self) -> bool:
         """True when every characteristic passed, no frame failed and the session
-        ran to its end (``incomplete`` is None)."""
+        ran to its end (``incomplete`` is None). (A failed kept row also fails
+        the session, should ``frames`` have been replaced after aggregation.)"""
         return (
             bool(self.characteristics)
             and all(c.passed for c in self.characteristics)
+            and self.aggregate.frames_failed == 0
             and not any(f.error for f in self.frames)
             and self.incomplete is None
         )
@@ -128,56 +137,14 @@ class SessionSummary:
         return math.sqrt(sum(e * e for e in errors) / len(errors)) if errors else None
 
 
-def summarise(frames: list[FrameResult] | tuple[FrameResult, ...], plan: MeasurementPlan) -> tuple[CharacteristicSummary, ...]:
-    """Aggregate per-frame characteristics in plan order.
+def summarise(frames: Iterable[FrameResult], plan: MeasurementPlan) -> tuple[CharacteristicSummary, ...]:
+    """Aggregate per-frame characteristics in plan order (:class:`pipeline.aggregate.SessionAccumulator`).
 
     Only finite per-frame values count (a frame whose target was not found
     may report NaN); a characteristic no frame measured gets n = 0, NaN
     values and passed = False. See docs/report.md for the formulas.
     """
-    out = []
-    for spec in plan.characteristics:
-        results = [
-            c
-            for f in frames
-            if f.measurement is not None
-            for c in f.measurement.characteristics
-            if c.name == spec.name and math.isfinite(c.measured_mm)
-        ]
-        n = len(results)
-        if n == 0:
-            out.append(
-                CharacteristicSummary(
-                    spec.name, spec.kind, (spec.a,) + ((spec.b,) if spec.b else ()), 0,
-                    math.nan, math.nan, None, spec.nominal_mm, spec.tolerance_mm, math.nan, False,
-                )
-            )
-            continue
-        values = np.array([c.measured_mm for c in results])
-        mean = float(values.mean())
-        std = float(values.std(ddof=1)) if n > 1 else 0.0
-        per_frame = [c.uncertainty_mm for c in results if c.uncertainty_mm is not None]
-        u_candidates = [std / math.sqrt(n)] if n > 1 else []
-        if per_frame:
-            u_candidates.append(float(np.mean(per_frame)))
-        uncertainty = max(u_candidates) if u_candidates else None
-        deviation = mean - spec.nominal_mm
-        actual = results[0].actual_mm
-        out.append(
-            CharacteristicSummary(
-                name=spec.name,
-                kind=spec.kind,
-                elements=results[0].elements,
-                n=n,
-                measured_mm=mean,
-                std_mm=std,
-                uncertainty_mm=uncertainty,
-                nominal_mm=spec.nominal_mm,
-                tolerance_mm=spec.tolerance_mm,
-                deviation_mm=deviation,
-                passed=abs(deviation) <= spec.tolerance_mm,
-                actual_mm=actual,
-                error_mm=None if actual is None else mean - actual,
-            )
-        )
-    return tuple(out)
+    accumulator = SessionAccumulator(plan, rows_kept=0, errors_kept=0)
+    for frame in frames:
+        accumulator.add(frame)
+    return accumulator.result().characteristics

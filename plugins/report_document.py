@@ -24,8 +24,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from pipeline.aggregate import project_to_rotation, rotation_angle  # noqa: F401 (re-exported)
 from pipeline.session import FrameResult, SessionSummary
-from pipeline.types import GroundTruth, Registration
 
 #: Identifies the layout of report.json; bump on incompatible changes.
 REPORT_FORMAT = "crossfield-report/1"
@@ -93,81 +93,41 @@ def utc_time(timestamp_ns: int) -> str | None:
 
 
 # --------------------------------------------------------------------------
-# Rotation helpers
-# --------------------------------------------------------------------------
-
-
-def project_to_rotation(M: np.ndarray) -> np.ndarray:
-    """The rotation (det +1) nearest to (3, 3) ``M`` in Frobenius norm.
-
-    SVD projection ``U diag(1, 1, det(U V^T)) V^T`` (Hartley et al. 2013,
-    'Rotation Averaging', Lemma/Theorem on the chordal L2 mean; the same
-    step as the paper's Formula (8) with the reflection guard).
-    """
-    U, _, Vt = np.linalg.svd(np.asarray(M, dtype=np.float64))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
-    return U @ D @ Vt
-
-
-def rotation_angle(R_a: np.ndarray, R_b: np.ndarray) -> float:
-    """Angle in radians of the rotation ``R_a^T R_b``.
-
-    From the chordal distance, ``||R_a - R_b||_F = 2 sqrt(2) sin(theta / 2)``,
-    which stays accurate for tiny angles where ``arccos((tr - 1) / 2)`` does not.
-    """
-    chord = float(np.linalg.norm(np.asarray(R_a) - np.asarray(R_b)))
-    return 2.0 * math.asin(min(1.0, chord / (2.0 * math.sqrt(2.0))))
-
-
-# --------------------------------------------------------------------------
 # Report sections
 # --------------------------------------------------------------------------
 
 
-def _registration_section(
-    registrations: list[Registration], truth: GroundTruth | None
-) -> dict[str, Any] | None:
-    """Session-mean T_global_camera, its spread, per-frame RMS, per-control residuals."""
-    if not registrations:
+def _registration_section(summary: SessionSummary) -> dict[str, Any] | None:
+    """Session-mean T_global_camera over every registered frame, its spread, the
+    fit RMS, per-control residuals (``summary.aggregate.registration``); the
+    per-frame entries of the kept rows."""
+    agg = summary.aggregate.registration
+    if agg is None:
         return None
-    rotations = np.array([r.fit.R for r in registrations])  # (F, 3, 3)
-    translations = np.array([r.fit.t for r in registrations])  # (F, 3) mm
-    R_mean = project_to_rotation(rotations.mean(axis=0))
-    t_mean = translations.mean(axis=0)
-    n = len(registrations)
-    rms_per_frame = np.array([r.fit.rms_mm for r in registrations])
-
-    # Residuals R p + t - q of each frame's own fit, gathered per control id.
-    by_control: dict[str, list[np.ndarray]] = {}
-    for reg in registrations:
-        for control_id, residual in zip(reg.correspondence.control_ids, reg.fit.residuals):
-            by_control.setdefault(control_id, []).append(np.asarray(residual, dtype=np.float64))
-    controls = []
-    for control_id, residuals in by_control.items():
-        stack = np.array(residuals)  # (k, 3) mm
-        mean_residual = stack.mean(axis=0)
-        controls.append(
-            {
-                "id": control_id,
-                "n_frames": len(residuals),
-                "residual_mm": vector(mean_residual),
-                "residual_norm_mm": number(np.linalg.norm(mean_residual)),
-                "rms_norm_mm": number(np.sqrt(np.mean(np.sum(stack**2, axis=1)))),
-                "max_norm_mm": number(np.max(np.linalg.norm(stack, axis=1))),
-            }
-        )
-
+    R_mean, t_mean = agg.R_global_camera, agg.t_global_camera_mm
+    controls = [
+        {
+            "id": c.id,
+            "n_frames": c.n_frames,
+            "residual_mm": vector(c.residual_mm),
+            "residual_norm_mm": number(np.linalg.norm(c.residual_mm)),
+            "rms_norm_mm": number(c.rms_norm_mm),
+            "max_norm_mm": number(c.max_norm_mm),
+        }
+        for c in agg.controls
+    ]
     section: dict[str, Any] = {
         "aggregate": REGISTRATION_AGGREGATE,
         "aggregate_description": REGISTRATION_AGGREGATE_TEXT,
-        "n_frames": n,
+        "n_frames": agg.n_frames,
         "R_global_camera": matrix(R_mean),
         "det_R": number(np.linalg.det(R_mean)),
         "t_global_camera_mm": vector(t_mean),
-        "scale": number(np.mean([r.fit.scale for r in registrations])),
-        "rms_mm": number(np.sqrt(np.mean(rms_per_frame**2))),
-        "rotation_spread_rad": number(max(rotation_angle(R_mean, R) for R in rotations)),
-        "t_std_mm": vector(translations.std(axis=0, ddof=1) if n > 1 else np.zeros(3)),
+        "scale": number(agg.scale),
+        "rms_mm": number(agg.rms_mm),
+        "rotation_spread_rad": number(agg.rotation_spread_rad),
+        "rotation_rms_rad": number(agg.rotation_rms_rad),
+        "t_std_mm": vector(agg.t_std_mm),
         "per_frame": [
             {
                 "sequence": int(r.sequence),
@@ -179,11 +139,12 @@ def _registration_section(
                 "scale": number(r.fit.scale),
                 "unmatched_control": list(r.correspondence.unmatched_control),
             }
-            for r in registrations
+            for r in summary.registrations
         ],
         "control_points": controls,
         "ground_truth": None,
     }
+    truth = summary.info.ground_truth
     if truth is not None:
         R_true = np.asarray(truth.R_global_camera, dtype=np.float64)
         t_true = np.asarray(truth.t_global_camera, dtype=np.float64)
@@ -246,18 +207,42 @@ def _frame_entry(frame: FrameResult) -> dict[str, Any]:
     }
 
 
+def _frame_problem(sequence: int, error: str) -> str:
+    """``frame <sequence>: <error>`` (the runner's messages already start so)."""
+    prefix = f"frame {sequence}: "
+    return error if error.startswith(prefix) else prefix + error
+
+
 def problems(summary: SessionSummary) -> list[str]:
-    """Every problem of the session as one human-readable line each."""
+    """Every problem of the session as one human-readable line each.
+
+    Failed frames and targets not found are listed frame by frame for the
+    kept rows, then the other failed frames whose error was kept, then counts
+    of what is not listed (all of it is in the recording)."""
     lines: list[str] = []
     if summary.incomplete:
         lines.append(f"session incomplete: {summary.incomplete}")
     lines.extend(f"reference import: {p}" for p in summary.reference.problems)
+    listed = set()
     for frame in summary.frames:
         if frame.error:
-            lines.append(f"frame {frame.sequence}: {frame.error}")
+            listed.add((frame.sequence, frame.timestamp_ns))
+            lines.append(_frame_problem(frame.sequence, frame.error))
         if frame.measurement is not None and frame.measurement.missing_targets:
             missing = ", ".join(frame.measurement.missing_targets)
             lines.append(f"frame {frame.sequence}: targets not found: {missing}")
+    aggregate = summary.aggregate
+    for e in aggregate.frame_errors:
+        if (e.sequence, e.timestamp_ns) not in listed:
+            lines.append(_frame_problem(e.sequence, e.error))
+    if aggregate.frame_errors_omitted:
+        lines.append(
+            f"{aggregate.frame_errors_omitted} more failed frame(s) not listed here "
+            f"({aggregate.frames_failed} failed in all; every frame's status is in the recording, topic /frames)"
+        )
+    if summary.frames_omitted and aggregate.missing_targets:
+        counts = ", ".join(f"{target} in {n}" for target, n in aggregate.missing_targets)
+        lines.append(f"targets not found over all {aggregate.frames_processed} frames: {counts} frame(s)")
     for c in summary.characteristics:
         if c.n == 0:
             lines.append(f"characteristic {c.name}: measured in no frame")
@@ -266,10 +251,27 @@ def problems(summary: SessionSummary) -> list[str]:
     return lines
 
 
+def frames_note(summary: SessionSummary) -> str | None:
+    """Why ``frames`` does not list every frame (None when it does)."""
+    omitted = summary.frames_omitted
+    if not omitted:
+        return None
+    where = (
+        "every frame's results are in the session recording (session.mcap), "
+        "topics /frames, /registration, /measurement"
+        if summary.info.config.session.get("record", True)
+        else "the session was not recorded (session.record = false): the other rows are not kept"
+    )
+    return (
+        f"the first {len(summary.frames)} of {summary.frames_processed} frames are listed "
+        f"({omitted} left out; every aggregate covers all frames); {where}"
+    )
+
+
 def build_report(summary: SessionSummary) -> dict[str, Any]:
     """The content of report.json for ``summary`` (JSON-able, floats unrounded)."""
     info = summary.info
-    failed = [f for f in summary.frames if f.error]
+    aggregate = summary.aggregate
     return {
         "format": REPORT_FORMAT,
         "session": {
@@ -291,14 +293,18 @@ def build_report(summary: SessionSummary) -> dict[str, Any]:
             "n_points": len(summary.reference.points),
             "problems": list(summary.reference.problems),
         },
-        "frames_processed": len(summary.frames),
-        "frames_failed": len(failed),
+        "frames_processed": int(aggregate.frames_processed),
+        "frames_failed": int(aggregate.frames_failed),
         "frame_errors": [
-            {"sequence": int(f.sequence), "timestamp_ns": int(f.timestamp_ns), "error": f.error}
-            for f in failed
+            {"sequence": e.sequence, "timestamp_ns": e.timestamp_ns, "error": e.error}
+            for e in aggregate.frame_errors
         ],
+        "frame_errors_omitted": int(aggregate.frame_errors_omitted),
+        "missing_targets": {str(target): int(n) for target, n in aggregate.missing_targets},
         "frames": [_frame_entry(f) for f in summary.frames],
-        "registration": _registration_section(summary.registrations, info.ground_truth),
+        "frames_omitted": int(summary.frames_omitted),
+        "frames_note": frames_note(summary),
+        "registration": _registration_section(summary),
         "characteristics": [_characteristic_entry(i + 1, c) for i, c in enumerate(summary.characteristics)],
         "ground_truth_known": any(c.actual_mm is not None for c in summary.characteristics),
         "rms_error_mm": number(summary.rms_error_mm()),

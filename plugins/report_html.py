@@ -254,7 +254,10 @@ def _frames_table(report: Mapping[str, Any], decimals: int) -> str:
         )
         for f in report["frames"]
     ]
+    note = report.get("frames_note")
+    note_html = f'<p class="note" id="frames-note">{esc(note[0].upper() + note[1:])}.</p>' if note else ""
     return (
+        f"{note_html}"
         '<table id="frames" class="wide">'
         "<thead><tr><th>Frame</th><th>Camera points</th><th>Controls used</th>"
         "<th>Registration RMS (mm)</th><th>Targets not found</th><th>Status</th></tr></thead>"
