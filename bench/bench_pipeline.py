@@ -9,7 +9,9 @@ Measures, in one run on this machine:
 * baseline: a plain write of the same image bytes to a file (pairs/s);
 * the pipeline without recording (pairs/s, target >= 150);
 * the pipeline with lossless MCAP recording (pairs/s, target >= 60);
-* peak RSS growth between a short and a long session (must not grow with length).
+* peak RSS growth between a short and a 4x longer session (must not grow with
+  length: the session aggregates frame by frame and keeps at most
+  ``pipeline.aggregate.FRAME_ROWS_KEPT`` per-frame rows, see docs/report.md).
 
 Every figure is also given as a ratio to the baseline timed in the same run.
 """
@@ -145,11 +147,15 @@ def main() -> None:
 
         gc.collect()
         short_rss = peak_rss_mb()
-        pipeline_rate(pm, csv, tmp, args.frames * 4, True, "long")
+        _, long_summary = pipeline_rate(pm, csv, tmp, args.frames * 4, True, "long")
         long_rss = peak_rss_mb()
         print(
             f"  peak RSS after {args.frames}-pair sessions: {short_rss:.0f} MB; after a "
             f"{args.frames * 4}-pair session: {long_rss:.0f} MB (growth {long_rss - short_rss:+.0f} MB)"
+        )
+        print(
+            f"  per-frame rows kept by the summary: {len(summary.frames)} of {args.frames} pairs, "
+            f"{len(long_summary.frames)} of {args.frames * 4} pairs"
         )
 
 
