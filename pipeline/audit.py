@@ -351,7 +351,7 @@ def reproduction(path: Path, pm: pluggy.PluginManager, *, limit: int = 500) -> d
     return {
         "passed": passed,
         "plugins": {stage: (recorded.plugins.get(stage) or {}).get("name") for stage in STAGES},
-        "frames_replayed": len(summary.frames),
+        "frames_replayed": summary.frames_processed,
         "messages_compared": sum(1 for k in a if k in b),
         "messages_identical": identical,
         "differences": differences[:limit],

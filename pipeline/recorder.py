@@ -1115,8 +1115,8 @@ class McapRecorder:
         result = {
             "passed": bool(summary.passed),
             "incomplete": summary.incomplete,
-            "frames": len(summary.frames),
-            "frames_failed": sum(1 for f in summary.frames if f.error),
+            "frames": summary.frames_processed,
+            "frames_failed": summary.frames_failed,
             "rms_error_mm": real(summary.rms_error_mm()),
             "report_files": [str(p) for p in summary.report_files],
         }

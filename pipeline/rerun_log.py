@@ -776,7 +776,7 @@ class RerunLogger:
     @staticmethod
     def _report_markdown(summary: Any) -> str:
         verdict = "PASS" if summary.passed else "FAIL"
-        failed = [f for f in summary.frames if f.error]
+        aggregate = summary.aggregate
         simulated = any(c.error_mm is not None for c in summary.characteristics)
         columns = [
             "characteristic",
@@ -790,7 +790,7 @@ class RerunLogger:
         lines = [
             f"# {verdict}: session {summary.info.session_id}",
             "",
-            f"{len(summary.frames)} stereo pairs, {len(failed)} failed."
+            f"{summary.frames_processed} stereo pairs, {summary.frames_failed} failed."
             + (f" Incomplete: {summary.incomplete}." if summary.incomplete else ""),
             "",
             "| " + " | ".join(columns) + " |",
@@ -807,18 +807,19 @@ class RerunLogger:
         rms = summary.rms_error_mm()
         if rms is not None:
             lines += ["", f"RMS error against the simulator's ground truth: {_fmt(rms)} mm"]
-        registrations = [f.registration for f in summary.frames if f.registration is not None]
-        if registrations:
-            rms_reg = [r.fit.rms_mm for r in registrations]
+        registration = aggregate.registration
+        if registration is not None:
             lines += [
                 "",
                 (
-                    f"Registration RMS over {len(rms_reg)} pairs: mean {_fmt(float(np.mean(rms_reg)))} mm, "
-                    f"max {_fmt(float(np.max(rms_reg)))} mm."
+                    f"Registration RMS over {registration.n_frames} pairs: mean {_fmt(registration.rms_mean_mm)} mm, "
+                    f"max {_fmt(registration.rms_max_mm)} mm."
                 ),
             ]
-        if failed:
-            lines += ["", "## Failed frames", ""] + [f"* {f.error}" for f in failed]
+        if aggregate.frame_errors:
+            lines += ["", "## Failed frames", ""] + [f"* {e.error}" for e in aggregate.frame_errors]
+            if aggregate.frame_errors_omitted:
+                lines.append(f"* ... and {aggregate.frame_errors_omitted} more (see /frames in session.mcap)")
         if summary.report_files:
             lines += ["", "Report files: " + ", ".join(str(p) for p in summary.report_files)]
         return "\n".join(lines) + "\n"

@@ -19,7 +19,6 @@ reference axes drawn are fitted to the recorded CMM points
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 from collections.abc import Iterator, Mapping
@@ -33,11 +32,12 @@ from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
 from .calibration_io import stereo_calibration_from_yaml
 from .config import parse_config
+from .aggregate import SessionAccumulator
 from .errors import CrossfieldError, RecordingError
 from .plan import parse_plan
 from .recording import Recording, open_recording
 from .rerun_log import RerunLogger
-from .session import FrameResult, SessionInfo, SessionSummary, summarise
+from .session import FrameResult, SessionInfo, SessionSummary
 from .types import (
     CAMERAS,
     CameraPoints,
@@ -363,7 +363,7 @@ def log_recording(mcap_path: str | Path, logger: RerunLogger) -> SessionSummary:
     info = session_info(recording)
     logger.on_session_start(session=info)
     reference = ReferenceData(points=())
-    results: list[FrameResult] = []
+    accumulator = SessionAccumulator(info.plan)  # bounded, as in a live session
     for kind, payload in _events(recording, logger):
         if kind == "reference":
             reference = payload
@@ -372,9 +372,7 @@ def log_recording(mcap_path: str | Path, logger: RerunLogger) -> SessionSummary:
             logger.on_frame(frame=payload)
         elif kind == "done":
             logger.on_frame_done(result=payload)
-            results.append(
-                dataclasses.replace(payload, centroids=None, points=None)
-            )  # what the summary needs
+            accumulator.add(payload)
         else:
             level, text, time_ns = payload
             logger.on_log(level=level, message=text, timestamp_ns=time_ns)
@@ -385,11 +383,13 @@ def log_recording(mcap_path: str | Path, logger: RerunLogger) -> SessionSummary:
     incomplete = result.get("incomplete")
     if not recording.complete or not result:
         incomplete = f"the recording ends early ({recording.damage or 'no session result recorded'})"
+    aggregate = accumulator.result()
     summary = SessionSummary(
         info=info,
         reference=reference,
-        frames=tuple(results),
-        characteristics=summarise(results, info.plan),
+        frames=accumulator.rows,
+        characteristics=aggregate.characteristics,
+        aggregate=aggregate,
         report_files=tuple(Path(p) for p in result.get("report_files", ())),
         incomplete=incomplete,
     )
