@@ -56,6 +56,7 @@ from scipy.spatial.transform import Rotation
 from .errors import RecordingError
 from .hookspecs import hookimpl
 from .integrity import TOPIC_INTEGRITY, IntegrityChain
+from .jsonable import ints, plain, real, reals
 from .types import CAMERAS, CameraIntrinsics, CameraPoints, CentroidSet, GroundTruth, StereoCalibration
 
 #: Identifies this layout; written into the ``crossfield.session`` metadata.
@@ -183,50 +184,8 @@ def _json_channel(topic: str, schema_name: str) -> ChannelSpec:
 
 
 # --------------------------------------------------------------------------
-# Plain-data helpers (JSON has no NaN: non-finite -> null)
+# JSON (no NaN: non-finite -> null; see pipeline.jsonable)
 # --------------------------------------------------------------------------
-
-
-def real(value: Any) -> float | None:
-    """``value`` as a Python float, or None if it is None or not finite."""
-    if value is None:
-        return None
-    value = float(value)
-    return value if math.isfinite(value) else None
-
-
-def reals(values: Any) -> list:
-    """An array (any shape) as nested lists of Python floats, non-finite -> None."""
-    array = np.asarray(values, dtype=np.float64)
-    finite = np.isfinite(array)
-    if finite.all():
-        return array.tolist()
-    objects = array.astype(object)
-    objects[~finite] = None
-    return objects.tolist()
-
-
-def ints(values: Any) -> list[int]:
-    return [int(v) for v in np.asarray(values).ravel()]
-
-
-def plain(value: Any) -> Any:
-    """Config / metadata values as JSON-able data (unknown types -> str)."""
-    if value is None or isinstance(value, (bool, str)):
-        return value
-    if isinstance(value, (int, np.integer)):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        return real(value)
-    if isinstance(value, np.ndarray):
-        return plain(value.tolist())
-    if isinstance(value, Mapping):
-        return {str(k): plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple, set, frozenset)):
-        return [plain(v) for v in value]
-    if isinstance(value, (_dt.datetime, _dt.date, _dt.time)):
-        return value.isoformat()
-    return str(value)
 
 
 def dump_json(doc: Any) -> bytes:

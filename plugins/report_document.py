@@ -17,14 +17,13 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
-import math
 from importlib import resources
-from pathlib import PurePath
 from typing import Any, Mapping
 
 import numpy as np
 
 from pipeline.aggregate import project_to_rotation, rotation_angle  # noqa: F401 (re-exported)
+from pipeline.jsonable import matrix, plain, real, vector
 from pipeline.session import FrameResult, SessionSummary
 
 #: Identifies the layout of report.json; bump on incompatible changes.
@@ -42,45 +41,6 @@ REGISTRATION_AGGREGATE_TEXT = (
 # --------------------------------------------------------------------------
 # Plain-data helpers
 # --------------------------------------------------------------------------
-
-
-def number(value: Any) -> float | None:
-    """``value`` as a Python float, or None when it is None or not finite."""
-    if value is None:
-        return None
-    value = float(value)
-    return value if math.isfinite(value) else None
-
-
-def vector(values: Any) -> list[float | None]:
-    """A 1-D array as a list of Python floats (non-finite -> None)."""
-    return [number(v) for v in np.asarray(values, dtype=np.float64).ravel()]
-
-
-def matrix(values: Any) -> list[list[float | None]]:
-    """A 2-D array as a list of rows of Python floats."""
-    return [vector(row) for row in np.asarray(values, dtype=np.float64)]
-
-
-def plain(value: Any) -> Any:
-    """Any config/metadata value as JSON-able data (unknown types -> str)."""
-    if value is None or isinstance(value, (bool, str)):
-        return value
-    if isinstance(value, (int, np.integer)):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        return number(value)
-    if isinstance(value, np.ndarray):
-        return plain(value.tolist())
-    if isinstance(value, Mapping):
-        return {str(k): plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple, set, frozenset)):
-        return [plain(v) for v in value]
-    if isinstance(value, (_dt.datetime, _dt.date, _dt.time)):
-        return value.isoformat()
-    if isinstance(value, PurePath):
-        return str(value)
-    return str(value)
 
 
 def utc_time(timestamp_ns: int) -> str | None:
@@ -110,9 +70,9 @@ def _registration_section(summary: SessionSummary) -> dict[str, Any] | None:
             "id": c.id,
             "n_frames": c.n_frames,
             "residual_mm": vector(c.residual_mm),
-            "residual_norm_mm": number(np.linalg.norm(c.residual_mm)),
-            "rms_norm_mm": number(c.rms_norm_mm),
-            "max_norm_mm": number(c.max_norm_mm),
+            "residual_norm_mm": real(np.linalg.norm(c.residual_mm)),
+            "rms_norm_mm": real(c.rms_norm_mm),
+            "max_norm_mm": real(c.max_norm_mm),
         }
         for c in agg.controls
     ]
@@ -121,22 +81,22 @@ def _registration_section(summary: SessionSummary) -> dict[str, Any] | None:
         "aggregate_description": REGISTRATION_AGGREGATE_TEXT,
         "n_frames": agg.n_frames,
         "R_global_camera": matrix(R_mean),
-        "det_R": number(np.linalg.det(R_mean)),
+        "det_R": real(np.linalg.det(R_mean)),
         "t_global_camera_mm": vector(t_mean),
-        "scale": number(agg.scale),
-        "rms_mm": number(agg.rms_mm),
-        "rotation_spread_rad": number(agg.rotation_spread_rad),
-        "rotation_rms_rad": number(agg.rotation_rms_rad),
+        "scale": real(agg.scale),
+        "rms_mm": real(agg.rms_mm),
+        "rotation_spread_rad": real(agg.rotation_spread_rad),
+        "rotation_rms_rad": real(agg.rotation_rms_rad),
         "t_std_mm": vector(agg.t_std_mm),
         "per_frame": [
             {
                 "sequence": int(r.sequence),
                 "method": r.fit.method,
-                "rms_mm": number(r.fit.rms_mm),
+                "rms_mm": real(r.fit.rms_mm),
                 "n_controls": len(r.correspondence.control_ids),
                 "R_global_camera": matrix(r.fit.R),
                 "t_global_camera_mm": vector(r.fit.t),
-                "scale": number(r.fit.scale),
+                "scale": real(r.fit.scale),
                 "unmatched_control": list(r.correspondence.unmatched_control),
             }
             for r in summary.registrations
@@ -151,9 +111,9 @@ def _registration_section(summary: SessionSummary) -> dict[str, Any] | None:
         section["ground_truth"] = {
             "R_global_camera": matrix(R_true),
             "t_global_camera_mm": vector(t_true),
-            "rotation_error_rad": number(rotation_angle(R_true, R_mean)),
+            "rotation_error_rad": real(rotation_angle(R_true, R_mean)),
             "translation_error_mm": vector(t_mean - t_true),
-            "translation_error_norm_mm": number(np.linalg.norm(t_mean - t_true)),
+            "translation_error_norm_mm": real(np.linalg.norm(t_mean - t_true)),
         }
     return section
 
@@ -165,17 +125,17 @@ def _characteristic_entry(index: int, c) -> dict[str, Any]:
         "kind": c.kind,
         "elements": list(c.elements),
         "n_frames": int(c.n),
-        "measured_mm": number(c.measured_mm),
-        "std_mm": number(c.std_mm),
-        "uncertainty_mm": number(c.uncertainty_mm),
-        "nominal_mm": number(c.nominal_mm),
-        "tolerance_mm": number(c.tolerance_mm),
-        "deviation_mm": number(c.deviation_mm),
+        "measured_mm": real(c.measured_mm),
+        "std_mm": real(c.std_mm),
+        "uncertainty_mm": real(c.uncertainty_mm),
+        "nominal_mm": real(c.nominal_mm),
+        "tolerance_mm": real(c.tolerance_mm),
+        "deviation_mm": real(c.deviation_mm),
         "passed": bool(c.passed),
     }
     if c.actual_mm is not None:  # ground truth known (simulator)
-        entry["actual_mm"] = number(c.actual_mm)
-        entry["error_mm"] = number(c.error_mm)
+        entry["actual_mm"] = real(c.actual_mm)
+        entry["error_mm"] = real(c.error_mm)
     return entry
 
 
@@ -187,7 +147,7 @@ def _frame_entry(frame: FrameResult) -> dict[str, Any]:
         "timestamp_ns": int(frame.timestamp_ns),
         "error": frame.error,
         "n_camera_points": frame.n_camera_points,
-        "registration_rms_mm": None if registration is None else number(registration.fit.rms_mm),
+        "registration_rms_mm": None if registration is None else real(registration.fit.rms_mm),
         "n_controls": None if registration is None else len(registration.correspondence.control_ids),
         "missing_targets": [] if measurement is None else list(measurement.missing_targets),
         "target_points_mm": {}
@@ -198,8 +158,8 @@ def _frame_entry(frame: FrameResult) -> dict[str, Any]:
         else [
             {
                 "name": c.name,
-                "measured_mm": number(c.measured_mm),
-                "uncertainty_mm": number(c.uncertainty_mm),
+                "measured_mm": real(c.measured_mm),
+                "uncertainty_mm": real(c.uncertainty_mm),
                 "passed": bool(c.passed),
             }
             for c in measurement.characteristics
@@ -307,7 +267,7 @@ def build_report(summary: SessionSummary) -> dict[str, Any]:
         "registration": _registration_section(summary),
         "characteristics": [_characteristic_entry(i + 1, c) for i, c in enumerate(summary.characteristics)],
         "ground_truth_known": any(c.actual_mm is not None for c in summary.characteristics),
-        "rms_error_mm": number(summary.rms_error_mm()),
+        "rms_error_mm": real(summary.rms_error_mm()),
         "passed": bool(summary.passed),
         "incomplete": summary.incomplete is not None,
         "incomplete_reason": summary.incomplete,
