@@ -30,7 +30,6 @@ import datetime as _dt
 import functools
 import hashlib
 import json
-import math
 import queue
 import sys
 import threading
@@ -43,6 +42,7 @@ from typing import Any, Self
 
 import cv2
 import numpy as np
+import tomli_w
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from foxglove_schemas_protobuf.Log_pb2 import Log
@@ -200,47 +200,12 @@ def utc_text(timestamp_ns: int) -> str:
 
 
 def toml_text(data: Mapping[str, Any]) -> str:
-    """``data`` (a mapping of tables, as ``Config.to_dict()``) as TOML text.
-
-    Top-level scalars first, then one ``[table]`` per mapping; nested
-    mappings inside a table become inline tables. ``tomllib.loads`` of the
-    result gives ``data`` back.
-    """
-
-    def key(k: str) -> str:
-        k = str(k)
-        return k if k and all(c.isalnum() or c in "-_" for c in k) and k.isascii() else json.dumps(k)
-
-    def value(v: Any) -> str:
-        if isinstance(v, bool):
-            return "true" if v else "false"
-        if isinstance(v, (int, np.integer)):
-            return str(int(v))
-        if isinstance(v, (float, np.floating)):
-            v = float(v)
-            if math.isnan(v):
-                return "nan"
-            if math.isinf(v):
-                return "inf" if v > 0 else "-inf"
-            return repr(v)
-        if isinstance(v, str):
-            return json.dumps(v, ensure_ascii=False)
-        if isinstance(v, (_dt.datetime, _dt.date, _dt.time)):
-            return v.isoformat()
-        if isinstance(v, Mapping):
-            return "{ " + ", ".join(f"{key(k)} = {value(x)}" for k, x in v.items()) + " }" if v else "{}"
-        if isinstance(v, (list, tuple)):
-            return "[" + ", ".join(value(x) for x in v) + "]"
-        raise TypeError(f"cannot write {type(v).__name__} value {v!r} as TOML")
-
-    lines = [f"{key(k)} = {value(v)}" for k, v in data.items() if not isinstance(v, Mapping)]
-    for name, table in data.items():
-        if isinstance(table, Mapping):
-            if lines:
-                lines.append("")
-            lines.append(f"[{key(name)}]")
-            lines.extend(f"{key(k)} = {value(v)}" for k, v in table.items())
-    return "\n".join(lines) + "\n"
+    """``data`` (a mapping of tables, as ``Config.to_dict()``) as TOML text
+    (tomli-w); ``tomllib.loads`` of the result gives ``data`` back."""
+    try:
+        return tomli_w.dumps(data)
+    except TypeError as exc:
+        raise TypeError(f"cannot write the config as TOML: {exc}") from None
 
 
 # --------------------------------------------------------------------------
