@@ -30,12 +30,13 @@ import numpy as np
 from foxglove_schemas_protobuf.Log_pb2 import Log
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
+from .aggregate import SessionAccumulator
 from .calibration_io import stereo_calibration_from_yaml
 from .config import parse_config
-from .aggregate import SessionAccumulator
 from .errors import CrossfieldError, RecordingError
 from .plan import parse_plan
 from .recording import Recording, open_recording
+from .replay import ground_truth_from_doc
 from .rerun_log import RerunLogger
 from .session import FrameResult, SessionInfo, SessionSummary
 from .types import (
@@ -44,8 +45,6 @@ from .types import (
     CentroidSet,
     CharacteristicResult,
     Correspondence,
-    GroundTruth,
-    Line3D,
     Measurement,
     ProbedPoint,
     ReferenceData,
@@ -190,19 +189,6 @@ def reference_data(doc: Mapping[str, Any]) -> ReferenceData:
     )
 
 
-def ground_truth(doc: Mapping[str, Any]) -> GroundTruth:
-    """The ``simulator_ground_truth.json`` attachment."""
-    return GroundTruth(
-        points_global={k: np.array(v, dtype=np.float64) for k, v in doc["points_global_mm"].items()},
-        lines_global={
-            k: Line3D(np.array(v["point_mm"], dtype=np.float64), np.array(v["direction"], dtype=np.float64))
-            for k, v in doc["lines_global"].items()
-        },
-        R_global_camera=np.array(doc["R_global_camera"], dtype=np.float64),
-        t_global_camera=np.array(doc["t_global_camera_mm"], dtype=np.float64),
-    )
-
-
 def image(message: Any, where: str) -> np.ndarray:
     """(H, W) pixels of a decoded foxglove.RawImage (mono16 little-endian or mono8)."""
     dtype = _DTYPES.get(message.encoding)
@@ -247,7 +233,7 @@ def session_info(recording: Recording) -> SessionInfo:
         raise RecordingError(f"{path}: {exc}") from None
     truth = None
     if "simulator_ground_truth.json" in attachments:
-        truth = ground_truth(json.loads(attachments["simulator_ground_truth.json"].data))
+        truth = ground_truth_from_doc(json.loads(attachments["simulator_ground_truth.json"].data))
 
     def doc(name: str) -> Any:
         return recording.metadata_doc(name) if name in metadata else {}
