@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cmm_plan import LABELS, PLAN_TOML, make_plan, make_probes
 
 from pipeline.cmm_formats import (
     IppDmeDecoder,
@@ -20,9 +21,8 @@ from pipeline.cmm_formats import (
     encode_pcdmis,
 )
 from pipeline.errors import ReferenceImportError
-from pipeline.plan import parse_plan
 from pipeline.romer_protocol import OVERLONG, PARTIAL, SENTENCE, Frame, LineDecoder, ProbeRecord, Rejection
-from pipeline.simulator.arm import SimulatedArm, bad_checksum, probes_from_points
+from pipeline.simulator.arm import SimulatedArm, bad_checksum
 from pipeline.simulator.ippdme_server import SimulatedIppDmeServer
 from plugins.reference_romer_serial import RomerSerialReference
 
@@ -31,32 +31,16 @@ ROMER_SIM = (
     "import sys; from pipeline.simulator.romer_sim import main_romer_sim; "
     "sys.exit(main_romer_sim(sys.argv[1:]))"
 )
-PLAN_TOML = """
-[[control]]
-id = "C1"
-[[control]]
-id = "C2"
-[[control]]
-id = "C3"
-[[reference_point]]
-id = "R1"
-[[reference_line]]
-id = "L3"
-probes = 5
-fit = "cylinder"
-"""
-LABELS = ["C1", "C2", "C3", "R1", "L3.1", "L3.2", "L3.3", "L3.4", "L3.5"]
 
 
 @pytest.fixture(scope="module")
 def plan():
-    return parse_plan(PLAN_TOML, "link-test.toml")
+    return make_plan("link-test.toml")
 
 
 @pytest.fixture
 def probes():
-    rng = np.random.default_rng(7)
-    return probes_from_points(LABELS, rng.uniform(-400.0, 400.0, (len(LABELS), 3)), rng)
+    return make_probes(7)
 
 
 def assert_points(result, probes, atol_mm):

@@ -7,38 +7,21 @@ import time
 
 import numpy as np
 import pytest
+from cmm_plan import LABELS, make_plan, make_probes
 
 from pipeline.errors import ReferenceImportError
-from pipeline.plan import parse_plan
-from pipeline.simulator.arm import SimulatedArm, bad_checksum, probes_from_points
+from pipeline.simulator.arm import SimulatedArm, bad_checksum
 from plugins.reference_romer_serial import RomerSerialReference, wall_clock
-
-PLAN_TOML = """
-[[control]]
-id = "C1"
-[[control]]
-id = "C2"
-[[control]]
-id = "C3"
-[[reference_point]]
-id = "R1"
-[[reference_line]]
-id = "L3"
-probes = 5
-fit = "cylinder"
-"""
-LABELS = ["C1", "C2", "C3", "R1", "L3.1", "L3.2", "L3.3", "L3.4", "L3.5"]
 
 
 @pytest.fixture(scope="module")
 def plan():
-    return parse_plan(PLAN_TOML, "link-events.toml")
+    return make_plan("link-events.toml")
 
 
 @pytest.fixture
 def probes():
-    rng = np.random.default_rng(3)
-    return probes_from_points(LABELS, rng.uniform(-400.0, 400.0, (len(LABELS), 3)), rng)
+    return make_probes(3)
 
 
 class ClockedArm(SimulatedArm):

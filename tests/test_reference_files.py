@@ -4,38 +4,18 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from cmm_plan import LABELS, make_plan
 
 from pipeline.errors import ConfigError, ReferenceImportError
-from pipeline.plan import parse_plan
 from pipeline.registry import get_implementation, make_plugin_manager
 from plugins.reference_csv import CsvReference
 from plugins.reference_pcdmis_xyz import PcDmisXyzReference
 from plugins.reference_spatialanalyzer import SpatialAnalyzerReference
 
-PLAN_TOML = """
-[plan]
-name = "file test"
-[[control]]
-id = "C1"
-[[control]]
-id = "C2"
-[[control]]
-id = "C3"
-[[reference_point]]
-id = "R1"
-[[reference_line]]
-id = "L3"
-probes = 5
-fit = "cylinder"
-"""
-LABELS = ["C1", "C2", "C3", "R1", "L3.1", "L3.2", "L3.3", "L3.4", "L3.5"]
-
 
 @pytest.fixture(scope="module")
 def plan():
-    plan = parse_plan(PLAN_TOML, "file-test.toml")
-    assert plan.probing_order() == LABELS
-    return plan
+    return make_plan("file-test.toml")
 
 
 @pytest.fixture(scope="module")
@@ -386,4 +366,4 @@ def test_file_imports_are_registered_with_their_options(tmp_path):
         sa.create({"path": "p.txt", "sigma_mm": -1})
     missing = PcDmisXyzReference(path=str(tmp_path / "missing.xyz"))
     with pytest.raises(ReferenceImportError, match="missing.xyz: cannot read CMM points: No such file"):
-        missing.acquire(parse_plan(PLAN_TOML, "p.toml"), lambda raw: None)
+        missing.acquire(make_plan("p.toml"), lambda raw: None)
