@@ -169,7 +169,8 @@ def register_frame(
     rows = [index_of[c] for c in correspondence.control_ids]
     P = points.xyz[correspondence.camera_index]
     Q = control_xyz[rows]
-    # Weights 1 / (sigma_camera^2 + sigma_cmm^2): used only by weighted solvers.
+    # Weights 1 / (sigma_camera^2 + sigma_cmm^2): Formula (5) as weighted least
+    # squares (docs/registration.md); equal sigmas give the paper's unweighted fit.
     var = np.sum(points.sigma_xyz[correspondence.camera_index] ** 2, axis=1) / 3 + control_sigma[rows] ** 2
     weights = 1.0 / np.maximum(var, 1e-12)
     fit = registrar.fit(P, Q, weights)
