@@ -75,12 +75,10 @@ def run_baseline(path: Path, frames: list[StereoFrame], pairs: int, fsync: bool)
     }
 
 
-def run_recorder(
-    path: Path, frames: list[StereoFrame], pairs: int, fsync: bool, writer_thread: bool
-) -> dict[str, float]:
+def run_observer(observer, path: Path, frames: list[StereoFrame], pairs: int, fsync: bool) -> dict[str, float]:
+    """The pairs through ``observer.on_frame`` into ``path``, closed at the end."""
     t0, c0 = time.perf_counter(), time.process_time()
-    recorder = McapRecorder(path, overwrite=True, writer_thread=writer_thread)
-    pm = make_plugin_manager(builtins=False, extra=[recorder])
+    pm = make_plugin_manager(builtins=False, extra=[observer])
     in_hook = 0.0
     start_ns = time.time_ns()
     for i in range(pairs):
@@ -89,7 +87,7 @@ def run_recorder(
         h0 = time.perf_counter()
         pm.hook.on_frame(frame=frame)
         in_hook += time.perf_counter() - h0
-    recorder.close()
+    observer.close()
     if fsync:
         fd = os.open(path, os.O_RDONLY)
         try:
@@ -102,36 +100,19 @@ def run_recorder(
         "cpu_ms_per_pair": 1e3 * cpu / pairs,
         "hook_ms_per_pair": 1e3 * in_hook / pairs,
     }
+
+
+def run_recorder(
+    path: Path, frames: list[StereoFrame], pairs: int, fsync: bool, writer_thread: bool
+) -> dict[str, float]:
+    return run_observer(McapRecorder(path, overwrite=True, writer_thread=writer_thread), path, frames, pairs, fsync)
 
 
 def run_rerun_logger(path: Path, frames: list[StereoFrame], pairs: int, fsync: bool) -> dict[str, float]:
     """The same pairs through RerunLogger (images only) into an .rrd, for comparison."""
     from pipeline.rerun_log import RerunLogger
 
-    t0, c0 = time.perf_counter(), time.process_time()
-    logger = RerunLogger(path)
-    pm = make_plugin_manager(builtins=False, extra=[logger])
-    in_hook = 0.0
-    start_ns = time.time_ns()
-    for i in range(pairs):
-        template = frames[i % len(frames)]
-        frame = StereoFrame(i, start_ns + i * 16_666_667, template.upper, template.lower, 12)
-        h0 = time.perf_counter()
-        pm.hook.on_frame(frame=frame)
-        in_hook += time.perf_counter() - h0
-    logger.close()
-    if fsync:
-        fd = os.open(path, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    return {
-        "pairs_per_s": pairs / wall,
-        "cpu_ms_per_pair": 1e3 * cpu / pairs,
-        "hook_ms_per_pair": 1e3 * in_hook / pairs,
-    }
+    return run_observer(RerunLogger(path), path, frames, pairs, fsync)
 
 
 def main(argv: list[str] | None = None) -> None:
