@@ -32,9 +32,9 @@ sys.path.insert(0, str(ROOT))
 
 os.environ["PYLON_CAMEMU"] = "2"  # read by pylon's emulation transport layer when it enumerates devices
 
-from pipeline.calibration_io import write_stereo_calibration  # noqa: E402
-from plugins.acquire_basler import BaslerStereoSource  # noqa: E402
-from plugins.acquire_simulator import SimulatorSource  # noqa: E402
+from crossfield.camera.calibration_io import write_stereo_calibration  # noqa: E402
+from crossfield.plugins.acquire_basler import BaslerStereoSource  # noqa: E402
+from crossfield.plugins.acquire_simulator import SimulatorSource  # noqa: E402
 
 
 def write_frames(folder: Path, frames, extension: str) -> None:

@@ -35,8 +35,8 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from synthetic_targets import distractors, random_targets, render
 
-from pipeline.registry import implementations, make_plugin_manager
-from plugins._blobs import estimate_background
+from crossfield.registry import implementations, make_plugin_manager
+from crossfield.imaging.blobs import estimate_background
 
 
 def baseline(image: np.ndarray, threshold_dn: int) -> list[tuple[float, float]]:
@@ -93,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
         truth = np.array([[t.u0, t.v0] for t in targets])
         content = f"{len(targets)} targets + {len(extra)} distractors"
     else:  # the station simulator's upper image
-        from pipeline.simulator.scenarios import build_scene
+        from crossfield.simulator.scenarios import build_scene
 
         scene = build_scene(args.source)
         image = scene.render_pair(0, rng).upper

@@ -7,9 +7,9 @@ For each repeat (interleaved, so that both see the same disk state):
 * baseline: the raw pixel bytes of every pair (2 x 1626 x 1236 uint16)
   written with ``file.write`` into one file;
 * recorder: the same pairs through ``pm.hook.on_frame`` into a
-  :class:`pipeline.recorder.McapRecorder` (writer thread on, then off),
+  :class:`crossfield.recording.recorder.McapRecorder` (writer thread on, then off),
   closed at the end (summary and indexes written);
-* with ``--rerun``: the same pairs through :class:`pipeline.rerun_log.RerunLogger`.
+* with ``--rerun``: the same pairs through :class:`crossfield.viz.rerun_log.RerunLogger`.
 
 Reports pairs/s (wall clock, file closed; with ``--fsync`` also synced to
 disk), the CPU time per pair of the process, and for the recorder the time
@@ -32,9 +32,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.recorder import McapRecorder
-from pipeline.registry import make_plugin_manager
-from pipeline.types import StereoFrame
+from crossfield.recording.recorder import McapRecorder
+from crossfield.registry import make_plugin_manager
+from crossfield.types import StereoFrame
 
 HEIGHT, WIDTH = 1236, 1626
 
@@ -110,7 +110,7 @@ def run_recorder(
 
 def run_rerun_logger(path: Path, frames: list[StereoFrame], pairs: int, fsync: bool) -> dict[str, float]:
     """The same pairs through RerunLogger (images only) into an .rrd, for comparison."""
-    from pipeline.rerun_log import RerunLogger
+    from crossfield.viz.rerun_log import RerunLogger
 
     return run_observer(RerunLogger(path), path, frames, pairs, fsync)
 

@@ -9,7 +9,7 @@ warm page cache, medians of ``--repeat`` runs:
 
 * plain read: the file's bytes read in 4 MiB blocks (the I/O floor);
 * MCAP read: every message iterated with the reader (no decoding);
-* frames decoded: :class:`pipeline.replay.RecordingSource` yielding the stereo
+* frames decoded: :class:`crossfield.replay.RecordingSource` yielding the stereo
   pairs (protobuf RawImage -> arrays), nothing computed;
 * replay: ``replay_session`` with the recorded plugins, no recording;
 * replay + record: the same, writing the replayed session's MCAP
@@ -31,11 +31,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.config import parse_config  # noqa: E402
-from pipeline.recording import open_recording  # noqa: E402
-from pipeline.registry import make_plugin_manager  # noqa: E402
-from pipeline.replay import RecordingSource, load_recorded_session, replay_session  # noqa: E402
-from pipeline.runner import run_session  # noqa: E402
+from crossfield.config import parse_config  # noqa: E402
+from crossfield.recording.reader import open_recording  # noqa: E402
+from crossfield.registry import make_plugin_manager  # noqa: E402
+from crossfield.replay import RecordingSource, load_recorded_session, replay_session  # noqa: E402
+from crossfield.runner import run_session  # noqa: E402
 
 
 def timed(fn, repeat: int) -> float:

@@ -4,8 +4,8 @@
 
 A simulated station session (``--frames`` pairs) is recorded once; its
 recorded inputs and results are loaded into memory
-(:mod:`pipeline.rerun_mcap`), then fed through a fresh
-:class:`pipeline.rerun_log.RerunLogger` writing an .rrd, for several
+(:mod:`crossfield.viz.rerun_mcap`), then fed through a fresh
+:class:`crossfield.viz.rerun_log.RerunLogger` writing an .rrd, for several
 ``image_every`` settings: wall-clock pairs/s (file finished) and CPU ms per
 pair of the process (Rerun's batcher and file sink run on their own
 threads). Baseline: the same hooks into a logger with no sink data at all
@@ -25,12 +25,12 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.config import parse_config
-from pipeline.recording import open_recording
-from pipeline.registry import make_plugin_manager
-from pipeline.rerun_log import RerunLogger
-from pipeline.rerun_mcap import _events, session_info
-from pipeline.runner import run_session
+from crossfield.config import parse_config
+from crossfield.recording.reader import open_recording
+from crossfield.registry import make_plugin_manager
+from crossfield.viz.rerun_log import RerunLogger
+from crossfield.viz.rerun_mcap import _events, session_info
+from crossfield.runner import run_session
 
 
 class _AllImages:
@@ -96,7 +96,7 @@ def main() -> int:
             med = {key: statistics.median(r[key] for r in runs) for key in runs[0]}
             print(f"{every:>12} {med['pairs_per_s']:>9.1f} {med['cpu_ms_per_pair']:>12.1f} {med['mb']:>8.1f}")
         if not args.no_screenshot:
-            from pipeline.view import view
+            from crossfield.viz.view import view
 
             times = []
             for k in range(args.repeat):

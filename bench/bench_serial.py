@@ -25,9 +25,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipeline.plan import parse_plan  # noqa: E402
-from pipeline.simulator.arm import SimulatedArm, probes_from_points  # noqa: E402
-from plugins.reference_romer_serial import RomerSerialReference  # noqa: E402
+from crossfield.plan import parse_plan  # noqa: E402
+from crossfield.simulator.arm import SimulatedArm, probes_from_points  # noqa: E402
+from crossfield.plugins.reference_romer_serial import RomerSerialReference  # noqa: E402
 
 
 def make_plan(n: int):

@@ -32,7 +32,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from test_triangulate import make_calibration, observe, random_points, stereo  # noqa: E402
 
-from plugins.triangulate_epipolar import EpipolarTriangulator  # noqa: E402
+from crossfield.plugins.triangulate_epipolar import EpipolarTriangulator  # noqa: E402
 
 
 def baseline(calibration, uv_u: np.ndarray, uv_l: np.ndarray) -> np.ndarray:

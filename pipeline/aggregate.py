@@ -33,11 +33,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .plan import CharacteristicSpec, MeasurementPlan
-from .types import CharacteristicResult, Registration, frozen_array
+from crossfield.plan import CharacteristicSpec, MeasurementPlan
+from crossfield.types import CharacteristicResult, Registration, frozen_array
 
 if TYPE_CHECKING:  # session.py imports this module
-    from .session import FrameResult
+    from crossfield.session import FrameResult
 
 #: Per-frame result rows a session keeps for its report: the first ones (about
 #: 14 s of a 14 pairs/s station). Later frames count in every aggregate; their

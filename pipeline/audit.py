@@ -3,7 +3,7 @@
 Three checks, each with its findings named:
 
 * **integrity**: the SHA-256 chain written while recording
-  (:mod:`pipeline.integrity`) is recomputed over every message, metadata
+  (:mod:`crossfield.recording.integrity`) is recomputed over every message, metadata
   record and attachment in file order; a changed, removed, added or
   reordered message is named by topic, sequence and time, a chunk whose
   CRC-32 fails by its byte offset and the messages it holds. A recording
@@ -14,7 +14,7 @@ Three checks, each with its findings named:
   package versions, the machine, the plan and calibration with their
   SHA-256 (recorded digest against the attached file).
 * **reproduction**: the session is replayed from its raw inputs with the
-  recorded plugins and options (:mod:`pipeline.replay`), each result
+  recorded plugins and options (:mod:`crossfield.replay`), each result
   message rebuilt exactly as the recorder builds it, and compared with the
   recorded message of the same topic, sequence and time, bit for bit.
   Every difference is listed (for JSON results down to the field).
@@ -35,10 +35,10 @@ from typing import Any
 
 import pluggy
 
-from .errors import CrossfieldError
-from .integrity import TOPIC_INTEGRITY, IntegrityResult, file_sha256, name_message, verify
-from .recording import open_recording
-from .registry import STAGES, implementations
+from crossfield.errors import CrossfieldError
+from crossfield.recording.integrity import TOPIC_INTEGRITY, IntegrityResult, file_sha256, name_message, verify
+from crossfield.recording.reader import open_recording
+from crossfield.registry import STAGES, implementations
 
 LOG_TOPIC = "/log"
 
@@ -115,7 +115,7 @@ class AuditReport:
 
 def provenance(path: Path, pm: pluggy.PluginManager | None) -> dict[str, Any]:
     """The session's recorded facts and their consistency (hashes, versions)."""
-    from .runner import package_versions
+    from crossfield.runner import package_versions
 
     rec = open_recording(path)
     meta = rec.metadata()
@@ -260,8 +260,8 @@ def _decode_log(data: bytes) -> str:
 
 def reproduction(path: Path, pm: pluggy.PluginManager, *, limit: int = 500) -> dict[str, Any]:
     """Replay with the recorded plugins and compare every result message (see module doc)."""
-    from .recorder import MessageCapture
-    from .replay import load_recorded_session, replay_session
+    from crossfield.recording.recorder import MessageCapture
+    from crossfield.replay import load_recorded_session, replay_session
 
     recorded = load_recorded_session(path)
     capture = MessageCapture(skip_topics=RAW_TOPICS)
@@ -379,7 +379,7 @@ def reproduction(path: Path, pm: pluggy.PluginManager, *, limit: int = 500) -> d
 def audit(path: str | Path, pm: pluggy.PluginManager, *, reproduce: bool = True) -> AuditReport:
     """Run the three checks on ``path`` (``RecordingError`` if it is not a crossfield recording)."""
     path = Path(path)
-    from .replay import require_session
+    from crossfield.replay import require_session
 
     rec = open_recording(path)
     require_session(rec)

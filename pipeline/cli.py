@@ -7,9 +7,9 @@ import json
 import sys
 from typing import Sequence
 
-from .config import Config, load_config, with_overrides
-from .errors import CrossfieldError
-from .registry import STAGES, implementations, make_plugin_manager
+from crossfield.config import Config, load_config, with_overrides
+from crossfield.errors import CrossfieldError
+from crossfield.registry import STAGES, implementations, make_plugin_manager
 
 
 def _add_stage_flags(parser: argparse.ArgumentParser) -> None:
@@ -148,8 +148,8 @@ def resolve_run_config(args: argparse.Namespace) -> Config:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from .progress import Progress
-    from .runner import run_session
+    from crossfield.progress import Progress
+    from crossfield.runner import run_session
 
     config = resolve_run_config(args)
     pm = make_plugin_manager(entry_points=True)
@@ -157,8 +157,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     observers = [] if args.quiet else [Progress(total=frames if isinstance(frames, int) else None)]
     live = None
     if args.view:
-        from .rerun_log import RerunLogger
-        from .view import spawn_live_viewer
+        from crossfield.viz.rerun_log import RerunLogger
+        from crossfield.viz.view import spawn_live_viewer
 
         live = RerunLogger(viewer=spawn_live_viewer() if args.view == "new" else args.view)
         observers.append(live)
@@ -166,7 +166,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     for warning in live.warnings if live is not None else ():
         print(f"crossfield: warning: {warning}", file=sys.stderr)
     reporter = summary.info.plugins["report"]["name"]
-    from .registry import get_implementation
+    from crossfield.registry import get_implementation
 
     impl = get_implementation(pm, "report", reporter).create(dict(config.stages["report"].options))
     print(impl.summary_text(summary))
@@ -205,9 +205,9 @@ def cmd_plugins(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from .progress import Progress
-    from .registry import get_implementation
-    from .replay import load_recorded_session, replay_session
+    from crossfield.progress import Progress
+    from crossfield.registry import get_implementation
+    from crossfield.replay import load_recorded_session, replay_session
 
     pm = make_plugin_manager(entry_points=True)
     recorded = load_recorded_session(args.recording)
@@ -254,7 +254,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
-    from .compare import compare, format_table
+    from crossfield.compare import compare, format_table
 
     result = compare(args.a, args.b)
     if args.json:
@@ -265,7 +265,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
 
 def cmd_audit(args: argparse.Namespace) -> int:
-    from .audit import audit, format_report, to_json
+    from crossfield.audit import audit, format_report, to_json
 
     report = audit(args.recording, make_plugin_manager(entry_points=True), reproduce=not args.no_replay)
     print(to_json(report) if args.json else format_report(report))
@@ -273,7 +273,7 @@ def cmd_audit(args: argparse.Namespace) -> int:
 
 
 def cmd_view(args: argparse.Namespace) -> int:
-    from .view import parse_window_size, view
+    from crossfield.viz.view import parse_window_size, view
 
     return view(
         args.session,
@@ -296,7 +296,7 @@ COMMANDS = {
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["romer-sim"]:
-        from .simulator.romer_sim import main_romer_sim
+        from crossfield.simulator.romer_sim import main_romer_sim
 
         return main_romer_sim(argv[1:])
     args = build_parser().parse_args(argv)

@@ -31,8 +31,8 @@ from typing import Any
 
 import numpy as np
 
-from .recording import Recording, open_recording
-from .registry import STAGES
+from crossfield.recording.reader import Recording, open_recording
+from crossfield.registry import STAGES
 
 #: Per-characteristic values compared (report.json keys).
 CHARACTERISTIC_KEYS = (
@@ -79,7 +79,7 @@ class SessionView:
 def read_view(path: str | Path) -> SessionView:
     """Read the recorded results of a session (``RecordingError`` if it is not one)."""
     path = Path(path)
-    from .replay import require_session
+    from crossfield.replay import require_session
 
     rec: Recording = open_recording(path)
     meta = require_session(rec)

@@ -28,8 +28,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
-from .errors import ConfigError
-from .registry import STAGES
+from crossfield.errors import ConfigError
+from crossfield.registry import STAGES
 
 DEFAULT_PLUGINS: dict[str, str] = {
     "acquire": "simulator",

@@ -54,8 +54,8 @@ from typing import Sequence
 
 import numpy as np
 
-from .errors import CorrespondenceError
-from .types import Correspondence
+from crossfield.errors import CorrespondenceError
+from crossfield.types import Correspondence
 
 #: Default agreement of camera and CMM distances (mm); see the module docstring.
 DEFAULT_TOLERANCE_MM = 0.5

@@ -20,8 +20,8 @@ from typing import TYPE_CHECKING, Callable
 import pluggy
 
 if TYPE_CHECKING:  # pragma: no cover
-    from .session import FrameResult, SessionInfo, SessionSummary
-    from .types import (
+    from crossfield.session import FrameResult, SessionInfo, SessionSummary
+    from crossfield.types import (
         CameraPoints,
         Measurement,
         ReferenceData,
@@ -44,37 +44,37 @@ Register = Callable[..., None]
 @hookspec
 def register_acquires(register: Register) -> None:
     """Offer acquisition sources. ``factory(**options)`` returns an
-    :class:`pipeline.stages.Acquisition`."""
+    :class:`crossfield.stages.Acquisition`."""
 
 
 @hookspec
 def register_centroids(register: Register) -> None:
-    """Offer centroid extractors (:class:`pipeline.stages.CentroidExtractor`)."""
+    """Offer centroid extractors (:class:`crossfield.stages.CentroidExtractor`)."""
 
 
 @hookspec
 def register_triangulates(register: Register) -> None:
-    """Offer stereo matchers/triangulators (:class:`pipeline.stages.Triangulator`)."""
+    """Offer stereo matchers/triangulators (:class:`crossfield.stages.Triangulator`)."""
 
 
 @hookspec
 def register_references(register: Register) -> None:
-    """Offer CMM reference importers (:class:`pipeline.stages.ReferenceSource`)."""
+    """Offer CMM reference importers (:class:`crossfield.stages.ReferenceSource`)."""
 
 
 @hookspec
 def register_registers(register: Register) -> None:
-    """Offer rigid registration solvers (:class:`pipeline.stages.Registrar`)."""
+    """Offer rigid registration solvers (:class:`crossfield.stages.Registrar`)."""
 
 
 @hookspec
 def register_measures(register: Register) -> None:
-    """Offer characteristic evaluators (:class:`pipeline.stages.Measurer`)."""
+    """Offer characteristic evaluators (:class:`crossfield.stages.Measurer`)."""
 
 
 @hookspec
 def register_reports(register: Register) -> None:
-    """Offer report writers (:class:`pipeline.stages.Reporter`)."""
+    """Offer report writers (:class:`crossfield.stages.Reporter`)."""
 
 
 # ---- observer hooks -------------------------------------------------------

@@ -44,8 +44,8 @@ from typing import Any
 
 import numpy as np
 
-from .errors import ConfigError
-from .types import frozen_array
+from crossfield.errors import ConfigError
+from crossfield.types import frozen_array
 
 KINDS = ("point_point", "point_line", "depth")
 LINE_FITS = ("cylinder", "line")

@@ -6,7 +6,7 @@ import sys
 import time
 from typing import TextIO
 
-from .hookspecs import hookimpl
+from crossfield.hookspecs import hookimpl
 
 
 class Progress:

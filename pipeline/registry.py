@@ -16,8 +16,8 @@ from typing import Any, Callable, Iterable
 
 import pluggy
 
-from . import hookspecs
-from .errors import ConfigError, PluginError
+from crossfield import hookspecs
+from crossfield.errors import ConfigError, PluginError
 
 STAGES: tuple[str, ...] = (
     "acquire",
@@ -31,22 +31,22 @@ STAGES: tuple[str, ...] = (
 
 #: Modules of the built-in plugins, loaded by every plugin manager.
 BUILTIN_PLUGINS: tuple[str, ...] = (
-    "plugins.acquire_simulator",
-    "plugins.acquire_folder",
-    "plugins.acquire_basler",
-    "plugins.acquire_opencv",
-    "plugins.centroid_weighted",
-    "plugins.centroid_ellipse",
-    "plugins.triangulate_epipolar",
-    "plugins.reference_romer_serial",
-    "plugins.reference_csv",
-    "plugins.reference_spatialanalyzer",
-    "plugins.reference_pcdmis_xyz",
-    "plugins.register_svd",
-    "plugins.register_umeyama",
-    "plugins.register_horn",
-    "plugins.measure_plan",
-    "plugins.report_html",
+    "crossfield.plugins.acquire_simulator",
+    "crossfield.plugins.acquire_folder",
+    "crossfield.plugins.acquire_basler",
+    "crossfield.plugins.acquire_opencv",
+    "crossfield.plugins.centroid_weighted",
+    "crossfield.plugins.centroid_ellipse",
+    "crossfield.plugins.triangulate_epipolar",
+    "crossfield.plugins.reference_romer_serial",
+    "crossfield.plugins.reference_csv",
+    "crossfield.plugins.reference_spatialanalyzer",
+    "crossfield.plugins.reference_pcdmis_xyz",
+    "crossfield.plugins.register_svd",
+    "crossfield.plugins.register_umeyama",
+    "crossfield.plugins.register_horn",
+    "crossfield.plugins.measure_plan",
+    "crossfield.plugins.report_html",
 )
 
 
@@ -104,7 +104,7 @@ def _distribution_of(module_name: str) -> tuple[str, str]:
             return dist_name, metadata.version(dist_name)
         except metadata.PackageNotFoundError:  # pragma: no cover
             continue
-    if top in ("plugins", "pipeline"):
+    if top == "crossfield":
         return "crossfield", _crossfield_version()
     return top, "unknown"
 

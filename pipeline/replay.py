@@ -8,7 +8,7 @@ the simulator's ground truth when there is one, and the recorded config
 read. Frames are fed in the order they were recorded, with their recorded
 capture times; serial bytes with their recorded read times; the session
 start time is the recorded one. The chain is the live one
-(:func:`pipeline.runner.run_pipeline`), so with the recorded plugins every
+(:func:`crossfield.runner.run_pipeline`), so with the recorded plugins every
 stage output, and every number of the report, is the same float as
 recorded, and the replayed session's own recording holds the same
 messages. With swapped plugins or options the replay is a new session
@@ -32,16 +32,16 @@ from typing import Any
 import numpy as np
 import pluggy
 
-from .calibration_io import stereo_calibration_from_yaml
-from .config import Config, parse_config, with_overrides
-from .errors import ConfigError, PluginError, RecordingError
-from .integrity import file_sha256, utc
-from .plan import MeasurementPlan, parse_plan
-from .recording import Recording, open_recording
-from .registry import STAGES
-from .runner import Stages, _registered, _session_observers, _unique_dir, package_versions, run_pipeline
-from .session import SessionInfo, SessionSummary
-from .types import CAMERAS, GroundTruth, Line3D, ReferenceData, StereoCalibration, StereoFrame
+from crossfield.camera.calibration_io import stereo_calibration_from_yaml
+from crossfield.config import Config, parse_config, with_overrides
+from crossfield.errors import ConfigError, PluginError, RecordingError
+from crossfield.recording.integrity import file_sha256, utc
+from crossfield.plan import MeasurementPlan, parse_plan
+from crossfield.recording.reader import Recording, open_recording
+from crossfield.registry import STAGES
+from crossfield.runner import Stages, _registered, _session_observers, _unique_dir, package_versions, run_pipeline
+from crossfield.session import SessionInfo, SessionSummary
+from crossfield.types import CAMERAS, GroundTruth, Line3D, ReferenceData, StereoCalibration, StereoFrame
 
 #: The recording layouts this replay reads.
 READABLE_FORMATS = ("crossfield-mcap/1",)
@@ -208,7 +208,7 @@ def decode_image(data: bytes, where: str) -> tuple[np.ndarray, int]:
 class RecordingSource:
     """The acquisition of a replay: the recorded stereo pairs and serial bytes.
 
-    Implements :class:`pipeline.stages.Acquisition`. Frames come in the order
+    Implements :class:`crossfield.stages.Acquisition`. Frames come in the order
     they were recorded (file order), each with its recorded capture time
     (the image messages' log time). After :meth:`frames` is exhausted,
     ``incomplete`` says where a cut-short recording ends (None if complete).

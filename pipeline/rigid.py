@@ -49,7 +49,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import RegistrationError
+from crossfield.errors import RegistrationError
 
 #: Default ratio rms_proper / rms_improper above which the pair set is a mirror image.
 REFLECTION_RATIO = 5.0

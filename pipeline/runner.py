@@ -23,15 +23,15 @@ from typing import Any, Callable, Iterable, Iterator
 import numpy as np
 import pluggy
 
-from .aggregate import SessionAccumulator
-from .config import Config
-from .correspondence import match_control_points
-from .errors import ConfigError, CrossfieldError
-from .plan import MeasurementPlan, load_plan
-from .registry import STAGES, Implementation, get_implementation
-from .session import FrameResult, SessionInfo, SessionSummary
-from .stages import Acquisition
-from .types import (
+from crossfield.aggregate import SessionAccumulator
+from crossfield.config import Config
+from crossfield.correspondence import match_control_points
+from crossfield.errors import ConfigError, CrossfieldError
+from crossfield.plan import MeasurementPlan, load_plan
+from crossfield.registry import STAGES, Implementation, get_implementation
+from crossfield.session import FrameResult, SessionInfo, SessionSummary
+from crossfield.stages import Acquisition
+from crossfield.types import (
     CameraPoints,
     GroundTruth,
     ReferenceData,
@@ -221,11 +221,11 @@ def _session_observers(
 ) -> list[object]:
     observers: list[object] = []
     if config.session.get("record", True):
-        from .recorder import McapRecorder
+        from crossfield.recording.recorder import McapRecorder
 
         observers.append(McapRecorder(mcap_path or out_dir / "session.mcap"))
     if config.session.get("rerun", True):
-        from .rerun_log import RerunLogger
+        from crossfield.viz.rerun_log import RerunLogger
 
         observers.append(RerunLogger(out_dir / "session.rrd"))
     observers.extend(extra)

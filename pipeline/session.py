@@ -1,6 +1,6 @@
 """Session-level data: what a session is, one frame's results, the summary.
 
-The aggregation over frames is :mod:`pipeline.aggregate` (CharacteristicSummary
+The aggregation over frames is :mod:`crossfield.aggregate` (CharacteristicSummary
 is defined there and re-exported here)."""
 
 from __future__ import annotations
@@ -11,10 +11,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
-from .aggregate import CharacteristicSummary, SessionAccumulator, SessionAggregate, aggregate_frames
-from .config import Config
-from .plan import MeasurementPlan
-from .types import (
+from crossfield.aggregate import CharacteristicSummary, SessionAccumulator, SessionAggregate, aggregate_frames
+from crossfield.config import Config
+from crossfield.plan import MeasurementPlan
+from crossfield.types import (
     CameraPoints,
     GroundTruth,
     Measurement,
@@ -77,7 +77,7 @@ class SessionSummary:
     """A finished session: what the report stage and the ``on_session_end`` observers get.
 
     frames: the per-frame results kept for the report, slim (no centroids, no
-    camera points): the first :data:`~pipeline.aggregate.FRAME_ROWS_KEPT` of
+    camera points): the first :data:`~crossfield.aggregate.FRAME_ROWS_KEPT` of
     a session run by the runner, so that a session of any length holds a
     bounded number. Every frame's results are in the recording (session.mcap).
     aggregate: the whole session (every frame): counts, failed frames' errors,
@@ -138,7 +138,7 @@ class SessionSummary:
 
 
 def summarise(frames: Iterable[FrameResult], plan: MeasurementPlan) -> tuple[CharacteristicSummary, ...]:
-    """Aggregate per-frame characteristics in plan order (:class:`pipeline.aggregate.SessionAccumulator`).
+    """Aggregate per-frame characteristics in plan order (:class:`crossfield.aggregate.SessionAccumulator`).
 
     Only finite per-frame values count (a frame whose target was not found
     may report NaN); a characteristic no frame measured gets n = 0, NaN

@@ -2,7 +2,7 @@
 
 A registry hook offers ``factory(**options) -> implementation``; the
 implementation then satisfies one of these protocols. Units and frames as
-in :mod:`pipeline.types`.
+in :mod:`crossfield.types`.
 """
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ from typing import Any, Callable, Iterator, Protocol, runtime_checkable
 
 import numpy as np
 
-from .plan import MeasurementPlan
-from .types import (
+from crossfield.plan import MeasurementPlan
+from crossfield.types import (
     CameraPoints,
     CentroidSet,
     GroundTruth,
@@ -82,7 +82,7 @@ class Registrar(Protocol):
     def fit(self, camera_xyz: np.ndarray, global_xyz: np.ndarray, weights: np.ndarray | None = None) -> RigidFit:
         """Rigid transform with ``global ~ R @ camera + t`` from (N, 3) mm
         corresponding points. A reflection is an error (raise
-        :class:`pipeline.errors.RegistrationError`)."""
+        :class:`crossfield.errors.RegistrationError`)."""
 
 
 @runtime_checkable

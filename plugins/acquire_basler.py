@@ -20,11 +20,11 @@ registered without it and says so when a session selects it.
 * Software trigger: per pair, wait until both cameras are ready for a frame
   trigger, execute the trigger on both, take the frame answering it from
   each. Hardware trigger: the cameras are triggered by a line; frames are
-  paired by time (:class:`plugins._pairing.ArrivalPairer`).
+  paired by time (:class:`crossfield.camera.pairing.ArrivalPairer`).
 * A pair is refused, never mismatched, when a frame times out, arrives
   failed, belongs to an earlier trigger (frame counter), follows lost
   frames, or when the two frames are more than ``max_skew_ms`` apart. Each
-  refusal is an :class:`plugins._pairing.Incident`, listed by
+  refusal is an :class:`crossfield.camera.pairing.Incident`, listed by
   :meth:`describe` and passed to :attr:`BaslerStereoSource.log`.
 
 See ``docs/cameras.md`` for wiring, settings and the emulation test.
@@ -40,12 +40,12 @@ from typing import Any, Callable, Iterator, Mapping
 
 import numpy as np
 
-from pipeline.calibration_io import read_stereo_calibration
-from pipeline.errors import ConfigError, PluginError
-from pipeline.hookspecs import hookimpl
-from pipeline.types import CAMERAS, StereoCalibration, StereoFrame
+from crossfield.camera.calibration_io import read_stereo_calibration
+from crossfield.errors import ConfigError, PluginError
+from crossfield.hookspecs import hookimpl
+from crossfield.types import CAMERAS, StereoCalibration, StereoFrame
 
-from ._pairing import ArrivalPairer, BlockCounter, GrabbedFrame, IncidentLog, LogCallable, pair_skew_ns
+from crossfield.camera.pairing import ArrivalPairer, BlockCounter, GrabbedFrame, IncidentLog, LogCallable, pair_skew_ns
 
 #: Pixel formats the source accepts -> significant bits. pylon delivers them
 #: unpacked, one pixel per uint8/uint16 word, LSB-aligned.
@@ -401,7 +401,7 @@ class BaslerStereoSource:
 
     upper, lower: serial number or device user id of each camera.
     calibration: stereo calibration file or list of files (OpenCV FileStorage
-    YAML, :mod:`pipeline.calibration_io`: M1 D1 M2 D2 R T, camera 1 = upper,
+    YAML, :mod:`crossfield.camera.calibration_io`: M1 D1 M2 D2 R T, camera 1 = upper,
     T in mm); image sizes not stored there are taken from the cameras.
     frames: pairs to deliver (0 = until :meth:`stop` or :meth:`close`).
     trigger: ``software`` (the source triggers both cameras per pair) or

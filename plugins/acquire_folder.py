@@ -10,7 +10,7 @@ Format (``docs/triangulation.md``, "Image-folder source"):
 * single-channel 16-bit PNG or TIFF (8-bit accepted when ``bit_depth <= 8``),
   holding ``bit_depth``-bit values, read with ``cv2.IMREAD_UNCHANGED``;
 * the stereo calibration as OpenCV FileStorage YAML
-  (:mod:`pipeline.calibration_io`): ``calibration`` names one file or a list
+  (:mod:`crossfield.camera.calibration_io`): ``calibration`` names one file or a list
   of files (``["intrinsics.yml", "extrinsics.yml"]``), relative paths being
   taken relative to the folder; by default the folder's ``calibration.yml``,
   else its ``intrinsics.yml`` + ``extrinsics.yml``.
@@ -31,10 +31,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from pipeline.calibration_io import read_stereo_calibration
-from pipeline.errors import ConfigError
-from pipeline.hookspecs import hookimpl
-from pipeline.types import CAMERAS, StereoCalibration, StereoFrame
+from crossfield.camera.calibration_io import read_stereo_calibration
+from crossfield.errors import ConfigError
+from crossfield.hookspecs import hookimpl
+from crossfield.types import CAMERAS, StereoCalibration, StereoFrame
 
 DEFAULT_CALIBRATION_FILES: tuple[tuple[str, ...], ...] = (
     ("calibration.yml",),

@@ -27,7 +27,7 @@ give no timestamps (-1): no skew check is possible, which
 is read with OpenCV's image-sequence backend (``CAP_IMAGES``) unless
 ``backend`` says otherwise: left to ``CAP_ANY``, FFmpeg's image2 demuxer
 would take it and reduce 16-bit PNGs to 8 bits. Every refusal is an incident
-(:mod:`plugins._pairing`).
+(:mod:`crossfield.camera.pairing`).
 """
 
 from __future__ import annotations
@@ -41,12 +41,12 @@ from typing import Any, Iterator
 import cv2
 import numpy as np
 
-from pipeline.calibration_io import read_stereo_calibration
-from pipeline.errors import ConfigError
-from pipeline.hookspecs import hookimpl
-from pipeline.types import CAMERAS, StereoCalibration, StereoFrame
+from crossfield.camera.calibration_io import read_stereo_calibration
+from crossfield.errors import ConfigError
+from crossfield.hookspecs import hookimpl
+from crossfield.types import CAMERAS, StereoCalibration, StereoFrame
 
-from ._pairing import IncidentLog, LogCallable
+from crossfield.camera.pairing import IncidentLog, LogCallable
 
 #: Names accepted by the ``backend`` option -> OpenCV's VideoCapture API preference.
 BACKENDS: dict[str, int] = {
@@ -79,7 +79,7 @@ class OpenCVStereoSource:
 
     upper, lower: device index (int) or file / URL / image-sequence pattern (str).
     calibration: stereo calibration file or list of files (OpenCV FileStorage
-    YAML, :mod:`pipeline.calibration_io`; camera 1 = upper, T in mm).
+    YAML, :mod:`crossfield.camera.calibration_io`; camera 1 = upper, T in mm).
     frames: pairs to deliver (0 = until a stream ends or :meth:`stop`).
     bit_depth: significant bits of the pixel values (0 = 8 or 16 from the frames).
     max_skew_ms: largest timestamp difference within a pair (when the

@@ -1,7 +1,7 @@
 """Acquisition from the built-in station simulator (the default source).
 
 Renders ``frames`` noisy stereo pairs of a named scenario
-(:mod:`pipeline.simulator.scenarios`); the geometry is fixed by the
+(:mod:`crossfield.simulator.scenarios`); the geometry is fixed by the
 scenario, the noise by ``seed``, so a session is reproducible. The source
 also drives the simulated ROMER arm on a pseudo-terminal: see
 :meth:`SimulatorSource.serve_arm`.
@@ -15,9 +15,9 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from pipeline.hookspecs import hookimpl
-from pipeline.simulator.scenarios import SCENARIOS, build_scene
-from pipeline.types import StereoFrame
+from crossfield.hookspecs import hookimpl
+from crossfield.simulator.scenarios import SCENARIOS, build_scene
+from crossfield.types import StereoFrame
 
 
 class SimulatorSource:
@@ -69,7 +69,7 @@ class SimulatorSource:
     @contextlib.contextmanager
     def serve_arm(self) -> Iterator[str]:
         """Run the simulated ROMER arm on a pseudo-terminal; yields its tty path."""
-        from pipeline.simulator.arm import SimulatedArm
+        from crossfield.simulator.arm import SimulatedArm
 
         with SimulatedArm(self.arm_probes()).serve_pty() as port:
             yield port

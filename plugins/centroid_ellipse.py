@@ -1,7 +1,7 @@
 """Centroid plugin "ellipse": ellipse fitted to the sub-pixel edge of each blob.
 
 Detection (threshold, contours, rejection, local background) is shared with
-the other centroid plugins in :mod:`plugins._blobs`; this module does the
+the other centroid plugins in :mod:`crossfield.imaging.blobs`; this module does the
 sub-pixel step (``docs/centroids.md``).
 
 A retro-reflective target images as a flat-topped, blurred ellipse. Its
@@ -46,10 +46,10 @@ import math
 import cv2
 import numpy as np
 
-from pipeline.hookspecs import hookimpl
-from pipeline.types import CentroidSet, RejectedBlob
+from crossfield.hookspecs import hookimpl
+from crossfield.types import CentroidSet, RejectedBlob
 
-from ._blobs import Blob, BlobDetector, DetectorOptions, sort_order, sort_rejected
+from crossfield.imaging.blobs import Blob, BlobDetector, DetectorOptions, sort_order, sort_rejected
 
 #: fewer edge points than this and the fit is not trusted
 MIN_EDGE_POINTS = 12

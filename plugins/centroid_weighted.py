@@ -1,7 +1,7 @@
 """Centroid plugin "weighted": thresholded blobs, intensity-weighted sub-pixel centroids.
 
 Detection (threshold, contours, rejection, local background) is shared with
-the other centroid plugins in :mod:`plugins._blobs`; this module does the
+the other centroid plugins in :mod:`crossfield.imaging.blobs`; this module does the
 sub-pixel step and its uncertainty (``docs/centroids.md``).
 
 Centroid over the blob's window W (blob dilated by ``dilate_px``), with
@@ -37,10 +37,10 @@ import math
 
 import numpy as np
 
-from pipeline.hookspecs import hookimpl
-from pipeline.types import CentroidSet
+from crossfield.hookspecs import hookimpl
+from crossfield.types import CentroidSet
 
-from ._blobs import Background, Blob, BlobDetector, DetectorOptions, sort_order, sort_rejected
+from crossfield.imaging.blobs import Background, Blob, BlobDetector, DetectorOptions, sort_order, sort_rejected
 
 
 def weighted_centroid(

@@ -11,7 +11,7 @@ For one stereo pair:
 3. Reference lines are fitted once per :class:`ReferenceData` (cached) to
    their CMM probes ``L3.1 .. L3.n``: ``fit = "line"`` by orthogonal least
    squares, ``fit = "cylinder"`` by a least-squares cylinder whose axis is
-   the line (:mod:`pipeline.geometry`).
+   the line (:mod:`crossfield.geometry`).
 4. Characteristics: ``point_point`` |a - b|, ``point_line`` distance of point a
    to line b, ``depth`` global Z of point a. Points may be targets (camera),
    controls or reference points (CMM coordinates).
@@ -41,11 +41,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.errors import MeasurementError
-from pipeline.geometry import AxisFit, fit_cylinder_axis, fit_line, point_line_distance
-from pipeline.hookspecs import hookimpl
-from pipeline.plan import CharacteristicSpec, MeasurementPlan
-from pipeline.types import (
+from crossfield.errors import MeasurementError
+from crossfield.geometry import AxisFit, fit_cylinder_axis, fit_line, point_line_distance
+from crossfield.hookspecs import hookimpl
+from crossfield.plan import CharacteristicSpec, MeasurementPlan
+from crossfield.types import (
     CameraPoints,
     CharacteristicResult,
     GroundTruth,

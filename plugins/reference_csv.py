@@ -15,12 +15,12 @@ probing order (``C1``, ``R1``, ``L3.4``...).
 
 from __future__ import annotations
 
-from pipeline.errors import ReferenceImportError
-from pipeline.hookspecs import hookimpl
-from pipeline.plan import MeasurementPlan
-from pipeline.types import ReferenceData
+from crossfield.errors import ReferenceImportError
+from crossfield.hookspecs import hookimpl
+from crossfield.plan import MeasurementPlan
+from crossfield.types import ReferenceData
 
-from ._point_files import FilePoint, PointFileReference, by_name, finite, parse_float, quoted, text_lines
+from crossfield.cmm.point_files import FilePoint, PointFileReference, by_name, finite, parse_float, quoted, text_lines
 
 HEADERS = (("id", "x", "y", "z"), ("id", "x", "y", "z", "sigma"))
 

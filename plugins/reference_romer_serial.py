@@ -39,11 +39,11 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.cmm_formats import FORMATS, UNITS, LineFormat
-from pipeline.errors import ReferenceImportError
-from pipeline.hookspecs import hookimpl
-from pipeline.plan import MeasurementPlan
-from pipeline.romer_protocol import (
+from crossfield.cmm.formats import FORMATS, UNITS, LineFormat
+from crossfield.errors import ReferenceImportError
+from crossfield.hookspecs import hookimpl
+from crossfield.plan import MeasurementPlan
+from crossfield.cmm.protocol import (
     Decoder,
     LineDecoder,
     LinkLost,
@@ -52,8 +52,8 @@ from pipeline.romer_protocol import (
     SerialTransport,
     Transport,
 )
-from pipeline.stages import BytesSink
-from pipeline.types import ProbedPoint, ReferenceData
+from crossfield.stages import BytesSink
+from crossfield.types import ProbedPoint, ReferenceData
 
 
 def _label_list(labels: list[str], indices: list[int], first_seq: int | None) -> str:

@@ -37,12 +37,12 @@ from __future__ import annotations
 
 import re
 
-from pipeline.errors import ReferenceImportError
-from pipeline.hookspecs import hookimpl
-from pipeline.plan import MeasurementPlan
-from pipeline.types import ReferenceData
+from crossfield.errors import ReferenceImportError
+from crossfield.hookspecs import hookimpl
+from crossfield.plan import MeasurementPlan
+from crossfield.types import ReferenceData
 
-from ._point_files import (
+from crossfield.cmm.point_files import (
     LENGTH_UNITS,
     FilePoint,
     PointFileReference,

@@ -14,7 +14,7 @@ r_r the global points, both about their (weighted) centroids:
 
 A quaternion is always a proper rotation, so the method cannot return a
 reflection; it can however return a poor rotation for mirrored point sets.
-To apply the shared criterion (:mod:`pipeline.rigid`) the best improper fit
+To apply the shared criterion (:mod:`crossfield.rigid`) the best improper fit
 is found the same way after mirroring the camera points (z -> -z):
 R_improper = R' diag(1, 1, -1), where R' is Horn's rotation for the mirrored set.
 """
@@ -24,8 +24,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from pipeline.hookspecs import hookimpl
-from pipeline.rigid import (
+from crossfield.hookspecs import hookimpl
+from crossfield.rigid import (
     REFLECTION_RATIO,
     check_ratio,
     check_reflection,
@@ -33,7 +33,7 @@ from pipeline.rigid import (
     residual_rms,
     validate_pairs,
 )
-from pipeline.types import RigidFit
+from crossfield.types import RigidFit
 
 _MIRROR = np.diag([1.0, 1.0, -1.0])
 

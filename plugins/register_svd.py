@@ -19,15 +19,15 @@ so R maps camera into global: q ~ R @ p + t (``T_global_camera``). D only
 differs from the identity when V U^T is a reflection; then the proper
 rotation is the best fit only if the data are (nearly) coplanar, otherwise the
 point sets are mirror images and a RegistrationError is raised
-(:mod:`pipeline.rigid` states the criterion).
+(:mod:`crossfield.rigid` states the criterion).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from pipeline.hookspecs import hookimpl
-from pipeline.rigid import (
+from crossfield.hookspecs import hookimpl
+from crossfield.rigid import (
     REFLECTION_RATIO,
     check_ratio,
     check_reflection,
@@ -35,7 +35,7 @@ from pipeline.rigid import (
     residual_rms,
     validate_pairs,
 )
-from pipeline.types import RigidFit
+from crossfield.types import RigidFit
 
 
 class SvdRegistrar:
@@ -44,7 +44,7 @@ class SvdRegistrar:
     Options:
         reflection_ratio: the fit is rejected as a mirror image when the best
             proper rotation's residual RMS exceeds this multiple of the best
-            reflection's (default 5; see :mod:`pipeline.rigid`).
+            reflection's (default 5; see :mod:`crossfield.rigid`).
     """
 
     def __init__(self, *, reflection_ratio: float = REFLECTION_RATIO):

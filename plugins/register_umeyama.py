@@ -17,15 +17,15 @@ Note the orientation: Umeyama's Sigma_xy is the transpose of the paper's
 Formula (6) H, hence R = U S V^T here and R = V U^T there; both map camera
 into global (``y ~ c R x + t``). The improper alternative (S with the other
 sign) is also evaluated so that mirrored point sets raise a
-RegistrationError (criterion in :mod:`pipeline.rigid`).
+RegistrationError (criterion in :mod:`crossfield.rigid`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from pipeline.hookspecs import hookimpl
-from pipeline.rigid import (
+from crossfield.hookspecs import hookimpl
+from crossfield.rigid import (
     REFLECTION_RATIO,
     check_ratio,
     check_reflection,
@@ -33,7 +33,7 @@ from pipeline.rigid import (
     residual_rms,
     validate_pairs,
 )
-from pipeline.types import RigidFit
+from crossfield.types import RigidFit
 
 
 class UmeyamaRegistrar:

@@ -1,6 +1,6 @@
 """Report writers "html" (report.html + report.json) and "json" (report.json only).
 
-report.json holds every number unrounded (see :mod:`plugins.report_document`
+report.json holds every number unrounded (see :mod:`crossfield.report.document`
 and ``docs/report.md``). report.html is one self-contained page (inline CSS,
 no scripts, no external assets) laid out like the paper's results: Table 1
 the rotation ``R_global_camera``, Table 2 the translation ``t_global_camera``
@@ -17,10 +17,10 @@ import os
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
-from pipeline.hookspecs import hookimpl
-from pipeline.session import SessionSummary
+from crossfield.hookspecs import hookimpl
+from crossfield.session import SessionSummary
 
-from . import report_document as doc
+from crossfield.report import document as doc
 
 KIND_LABELS = {
     "point_point": "point to point",
@@ -317,7 +317,7 @@ def _provenance(report: Mapping[str, Any]) -> str:
 
 
 def render_html(report: Mapping[str, Any], decimals: int = 4) -> str:
-    """report.html for a :func:`plugins.report_document.build_report` result."""
+    """report.html for a :func:`crossfield.report.document.build_report` result."""
     reg = report["registration"]
     passed = report["passed"]
     n_frames, n_failed = report["frames_processed"], report["frames_failed"]

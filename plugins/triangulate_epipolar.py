@@ -31,9 +31,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from pipeline.errors import ConfigError
-from pipeline.hookspecs import hookimpl
-from pipeline.types import CameraPoints, CentroidSet, StereoCalibration, StereoCentroids
+from crossfield.errors import ConfigError
+from crossfield.hookspecs import hookimpl
+from crossfield.types import CameraPoints, CentroidSet, StereoCalibration, StereoCentroids
 
 #: Termination of cv2.undistortPoints' fixed-point iteration (its default is only 5 iterations).
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-14)

@@ -6,8 +6,8 @@ labelled in probing order by :data:`LABELS`.
 
 import numpy as np
 
-from pipeline.plan import MeasurementPlan, parse_plan
-from pipeline.simulator.arm import probes_from_points
+from crossfield.plan import MeasurementPlan, parse_plan
+from crossfield.simulator.arm import probes_from_points
 
 PLAN_TOML = """
 [[control]]

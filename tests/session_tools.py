@@ -14,10 +14,10 @@ from mcap.records import Attachment, Channel, Header, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import Writer
 
-from pipeline.config import parse_config
-from pipeline.registry import make_plugin_manager
-from pipeline.runner import run_session
-from pipeline.session import SessionSummary
+from crossfield.config import parse_config
+from crossfield.registry import make_plugin_manager
+from crossfield.runner import run_session
+from crossfield.session import SessionSummary
 
 #: report.json keys that name the run, not its results (compared separately).
 REPORT_IDENTITY = ("session", "config_source")
@@ -72,7 +72,7 @@ def rewrite_mcap(
 ) -> None:
     """Copy ``src`` to ``dst`` through ``messages`` / ``metadata`` edits (message
     order kept unless the edit changes it; /integrity messages are copied as they are).
-    new_channels: topic -> (message encoding, pipeline.recorder.SchemaSpec or None)
+    new_channels: topic -> (message encoding, crossfield.recording.recorder.SchemaSpec or None)
     for topics the edit adds."""
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}

@@ -1,4 +1,4 @@
-"""acquire "folder" and pipeline.calibration_io: files written as OpenCV's stereo_calib.cpp does."""
+"""acquire "folder" and crossfield.camera.calibration_io: files written as OpenCV's stereo_calib.cpp does."""
 
 from __future__ import annotations
 
@@ -9,17 +9,17 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.calibration_io import (
+from crossfield.camera.calibration_io import (
     read_stereo_calibration,
     stereo_calibration_from_yaml,
     stereo_calibration_to_yaml,
     write_stereo_calibration,
 )
-from pipeline.errors import ConfigError
-from pipeline.registry import get_implementation, make_plugin_manager
-from pipeline.stages import Acquisition
-from pipeline.types import CameraIntrinsics, StereoCalibration
-from plugins import acquire_folder
+from crossfield.errors import ConfigError
+from crossfield.registry import get_implementation, make_plugin_manager
+from crossfield.stages import Acquisition
+from crossfield.types import CameraIntrinsics, StereoCalibration
+from crossfield.plugins import acquire_folder
 
 W, H = 64, 48  # small images keep the tests fast; the format does not care
 

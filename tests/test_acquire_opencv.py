@@ -8,12 +8,12 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.calibration_io import write_stereo_calibration
-from pipeline.errors import ConfigError
-from pipeline.registry import get_implementation, make_plugin_manager
-from pipeline.types import CameraIntrinsics, StereoCalibration
-from plugins.acquire_opencv import OpenCVStereoSource
-from plugins.acquire_simulator import SimulatorSource
+from crossfield.camera.calibration_io import write_stereo_calibration
+from crossfield.errors import ConfigError
+from crossfield.registry import get_implementation, make_plugin_manager
+from crossfield.types import CameraIntrinsics, StereoCalibration
+from crossfield.plugins.acquire_opencv import OpenCVStereoSource
+from crossfield.plugins.acquire_simulator import SimulatorSource
 
 SMALL = (160, 120)  # width, height of the synthetic videos
 

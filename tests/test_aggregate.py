@@ -18,18 +18,18 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.aggregate import (
+from crossfield.aggregate import (
     FRAME_ERRORS_KEPT,
     FRAME_ROWS_KEPT,
     RunningStats,
     SessionAccumulator,
     aggregate_frames,
 )
-from pipeline.config import parse_config
-from pipeline.plan import parse_plan
-from pipeline.runner import finish_session
-from pipeline.session import FrameResult, SessionInfo, SessionSummary, summarise
-from pipeline.types import (
+from crossfield.config import parse_config
+from crossfield.plan import parse_plan
+from crossfield.runner import finish_session
+from crossfield.session import FrameResult, SessionInfo, SessionSummary, summarise
+from crossfield.types import (
     CameraIntrinsics,
     CharacteristicResult,
     Correspondence,
@@ -39,7 +39,8 @@ from pipeline.types import (
     RigidFit,
     StereoCalibration,
 )
-from plugins import report_document, report_html
+from crossfield.plugins import report_html
+from crossfield.report import document as report_document
 
 PLAN = parse_plan(
     """

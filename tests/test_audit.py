@@ -1,4 +1,4 @@
-"""Audit: integrity chain, provenance and reproduction (pipeline/integrity.py, pipeline/audit.py)."""
+"""Audit: integrity chain, provenance and reproduction (pipeline/recording/integrity.py, pipeline/audit.py)."""
 
 from __future__ import annotations
 
@@ -15,12 +15,12 @@ from pathlib import Path
 import pytest
 from session_tools import Msg, edit_json, record_session, rewrite_mcap
 
-from pipeline.audit import audit, format_report
-from pipeline.cli import main
-from pipeline.integrity import GENESIS, INTEGRITY_FORMAT, verify
-from pipeline.recording import open_recording
-from pipeline.registry import make_plugin_manager
-from pipeline.replay import replay_session
+from crossfield.audit import audit, format_report
+from crossfield.cli import main
+from crossfield.recording.integrity import GENESIS, INTEGRITY_FORMAT, verify
+from crossfield.recording.reader import open_recording
+from crossfield.registry import make_plugin_manager
+from crossfield.replay import replay_session
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -187,7 +187,7 @@ def test_a_log_line_the_replay_cannot_see_is_a_note_not_a_failure(recorded, tmp_
     lists it as a note and passes."""
     from foxglove_schemas_protobuf.Log_pb2 import Log
 
-    from pipeline.recorder import log_message, protobuf_schema
+    from crossfield.recording.recorder import log_message, protobuf_schema
 
     def add(ms):
         at = next(k for k, m in enumerate(ms) if m.topic == "/reference")
@@ -240,7 +240,7 @@ def test_audit_of_a_replay_names_the_parent(recorded, tmp_path):
 
 def crossfield_command() -> list[str]:
     script = Path(sys.executable).with_name("crossfield")
-    return [str(script)] if script.exists() else [sys.executable, "-m", "pipeline.cli"]
+    return [str(script)] if script.exists() else [sys.executable, "-m", "crossfield.cli"]
 
 
 def count_images(path: Path) -> int:

@@ -32,12 +32,12 @@ import numpy as np
 import pytest
 from pypylon import pylon
 
-from pipeline.calibration_io import write_stereo_calibration
-from pipeline.errors import ConfigError, PluginError
-from pipeline.hookspecs import hookimpl
-from pipeline.registry import get_implementation, make_plugin_manager
-from plugins.acquire_basler import BaslerStereoSource, select_device
-from plugins.acquire_simulator import SimulatorSource
+from crossfield.camera.calibration_io import write_stereo_calibration
+from crossfield.errors import ConfigError, PluginError
+from crossfield.hookspecs import hookimpl
+from crossfield.registry import get_implementation, make_plugin_manager
+from crossfield.plugins.acquire_basler import BaslerStereoSource, select_device
+from crossfield.plugins.acquire_simulator import SimulatorSource
 
 N_FRAMES = 3
 SEED = 5
@@ -306,7 +306,7 @@ def test_select_device_by_serial_or_user_id():
 def test_basler_is_registered_and_says_how_to_install_pypylon(monkeypatch, tmp_path):
     pm = make_plugin_manager()
     impl = get_implementation(pm, "acquire", "basler")
-    assert impl.plugin == "plugins.acquire_basler"
+    assert impl.plugin == "crossfield.plugins.acquire_basler"
     monkeypatch.setitem(sys.modules, "pypylon", None)  # as if pypylon were not installed
     with pytest.raises(PluginError, match=r"install crossfield\[basler\]"):
         impl.create({"upper": "a", "lower": "b", "calibration": str(tmp_path / "c.yml")})
@@ -344,8 +344,8 @@ def test_session_over_emulated_cameras_reports_what_the_simulator_source_reports
     acquire = simulator; the reports agree in every measured number."""
     import json
 
-    from pipeline.config import parse_config
-    from pipeline.runner import run_session
+    from crossfield.config import parse_config
+    from crossfield.runner import run_session
 
     root, frames, simulator = station
     common = {"record": False, "rerun": False, "output_dir": str(tmp_path)}

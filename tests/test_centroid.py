@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 from synthetic_targets import Ellipse, coverage, distractors, random_targets, render
 
-from pipeline.errors import ConfigError
-from pipeline.registry import implementations, make_plugin_manager
-from pipeline.types import CentroidSet, StereoFrame
-from plugins._blobs import BlobDetector, DetectorOptions, estimate_background
-from plugins.centroid_weighted import weighted_centroid
+from crossfield.errors import ConfigError
+from crossfield.registry import implementations, make_plugin_manager
+from crossfield.types import CentroidSet, StereoFrame
+from crossfield.imaging.blobs import BlobDetector, DetectorOptions, estimate_background
+from crossfield.plugins.centroid_weighted import weighted_centroid
 
 IMPLEMENTATIONS = implementations(make_plugin_manager(), "centroid")
 NAMES = sorted(IMPLEMENTATIONS)

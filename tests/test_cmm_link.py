@@ -13,22 +13,22 @@ import numpy as np
 import pytest
 from cmm_plan import LABELS, PLAN_TOML, make_plan, make_probes
 
-from pipeline.cmm_formats import (
+from crossfield.cmm.formats import (
     IppDmeDecoder,
     PcDmisDecoder,
     PlainLineFramer,
     encode_ippdme_event,
     encode_pcdmis,
 )
-from pipeline.errors import ReferenceImportError
-from pipeline.romer_protocol import OVERLONG, PARTIAL, SENTENCE, Frame, LineDecoder, ProbeRecord, Rejection
-from pipeline.simulator.arm import SimulatedArm, bad_checksum
-from pipeline.simulator.ippdme_server import SimulatedIppDmeServer
-from plugins.reference_romer_serial import RomerSerialReference
+from crossfield.errors import ReferenceImportError
+from crossfield.cmm.protocol import OVERLONG, PARTIAL, SENTENCE, Frame, LineDecoder, ProbeRecord, Rejection
+from crossfield.simulator.arm import SimulatedArm, bad_checksum
+from crossfield.simulator.ippdme_server import SimulatedIppDmeServer
+from crossfield.plugins.reference_romer_serial import RomerSerialReference
 
 ROOT = Path(__file__).resolve().parents[1]
 ROMER_SIM = (
-    "import sys; from pipeline.simulator.romer_sim import main_romer_sim; "
+    "import sys; from crossfield.simulator.romer_sim import main_romer_sim; "
     "sys.exit(main_romer_sim(sys.argv[1:]))"
 )
 

@@ -7,11 +7,11 @@ import json
 import pytest
 from session_tools import edit_json, record_session, rewrite_mcap
 
-from pipeline.cli import main
-from pipeline.compare import compare, format_table
-from pipeline.recording import open_recording
-from pipeline.registry import make_plugin_manager
-from pipeline.replay import replay_session
+from crossfield.cli import main
+from crossfield.compare import compare, format_table
+from crossfield.recording.reader import open_recording
+from crossfield.registry import make_plugin_manager
+from crossfield.replay import replay_session
 
 
 @pytest.fixture(scope="module")

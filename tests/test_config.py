@@ -4,11 +4,11 @@ import textwrap
 
 import pytest
 
-from pipeline.config import load_config, parse_config, with_overrides
-from pipeline.errors import ConfigError, PluginError
-from pipeline.hookspecs import hookimpl
-from pipeline.plan import load_plan, parse_plan
-from pipeline.registry import STAGES, get_implementation, implementations, make_plugin_manager
+from crossfield.config import load_config, parse_config, with_overrides
+from crossfield.errors import ConfigError, PluginError
+from crossfield.hookspecs import hookimpl
+from crossfield.plan import load_plan, parse_plan
+from crossfield.registry import STAGES, get_implementation, implementations, make_plugin_manager
 
 GOOD_PLAN = """
 [plan]

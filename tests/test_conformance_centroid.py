@@ -17,9 +17,9 @@ import os
 import numpy as np
 import pytest
 
-from pipeline.registry import implementations, make_plugin_manager
-from pipeline.simulator.scenarios import build_scene
-from pipeline.types import CAMERAS, CentroidSet
+from crossfield.registry import implementations, make_plugin_manager
+from crossfield.simulator.scenarios import build_scene
+from crossfield.types import CAMERAS, CentroidSet
 
 #: CROSSFIELD_CONFORMANCE_ENTRY_POINTS=1 also tests installed third-party plugins (docs/plugins.md).
 IMPLEMENTATIONS = implementations(

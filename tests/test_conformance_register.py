@@ -18,9 +18,9 @@ import os
 import numpy as np
 import pytest
 
-from pipeline.errors import RegistrationError
-from pipeline.registry import implementations, make_plugin_manager
-from pipeline.simulator.scenarios import build_scene
+from crossfield.errors import RegistrationError
+from crossfield.registry import implementations, make_plugin_manager
+from crossfield.simulator.scenarios import build_scene
 
 #: CROSSFIELD_CONFORMANCE_ENTRY_POINTS=1 also tests installed third-party plugins (docs/plugins.md).
 IMPLEMENTATIONS = implementations(

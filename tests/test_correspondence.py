@@ -1,4 +1,4 @@
-"""Matching camera points to CMM control points by rigid distances (pipeline.correspondence)."""
+"""Matching camera points to CMM control points by rigid distances (crossfield.correspondence)."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.correspondence import match_control_points
-from pipeline.errors import CorrespondenceError
+from crossfield.correspondence import match_control_points
+from crossfield.errors import CorrespondenceError
 
 IDS = tuple(f"C{k + 1}" for k in range(8))
 

@@ -15,10 +15,10 @@ from pathlib import Path
 import pytest
 from session_tools import record_session
 
-from pipeline.errors import PluginError
-from pipeline.recording import open_recording
-from pipeline.registry import make_plugin_manager
-from pipeline.replay import replay_session
+from crossfield.errors import PluginError
+from crossfield.recording.reader import open_recording
+from crossfield.registry import make_plugin_manager
+from crossfield.replay import replay_session
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "docs" / "examples" / "crossfield-squared-centroid"
@@ -57,7 +57,7 @@ def site(tmp_path_factory):
 def crossfield(site: Path, *args: str) -> subprocess.CompletedProcess:
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(site), str(REPO)]))
     return subprocess.run(
-        [sys.executable, "-m", "pipeline.cli", *args],
+        [sys.executable, "-m", "crossfield.cli", *args],
         env=env,
         capture_output=True,
         text=True,

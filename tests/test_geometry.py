@@ -1,11 +1,11 @@
-"""Reference-element fits (pipeline.geometry) against analytic cases."""
+"""Reference-element fits (crossfield.geometry) against analytic cases."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from pipeline.geometry import (
+from crossfield.geometry import (
     distance_point_line,
     distance_point_point,
     fit_cylinder_axis,
@@ -13,7 +13,7 @@ from pipeline.geometry import (
     perpendicular_basis,
     point_line_distance,
 )
-from pipeline.types import Line3D
+from crossfield.types import Line3D
 
 AXIS_DIR = np.array([0.25, -0.30, 0.92]) / np.linalg.norm([0.25, -0.30, 0.92])
 AXIS_POINT = np.array([612.0, -355.0, 140.0])

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from cmm_plan import LABELS, make_plan, make_probes
 
-from pipeline.errors import ReferenceImportError
-from pipeline.simulator.arm import SimulatedArm, bad_checksum
-from plugins.reference_romer_serial import RomerSerialReference, wall_clock
+from crossfield.errors import ReferenceImportError
+from crossfield.simulator.arm import SimulatedArm, bad_checksum
+from crossfield.plugins.reference_romer_serial import RomerSerialReference, wall_clock
 
 
 @pytest.fixture(scope="module")

@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.correspondence import match_control_points
-from pipeline.errors import MeasurementError
-from pipeline.geometry import perpendicular_basis
-from pipeline.plan import parse_plan
-from pipeline.registry import implementations, make_plugin_manager
-from pipeline.stages import Measurer
-from pipeline.types import CameraPoints, GroundTruth, Line3D, ProbedPoint, ReferenceData, Registration
-from plugins.register_svd import SvdRegistrar
+from crossfield.correspondence import match_control_points
+from crossfield.errors import MeasurementError
+from crossfield.geometry import perpendicular_basis
+from crossfield.plan import parse_plan
+from crossfield.registry import implementations, make_plugin_manager
+from crossfield.stages import Measurer
+from crossfield.types import CameraPoints, GroundTruth, Line3D, ProbedPoint, ReferenceData, Registration
+from crossfield.plugins.register_svd import SvdRegistrar
 
 R_GC = Rotation.from_rotvec([0.55, -0.42, 2.35]).as_matrix()  # camera -> global
 T_GC = np.array([842.6, -415.3, 318.9])

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from plugins._pairing import ArrivalPairer, BlockCounter, GrabbedFrame, IncidentLog, pair_skew_ns
+from crossfield.camera.pairing import ArrivalPairer, BlockCounter, GrabbedFrame, IncidentLog, pair_skew_ns
 
 MS = 1_000_000
 

@@ -6,11 +6,11 @@ import re
 import numpy as np
 import pytest
 
-from pipeline.cli import main
-from pipeline.config import parse_config
-from pipeline.registry import make_plugin_manager
-from pipeline.runner import run_session
-from pipeline.simulator.scenarios import TABLE3_ACTUAL_MM
+from crossfield.cli import main
+from crossfield.config import parse_config
+from crossfield.registry import make_plugin_manager
+from crossfield.runner import run_session
+from crossfield.simulator.scenarios import TABLE3_ACTUAL_MM
 
 
 def run(tmp_path, **stages):

@@ -1,7 +1,7 @@
 """The MCAP recorder and its reader, on synthetic stage outputs.
 
 A session is driven through a plugin manager's observer hooks; the file is
-then read back with the mcap reader (pipeline.recording) and checked against
+then read back with the mcap reader (crossfield.recording.reader) and checked against
 what was sent: bit-exact images and serial bytes, schemas, JSON Schema
 validity, transforms, metadata and attachments. The real ``rerun`` CLI
 converts the MCAP and verifies the .rrd; the converted recording is
@@ -28,11 +28,11 @@ import pytest
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from scipy.spatial.transform import Rotation
 
-from pipeline.calibration_io import stereo_calibration_from_yaml
-from pipeline.config import load_config, parse_config
-from pipeline.errors import RecordingError
-from pipeline.plan import parse_plan
-from pipeline.recorder import (
+from crossfield.camera.calibration_io import stereo_calibration_from_yaml
+from crossfield.config import load_config, parse_config
+from crossfield.errors import RecordingError
+from crossfield.plan import parse_plan
+from crossfield.recording.recorder import (
     JSON_SCHEMAS,
     McapRecorder,
     calibration_yaml,
@@ -41,10 +41,10 @@ from pipeline.recorder import (
     recorded_topics,
     toml_text,
 )
-from pipeline.recording import open_recording
-from pipeline.registry import make_plugin_manager
-from pipeline.session import FrameResult, SessionInfo, SessionSummary, summarise
-from pipeline.types import (
+from crossfield.recording.reader import open_recording
+from crossfield.registry import make_plugin_manager
+from crossfield.session import FrameResult, SessionInfo, SessionSummary, summarise
+from crossfield.types import (
     CameraIntrinsics,
     CameraPoints,
     CentroidSet,
@@ -183,7 +183,7 @@ class Synthetic:
                 },
                 "register": {
                     "name": "svd",
-                    "plugin": "plugins.register_svd",
+                    "plugin": "crossfield.plugins.register_svd",
                     "package": "crossfield",
                     "version": "0.1.0",
                 },
@@ -680,9 +680,9 @@ sys.path.insert(0, {root!r})
 sys.path.insert(0, {tests!r})
 from pathlib import Path
 from test_recording import Synthetic
-from pipeline.recorder import McapRecorder
-from pipeline.registry import make_plugin_manager
-from pipeline.session import FrameResult
+from crossfield.recording.recorder import McapRecorder
+from crossfield.registry import make_plugin_manager
+from crossfield.session import FrameResult
 out = Path({out!r})
 s = Synthetic(out)
 pm = make_plugin_manager(builtins=False, extra=[McapRecorder(out / "session.mcap")])
@@ -740,7 +740,7 @@ def test_an_unclosed_recorder_is_finished_at_exit(tmp_path):
         f"""
         import sys
         sys.path.insert(0, {str(ROOT)!r})
-        from pipeline.recorder import McapRecorder
+        from crossfield.recording.recorder import McapRecorder
         recorder = McapRecorder({str(tmp_path / "s.mcap")!r})
         recorder.on_log(level="info", message="no close()", timestamp_ns=5)
         """

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from cmm_plan import LABELS, make_plan
 
-from pipeline.errors import ConfigError, ReferenceImportError
-from pipeline.registry import get_implementation, make_plugin_manager
-from plugins.reference_csv import CsvReference
-from plugins.reference_pcdmis_xyz import PcDmisXyzReference
-from plugins.reference_spatialanalyzer import SpatialAnalyzerReference
+from crossfield.errors import ConfigError, ReferenceImportError
+from crossfield.registry import get_implementation, make_plugin_manager
+from crossfield.plugins.reference_csv import CsvReference
+from crossfield.plugins.reference_pcdmis_xyz import PcDmisXyzReference
+from crossfield.plugins.reference_spatialanalyzer import SpatialAnalyzerReference
 
 
 @pytest.fixture(scope="module")

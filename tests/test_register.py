@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.errors import ConfigError, RegistrationError
-from pipeline.registry import implementations, make_plugin_manager
-from pipeline.stages import Registrar
+from crossfield.errors import ConfigError, RegistrationError
+from crossfield.registry import implementations, make_plugin_manager
+from crossfield.stages import Registrar
 
 PM = make_plugin_manager()
 REGISTRARS = implementations(PM, "register")

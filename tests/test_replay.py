@@ -10,12 +10,12 @@ import pytest
 from mcap.writer import Writer
 from session_tools import record_session, report_numbers
 
-from pipeline.cli import main
-from pipeline.errors import ConfigError
-from pipeline.integrity import file_sha256
-from pipeline.recording import open_recording
-from pipeline.registry import implementations, make_plugin_manager
-from pipeline.replay import load_recorded_session, replay_session
+from crossfield.cli import main
+from crossfield.errors import ConfigError
+from crossfield.recording.integrity import file_sha256
+from crossfield.recording.reader import open_recording
+from crossfield.registry import implementations, make_plugin_manager
+from crossfield.replay import load_recorded_session, replay_session
 
 #: Whole-chain tolerance on the simulator (mm): every characteristic's error
 #: against ground truth, for every centroid and register implementation

@@ -17,12 +17,12 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.config import parse_config
-from pipeline.errors import ConfigError
-from pipeline.plan import parse_plan
-from pipeline.registry import get_implementation, make_plugin_manager
-from pipeline.session import FrameResult, SessionInfo, SessionSummary, summarise
-from pipeline.types import (
+from crossfield.config import parse_config
+from crossfield.errors import ConfigError
+from crossfield.plan import parse_plan
+from crossfield.registry import get_implementation, make_plugin_manager
+from crossfield.session import FrameResult, SessionInfo, SessionSummary, summarise
+from crossfield.types import (
     CameraIntrinsics,
     CameraPoints,
     CharacteristicResult,
@@ -34,7 +34,8 @@ from pipeline.types import (
     RigidFit,
     StereoCalibration,
 )
-from plugins import report_document, report_html
+from crossfield.plugins import report_html
+from crossfield.report import document as report_document
 
 PLAN_NAME = 'Bracket <script>alert("x")</script> & co'
 EVIL_PROBLEM = "line 7: bad checksum <img src=x onerror=alert(1)>"
@@ -333,7 +334,7 @@ def test_characteristics_round_trip_exactly(summary, report):
         for key in fields:
             assert entry[key] == getattr(c, key), key  # exact: floats are written with repr
         assert entry["passed"] is c.passed
-        # independent check of the aggregation (pipeline.session.summarise)
+        # independent check of the aggregation (crossfield.session.summarise)
         values = MEASURED[c.name]
         assert entry["measured_mm"] == pytest.approx(np.mean(values), abs=1e-12)
         assert entry["std_mm"] == pytest.approx(np.std(values, ddof=1), rel=1e-12)
@@ -406,7 +407,7 @@ def test_registration_is_the_session_mean(summary, report):
     np.testing.assert_allclose(R, R_scipy, atol=1e-12)
     np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
     assert reg["det_R"] == pytest.approx(1.0, abs=1e-12)
-    # aggregated frame by frame (pipeline.aggregate): equal to the batch computation to rounding
+    # aggregated frame by frame (crossfield.aggregate): equal to the batch computation to rounding
     translations = np.array([r.fit.t for r in regs])
     np.testing.assert_allclose(reg["t_global_camera_mm"], translations.mean(axis=0), rtol=1e-14, atol=0)
     np.testing.assert_allclose(reg["t_std_mm"], translations.std(axis=0, ddof=1), rtol=1e-12, atol=0)

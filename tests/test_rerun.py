@@ -23,14 +23,14 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.cli import main
-from pipeline.config import parse_config
-from pipeline.errors import ConfigError, RecordingError
-from pipeline.geometry import fit_cylinder_axis
-from pipeline.hookspecs import hookimpl
-from pipeline.recording import open_recording
-from pipeline.registry import make_plugin_manager
-from pipeline.rerun_blueprint import (
+from crossfield.cli import main
+from crossfield.config import parse_config
+from crossfield.errors import ConfigError, RecordingError
+from crossfield.geometry import fit_cylinder_axis
+from crossfield.hookspecs import hookimpl
+from crossfield.recording.reader import open_recording
+from crossfield.registry import make_plugin_manager
+from crossfield.viz.blueprint import (
     VIEW_3D,
     VIEW_CAMERA,
     VIEW_DEVIATION,
@@ -38,11 +38,11 @@ from pipeline.rerun_blueprint import (
     VIEW_RESIDUALS,
     station_eye,
 )
-from pipeline.rerun_log import COLOURS, RESIDUAL_SCALE, RerunLogger, characteristic_segment
-from pipeline.rerun_mcap import log_recording
-from pipeline.runner import run_session
-from pipeline.types import Line3D
-from pipeline.view import HeadlessViewer, png_is_blank, rerun_executable
+from crossfield.viz.rerun_log import COLOURS, RESIDUAL_SCALE, RerunLogger, characteristic_segment
+from crossfield.viz.rerun_mcap import log_recording
+from crossfield.runner import run_session
+from crossfield.types import Line3D
+from crossfield.viz.view import HeadlessViewer, png_is_blank, rerun_executable
 
 FRAMES = 3
 
@@ -335,7 +335,7 @@ def test_station_eye_looks_across_the_scene_plane_from_slightly_above():
 
 def test_fitted_axis_is_the_measurement_plugins_fit(sim):
     summary, _ = sim
-    from pipeline.rerun_log import fit_reference_axes
+    from crossfield.viz.rerun_log import fit_reference_axes
 
     probes = np.array([p.xyz for p in summary.reference.labelled("L3") if p.label != "L3"])
     sigma = max(p.sigma_mm for p in summary.reference.labelled("L3"))
@@ -481,7 +481,7 @@ def test_view_web_serves_the_web_viewer_on_localhost(sim):
     import time
     import urllib.request
 
-    from pipeline.view import free_port
+    from crossfield.viz.view import free_port
 
     _, folder = sim
     port = free_port()
@@ -509,11 +509,11 @@ def test_view_web_serves_the_web_viewer_on_localhost(sim):
 
 
 def test_run_view_without_a_display_is_a_clear_error(monkeypatch, capsys, tmp_path):
-    from pipeline.view import free_port
+    from crossfield.viz.view import free_port
 
     for name in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET"):
         monkeypatch.delenv(name, raising=False)
-    monkeypatch.setattr("pipeline.view.LIVE_VIEWER_PORT", free_port())
+    monkeypatch.setattr("crossfield.viz.view.LIVE_VIEWER_PORT", free_port())
     status = main(["run", "--frames", "1", "-o", str(tmp_path), "--no-record", "--no-rerun", "-q", "--view"])
     err = capsys.readouterr().err
     assert status == 2

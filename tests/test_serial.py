@@ -10,12 +10,12 @@ import time
 import numpy as np
 import pytest
 
-import plugins.reference_csv as reference_csv
-import plugins.reference_romer_serial as reference_romer_serial
-from pipeline.errors import ConfigError, ReferenceImportError
-from pipeline.plan import parse_plan
-from pipeline.registry import get_implementation, make_plugin_manager
-from pipeline.romer_protocol import (
+import crossfield.plugins.reference_csv as reference_csv
+import crossfield.plugins.reference_romer_serial as reference_romer_serial
+from crossfield.errors import ConfigError, ReferenceImportError
+from crossfield.plan import parse_plan
+from crossfield.registry import get_implementation, make_plugin_manager
+from crossfield.cmm.protocol import (
     NOISE,
     OVERLONG,
     PARTIAL,
@@ -28,7 +28,7 @@ from pipeline.romer_protocol import (
     crc16,
     encode_point,
 )
-from pipeline.simulator.arm import (
+from crossfield.simulator.arm import (
     SimulatedArm,
     bad_checksum,
     dropped,
@@ -37,8 +37,8 @@ from pipeline.simulator.arm import (
     truncated,
     with_noise,
 )
-from plugins.reference_csv import CsvReference
-from plugins.reference_romer_serial import RomerSerialReference
+from crossfield.plugins.reference_csv import CsvReference
+from crossfield.plugins.reference_romer_serial import RomerSerialReference
 
 PLAN_TOML = """
 [plan]

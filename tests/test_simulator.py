@@ -4,10 +4,10 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.simulator.optics import pixel_rays, project
-from pipeline.simulator.render import SensorModel, add_noise, render_disc
-from pipeline.simulator.scenarios import TABLE3_ACTUAL_MM, build_scene, station_calibration
-from pipeline.types import CameraIntrinsics
+from crossfield.simulator.optics import pixel_rays, project
+from crossfield.simulator.render import SensorModel, add_noise, render_disc
+from crossfield.simulator.scenarios import TABLE3_ACTUAL_MM, build_scene, station_calibration
+from crossfield.types import CameraIntrinsics
 
 
 def pinhole(dist=(0, 0, 0, 0, 0)):

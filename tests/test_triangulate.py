@@ -11,10 +11,10 @@ import cv2
 import numpy as np
 import pytest
 
-import plugins.triangulate_epipolar as epipolar
-from pipeline.errors import ConfigError
-from pipeline.registry import get_implementation, make_plugin_manager
-from pipeline.types import CameraIntrinsics, CentroidSet, StereoCalibration, StereoCentroids
+import crossfield.plugins.triangulate_epipolar as epipolar
+from crossfield.errors import ConfigError
+from crossfield.registry import get_implementation, make_plugin_manager
+from crossfield.types import CameraIntrinsics, CentroidSet, StereoCalibration, StereoCentroids
 
 SIZE = (1626, 1236)
 

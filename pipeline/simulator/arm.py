@@ -41,9 +41,9 @@ from typing import Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
-from pipeline.cmm_formats import encode_pcdmis
-from pipeline.romer_protocol import encode_point
-from .scene import ArmProbe  # noqa: F401  (re-exported for the tools that build probes)
+from crossfield.cmm.formats import encode_pcdmis
+from crossfield.cmm.protocol import encode_point
+from crossfield.simulator.scene import ArmProbe  # noqa: F401  (re-exported for the tools that build probes)
 
 #: termios speed set on the slave before a client opens it; pyserial's
 #: open() replaces it, which tells the arm that the port is configured.

@@ -27,7 +27,7 @@ from typing import Iterable, Iterator, Mapping, Sequence
 
 import numpy as np
 
-from pipeline.cmm_formats import encode_ippdme_event
+from crossfield.cmm.formats import encode_ippdme_event
 
 _COMMAND = re.compile(r"(?P<tag>[0-9]{5}|E[0-9]{4})\s+(?P<name>[A-Za-z][A-Za-z0-9.]*)\((?P<args>.*)\)\s*")
 _ACCEPTED = {"StartSession", "EnableUser", "OnPtMeasReport", "EndSession", "DisableUser"}

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..types import CameraIntrinsics
+from crossfield.types import CameraIntrinsics
 
 
 def _coeffs(intrinsics: CameraIntrinsics) -> tuple[float, float, float, float, float]:

@@ -18,8 +18,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..types import CameraIntrinsics
-from .optics import pixel_rays, project
+from crossfield.types import CameraIntrinsics
+from crossfield.simulator.optics import pixel_rays, project
 
 
 @dataclass(frozen=True)

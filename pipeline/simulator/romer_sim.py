@@ -24,9 +24,9 @@ from typing import Sequence
 
 import numpy as np
 
-from pipeline.errors import CrossfieldError
-from pipeline.plan import load_plan
-from pipeline.simulator.arm import ArmProbe, SimulatedArm, bad_checksum, probes_from_points
+from crossfield.errors import CrossfieldError
+from crossfield.plan import load_plan
+from crossfield.simulator.arm import ArmProbe, SimulatedArm, bad_checksum, probes_from_points
 
 
 def _index_value(text: str, kind=float) -> tuple[int, float]:
@@ -72,7 +72,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def _probes(args: argparse.Namespace, rng: np.random.Generator) -> list[ArmProbe]:
     if args.scenario:
-        from pipeline.simulator.scenarios import build_scene  # the station simulator
+        from crossfield.simulator.scenarios import build_scene  # the station simulator
 
         try:
             scene = build_scene(args.scenario, arm_sigma_mm=args.sigma)
@@ -116,7 +116,7 @@ def main_romer_sim(argv: Sequence[str] | None = None) -> int:
         return 2
     bursts = dict(args.burst)
     if args.format == "ippdme":
-        from pipeline.simulator.ippdme_server import SimulatedIppDmeServer
+        from crossfield.simulator.ippdme_server import SimulatedIppDmeServer
 
         host, _, port = args.tcp.rpartition(":")
         device = SimulatedIppDmeServer(

@@ -16,10 +16,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..plan import parse_plan
-from ..types import CameraIntrinsics, Line3D, StereoCalibration
-from .optics import project
-from .scene import Cylinder, Scene, Target
+from crossfield.plan import parse_plan
+from crossfield.types import CameraIntrinsics, Line3D, StereoCalibration
+from crossfield.simulator.optics import project
+from crossfield.simulator.scene import Cylinder, Scene, Target
 
 SCENARIOS = ("station", "table3")
 

@@ -1,6 +1,6 @@
 """The simulated station: stereo rig, targets, CMM arm, ground truth.
 
-A :class:`Scene` is built by :func:`pipeline.simulator.scenarios.build_scene`.
+A :class:`Scene` is built by :func:`crossfield.simulator.scenarios.build_scene`.
 It is deterministic: the geometry comes from the scenario, the noise from
 the ``rng`` handed to :meth:`Scene.render_pair` and :meth:`Scene.arm_probes`.
 All target geometry is held in the upper-camera frame (mm); the global
@@ -15,9 +15,9 @@ from typing import Mapping
 
 import numpy as np
 
-from ..plan import MeasurementPlan
-from ..types import CAMERAS, GroundTruth, Line3D, StereoCalibration, StereoFrame
-from .render import DiscImage, SensorModel, add_noise, compose_clean_image, render_disc
+from crossfield.plan import MeasurementPlan
+from crossfield.types import CAMERAS, GroundTruth, Line3D, StereoCalibration, StereoFrame
+from crossfield.simulator.render import DiscImage, SensorModel, add_noise, compose_clean_image, render_disc
 
 
 @dataclass(frozen=True)
@@ -119,7 +119,7 @@ class Scene:
     @cached_property
     def clean_images(self) -> dict[str, np.ndarray]:
         """Noise-free (height, width) float32 DN image of each camera."""
-        from .render import background_image
+        from crossfield.simulator.render import background_image
 
         images = {}
         for cam in CAMERAS:

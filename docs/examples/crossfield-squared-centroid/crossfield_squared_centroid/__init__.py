@@ -2,8 +2,8 @@
 
 Registers the centroid implementation ``squared`` through the ``crossfield``
 entry-point group (see pyproject.toml). Only crossfield's public API is
-used: ``pipeline.hookspecs.hookimpl`` and the data class
-``pipeline.types.CentroidSet``.
+used: ``crossfield.hookspecs.hookimpl`` and the data class
+``crossfield.types.CentroidSet``.
 """
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from pipeline.hookspecs import hookimpl
-from pipeline.types import CentroidSet, RejectedBlob
+from crossfield.hookspecs import hookimpl
+from crossfield.types import CentroidSet, RejectedBlob
 
 
 class SquaredCentroids:

@@ -1,6 +1,6 @@
 """The session report as plain JSON data (``report.json``), shared by the report writers.
 
-:func:`build_report` turns a :class:`pipeline.session.SessionSummary` into
+:func:`build_report` turns a :class:`crossfield.session.SessionSummary` into
 JSON-able data: dicts, lists, str, int, bool, None and Python floats. Floats
 are never rounded; ``json.dumps`` writes them with ``repr``, the shortest
 text that reads back to the same double, so an auditor can compare numbers
@@ -22,9 +22,9 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from pipeline.aggregate import project_to_rotation, rotation_angle  # noqa: F401 (re-exported)
-from pipeline.jsonable import matrix, plain, real, vector
-from pipeline.session import FrameResult, SessionSummary
+from crossfield.aggregate import project_to_rotation, rotation_angle  # noqa: F401 (re-exported)
+from crossfield.jsonable import matrix, plain, real, vector
+from crossfield.session import FrameResult, SessionSummary
 
 #: Identifies the layout of report.json; bump on incompatible changes.
 REPORT_FORMAT = "crossfield-report/1"
@@ -282,7 +282,7 @@ def dumps(report: Mapping[str, Any]) -> str:
 
 def load_schema() -> dict[str, Any]:
     """The JSON Schema of report.json (``pipeline/schemas/report.schema.json``)."""
-    text = resources.files("pipeline").joinpath("schemas/report.schema.json").read_text(encoding="utf-8")
+    text = resources.files("crossfield.recording").joinpath("schemas/report.schema.json").read_text(encoding="utf-8")
     return json.loads(text)
 
 

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from pipeline.types import RejectedBlob
+from crossfield.types import RejectedBlob
 
 #: Rejection reasons, in the order the tests are applied.
 REASONS: tuple[str, ...] = ("touches_border", "too_small", "too_large", "saturated", "no_signal", "not_round")

@@ -23,11 +23,11 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import ReferenceImportError
-from pipeline.plan import MeasurementPlan
-from pipeline.romer_protocol import show
-from pipeline.stages import BytesSink
-from pipeline.types import ProbedPoint, ReferenceData
+from crossfield.errors import ReferenceImportError
+from crossfield.plan import MeasurementPlan
+from crossfield.cmm.protocol import show
+from crossfield.stages import BytesSink
+from crossfield.types import ProbedPoint, ReferenceData
 
 MM_PER_INCH = 25.4
 

@@ -32,7 +32,7 @@ from mcap.records import Attachment, Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap_protobuf.decoder import DecoderFactory
 
-from .errors import RecordingError
+from crossfield.errors import RecordingError
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 

@@ -1,6 +1,6 @@
 """Other CMM line formats, as framer + decoder pairs for the reference stage.
 
-Besides crossfield's own CFP sentences (:mod:`pipeline.romer_protocol`),
+Besides crossfield's own CFP sentences (:mod:`crossfield.cmm.protocol`),
 the ``romer-serial`` reference plugin reads (``docs/serial-protocol.md``):
 
 * ``pcdmis``: PC-DMIS "Generic CMM" style lines, one point per line, either
@@ -23,7 +23,7 @@ import re
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
-from .romer_protocol import (
+from crossfield.cmm.protocol import (
     MAX_LINE_BYTES,
     OVERLONG,
     PARTIAL,
@@ -45,7 +45,7 @@ class PlainLineFramer:
     stripped), for formats without a start character. Lines longer than
     ``max_line_bytes`` are reported once as ``overlong``; a last line without
     line end is ``partial``. Independent of chunking; line numbers as in
-    :class:`pipeline.romer_protocol.LineFramer`.
+    :class:`crossfield.cmm.protocol.LineFramer`.
     """
 
     def __init__(self, max_line_bytes: int = MAX_LINE_BYTES):

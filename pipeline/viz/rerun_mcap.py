@@ -1,7 +1,7 @@
 """Show a recorded session (``session.mcap``) with the full Rerun logger.
 
-The recorded stage results are read back (``pipeline.recording``) into the
-pipeline's data classes and handed to a :class:`pipeline.rerun_log.RerunLogger`
+The recorded stage results are read back (``crossfield.recording.reader``) into the
+pipeline's data classes and handed to a :class:`crossfield.viz.rerun_log.RerunLogger`
 through the same observer hooks, in the order they were recorded:
 ``on_session_start``, ``on_reference``, per pair ``on_frame`` (images) and
 ``on_frame_done`` (centroids, points, registration, measurement, error),
@@ -10,11 +10,11 @@ exactly what the live ``session.rrd`` shows, for any recording, including
 one whose ``.rrd`` was not written.
 
 This is display only: nothing is recomputed (that is ``crossfield replay``,
-:mod:`pipeline.replay`), except the session summary for the report
-document, which :func:`pipeline.session.summarise` aggregates from the
+:mod:`crossfield.replay`), except the session summary for the report
+document, which :func:`crossfield.session.summarise` aggregates from the
 recorded per-pair characteristics exactly as the live session did. The
 reference axes drawn are fitted to the recorded CMM points
-(:func:`pipeline.rerun_log.fit_reference_axes`).
+(:func:`crossfield.viz.rerun_log.fit_reference_axes`).
 """
 
 from __future__ import annotations
@@ -30,16 +30,16 @@ import numpy as np
 from foxglove_schemas_protobuf.Log_pb2 import Log
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
-from .aggregate import SessionAccumulator
-from .calibration_io import stereo_calibration_from_yaml
-from .config import parse_config
-from .errors import CrossfieldError, RecordingError
-from .plan import parse_plan
-from .recording import Recording, open_recording
-from .replay import ground_truth_from_doc
-from .rerun_log import RerunLogger
-from .session import FrameResult, SessionInfo, SessionSummary
-from .types import (
+from crossfield.aggregate import SessionAccumulator
+from crossfield.camera.calibration_io import stereo_calibration_from_yaml
+from crossfield.config import parse_config
+from crossfield.errors import CrossfieldError, RecordingError
+from crossfield.plan import parse_plan
+from crossfield.recording.reader import Recording, open_recording
+from crossfield.replay import ground_truth_from_doc
+from crossfield.viz.rerun_log import RerunLogger
+from crossfield.session import FrameResult, SessionInfo, SessionSummary
+from crossfield.types import (
     CAMERAS,
     CameraPoints,
     CentroidSet,

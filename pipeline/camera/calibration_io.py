@@ -17,7 +17,7 @@ cameras) or ``image_width1`` / ``image_height1`` / ``image_width2`` /
 does not store; without them the caller must supply the size (the folder
 source takes it from the first image pair).
 
-Every error is a :class:`pipeline.errors.ConfigError` naming the file and
+Every error is a :class:`crossfield.errors.ConfigError` naming the file and
 the key at fault.
 """
 
@@ -29,8 +29,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .errors import ConfigError
-from .types import CameraIntrinsics, StereoCalibration
+from crossfield.errors import ConfigError
+from crossfield.types import CameraIntrinsics, StereoCalibration
 
 #: Keys a stereo calibration must provide (across the file or files given).
 REQUIRED_KEYS: tuple[str, ...] = ("M1", "D1", "M2", "D2", "R", "T")

@@ -5,7 +5,7 @@
     crossfield view SESSION --screenshot out.png               render headless, write a PNG, report view errors
 
 An MCAP recording is shown with the full logger: its recorded stage results
-are fed to :class:`pipeline.rerun_log.RerunLogger` (:mod:`pipeline.rerun_mcap`)
+are fed to :class:`crossfield.viz.rerun_log.RerunLogger` (:mod:`crossfield.viz.rerun_mcap`)
 into an ``.rrd`` (a temporary one unless ``--save``), which the viewer opens
 with the default blueprint. A folder means its ``session.rrd``, else its
 ``session.mcap``.
@@ -35,7 +35,7 @@ from typing import Any, Self
 
 import numpy as np
 
-from .errors import CrossfieldError
+from crossfield.errors import CrossfieldError
 
 #: Environment of every viewer we start: no analytics prompt, offline, and
 #: only error-level messages as pop-up notifications (they would be in the picture).
@@ -133,7 +133,7 @@ class HeadlessViewer:
 
     @property
     def url(self) -> str:
-        """The viewer's gRPC proxy: where a :class:`pipeline.rerun_log.RerunLogger` streams to."""
+        """The viewer's gRPC proxy: where a :class:`crossfield.viz.rerun_log.RerunLogger` streams to."""
         return f"rerun+http://127.0.0.1:{self.port}/proxy"
 
     def start(self) -> HeadlessViewer:
@@ -355,10 +355,10 @@ def resolve_session_path(path: str | Path) -> Path:
 def mcap_to_rrd(mcap_path: str | Path, rrd_path: str | Path, *, image_every: int | None = None) -> Any:
     """Write the recorded session ``mcap_path`` through the full logger into ``rrd_path``.
 
-    Returns the session summary (:func:`pipeline.rerun_mcap.log_recording`).
+    Returns the session summary (:func:`crossfield.viz.rerun_mcap.log_recording`).
     """
-    from .rerun_log import RerunLogger
-    from .rerun_mcap import log_recording
+    from crossfield.viz.rerun_log import RerunLogger
+    from crossfield.viz.rerun_mcap import log_recording
 
     if image_every is not None and image_every < 0:
         raise CrossfieldError(f"--image-every {image_every}: expected 0 (no images) or more")

@@ -2,7 +2,7 @@
 
 A native Rerun recording (rerun-sdk 0.41, its own ``RecordingStream``, not
 the global one) saved to ``session.rrd`` and/or streamed live to a viewer,
-with the default blueprint of :mod:`pipeline.rerun_blueprint`. What each
+with the default blueprint of :mod:`crossfield.viz.blueprint`. What each
 view shows: ``docs/visualisation.md``.
 
 Entity tree (3-D positions in **metres**, as in the Foxglove messages of the
@@ -63,12 +63,12 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
-from . import rerun_blueprint as bp
-from .config import SESSION_DEFAULTS
-from .errors import ConfigError, RecordingError
-from .geometry import AxisFit, fit_cylinder_axis, fit_line
-from .hookspecs import hookimpl
-from .types import CAMERAS, CameraIntrinsics, StereoCalibration
+from crossfield.viz import blueprint as bp
+from crossfield.config import SESSION_DEFAULTS
+from crossfield.errors import ConfigError, RecordingError
+from crossfield.geometry import AxisFit, fit_cylinder_axis, fit_line
+from crossfield.hookspecs import hookimpl
+from crossfield.types import CAMERAS, CameraIntrinsics, StereoCalibration
 
 APPLICATION_ID = "crossfield"
 
@@ -133,7 +133,7 @@ _LOG_LEVELS = {
 
 
 def default_blueprint(residual_scale: float = RESIDUAL_SCALE, eye: Any = None) -> Any:
-    """The default layout (:func:`pipeline.rerun_blueprint.default_blueprint`)."""
+    """The default layout (:func:`crossfield.viz.blueprint.default_blueprint`)."""
     return bp.default_blueprint(residual_scale=residual_scale, eye=eye)
 
 
@@ -172,7 +172,7 @@ def lower_in_upper(calibration: StereoCalibration) -> rr.Transform3D:
 def fit_reference_axes(plan: Any, reference: Any) -> dict[str, AxisFit]:
     """line id -> the axis fitted to its CMM probes (global frame, mm), for display.
 
-    The same fits as the measurement plugin ``plan`` (:mod:`pipeline.geometry`:
+    The same fits as the measurement plugin ``plan`` (:mod:`crossfield.geometry`:
     a least-squares cylinder or an orthogonal line, a-priori sigma the largest
     probe sigma); a line with too few probes, or whose fit fails, is left out.
     """
@@ -207,7 +207,7 @@ def characteristic_segment(
     """The segment (2, 3), mm, global frame, that a characteristic measures.
 
     point_point: a -> b. point_line: a -> its foot on the line (``line`` a
-    :class:`pipeline.types.Line3D`). depth (global Z of a): a -> (a_x, a_y, 0).
+    :class:`crossfield.types.Line3D`). depth (global Z of a): a -> (a_x, a_y, 0).
     None when an element is missing.
     """
     a = np.asarray(a, dtype=np.float64)

@@ -12,7 +12,7 @@ Layout (rerun-sdk 0.41 blueprint API, ``rerun.blueprint``)::
     +-------------------+--------------------+--------------------+
 
 The 3-D view shows the camera frusta but neither the images nor their 2-D
-overlays (they belong to the camera views). Entity paths: :mod:`pipeline.rerun_log`.
+overlays (they belong to the camera views). Entity paths: :mod:`crossfield.viz.rerun_log`.
 What each view shows: ``docs/visualisation.md``.
 """
 
@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 import rerun.blueprint as rrb
 
-from .types import CAMERAS
+from crossfield.types import CAMERAS
 
 WORLD = "world"
 IMAGE = {camera: f"world/camera/{camera}/image" for camera in CAMERAS}

@@ -53,11 +53,11 @@ from mcap.writer import CompressionType, Writer
 from mcap_protobuf.schema import build_file_descriptor_set
 from scipy.spatial.transform import Rotation
 
-from .errors import RecordingError
-from .hookspecs import hookimpl
-from .integrity import TOPIC_INTEGRITY, IntegrityChain
-from .jsonable import ints, plain, real, reals
-from .types import CAMERAS, CameraIntrinsics, CameraPoints, CentroidSet, GroundTruth, StereoCalibration
+from crossfield.errors import RecordingError
+from crossfield.hookspecs import hookimpl
+from crossfield.recording.integrity import TOPIC_INTEGRITY, IntegrityChain
+from crossfield.jsonable import ints, plain, real, reals
+from crossfield.types import CAMERAS, CameraIntrinsics, CameraPoints, CentroidSet, GroundTruth, StereoCalibration
 
 #: Identifies this layout; written into the ``crossfield.session`` metadata.
 RECORDING_FORMAT = "crossfield-mcap/1"
@@ -163,7 +163,7 @@ def _json_schema_text(name: str) -> str:
         filename = JSON_SCHEMAS[name]
     except KeyError:
         raise KeyError(f"unknown JSON schema {name!r}; known: {', '.join(JSON_SCHEMAS)}") from None
-    return resources.files("pipeline").joinpath("schemas", filename).read_text(encoding="utf-8")
+    return resources.files("crossfield.recording").joinpath("schemas", filename).read_text(encoding="utf-8")
 
 
 @functools.cache
@@ -184,7 +184,7 @@ def _json_channel(topic: str, schema_name: str) -> ChannelSpec:
 
 
 # --------------------------------------------------------------------------
-# JSON (no NaN: non-finite -> null; see pipeline.jsonable)
+# JSON (no NaN: non-finite -> null; see crossfield.jsonable)
 # --------------------------------------------------------------------------
 
 
@@ -508,11 +508,11 @@ def frame_status_doc(result: Any) -> dict[str, Any]:
 
 def calibration_yaml(calibration: StereoCalibration) -> str:
     """The stereo calibration as OpenCV FileStorage YAML (the ``calibration.yml``
-    attachment), written by :mod:`pipeline.calibration_io`: the keys OpenCV's
+    attachment), written by :mod:`crossfield.camera.calibration_io`: the keys OpenCV's
     ``stereo_calib`` sample writes (M1 D1 M2 D2 R T, 1 = upper, 2 = lower,
     plus R1 R2 P1 P2 Q from ``cv2.stereoRectify``) and the image size;
-    :func:`pipeline.calibration_io.stereo_calibration_from_yaml` reads it back."""
-    from .calibration_io import stereo_calibration_to_yaml
+    :func:`crossfield.camera.calibration_io.stereo_calibration_from_yaml` reads it back."""
+    from crossfield.camera.calibration_io import stereo_calibration_to_yaml
 
     try:
         return stereo_calibration_to_yaml(calibration)
@@ -574,7 +574,7 @@ def _crossfield_version(packages: Mapping[str, str]) -> str:
 
 def _metadata_record(doc: Mapping[str, Any], flat: Mapping[str, Any] | None = None) -> dict[str, str]:
     """An MCAP metadata record (str -> str): readable flat keys plus ``json``,
-    the exact document (what :mod:`pipeline.recording` returns)."""
+    the exact document (what :mod:`crossfield.recording.reader` returns)."""
     record = {}
     for k, v in (flat if flat is not None else doc).items():
         record[str(k)] = v if isinstance(v, str) else json.dumps(plain(v), ensure_ascii=False)
@@ -640,7 +640,7 @@ class _McapSink:
         self.chain.add_attachment(name, media_type, data)
 
     def _integrity_record(self, final: bool) -> None:
-        """Write the next /integrity record into the open chunk (pipeline/integrity.py)."""
+        """Write the next /integrity record into the open chunk (pipeline/recording/integrity.py)."""
         t = self.chain.latest_time_ns or time.time_ns()
         index = self.chain.index
         data = self.chain.record(final)
@@ -1027,7 +1027,7 @@ class McapRecorder:
             return
         t = self._now()
         try:
-            from plugins.report_document import build_report
+            from crossfield.report.document import build_report
 
             report = build_report(summary)
         except Exception as exc:  # noqa: BLE001 - the recording must still be finished

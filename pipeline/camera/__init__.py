@@ -1,0 +1,1 @@
+"""Cameras: calibration files (OpenCV FileStorage YAML) and stereo pairing of live frames."""

@@ -1,0 +1,1 @@
+"""Image processing shared by the centroid implementations: blob detection and its background model."""

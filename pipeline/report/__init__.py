@@ -1,0 +1,1 @@
+"""The session report document (report.json) shared by the report implementations."""

@@ -1,0 +1,1 @@
+"""Visualisation: the Rerun logger, its blueprint, MCAP -> Rerun, and the viewer commands."""
