@@ -143,3 +143,45 @@ def check_ratio(ratio: float) -> float:
 def residual_rms(residuals: np.ndarray) -> float:
     """sqrt(mean |r_i|^2) of (N, 3) residuals, mm (unweighted, as RigidFit defines it)."""
     return float(np.sqrt(np.mean(np.sum(residuals**2, axis=1))))
+
+
+def kabsch(
+    P: np.ndarray, Q: np.ndarray, w: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Weighted Kabsch / Arun fit, batched: ``Q ~ R @ P + t`` (paper Formulas (5)-(9)).
+
+    P, Q: (..., N, 3) mm corresponding points (camera, global); any leading
+    batch shape. w: (..., N) or (N,) non-negative weights (normalised here),
+    or None for equal weights. No validation: callers check their input
+    (:func:`validate_pairs`) once.
+
+    Returns (R, t, R_mirror, t_mirror): (..., 3, 3), (..., 3), the best proper
+    rotation with the determinant correction D = diag(1, 1, sign det(V U^T))
+    (Formula (8)), and the best improper orthogonal matrix (D with the last
+    sign flipped) for the one shared reflection decision (:func:`check_reflection`).
+    """
+    P = np.asarray(P, dtype=np.float64)
+    Q = np.asarray(Q, dtype=np.float64)
+    n = P.shape[-2]
+    w = np.full(P.shape[:-1], 1.0 / n) if w is None else np.broadcast_to(np.asarray(w, dtype=np.float64), P.shape[:-1])
+    w = w / w.sum(axis=-1, keepdims=True)
+    p_bar = np.einsum("...n,...nk->...k", w, P)  # weighted centroids
+    q_bar = np.einsum("...n,...nk->...k", w, Q)
+    M_c = P - p_bar[..., None, :]  # M'_i (camera, centred)
+    P_c = Q - q_bar[..., None, :]  # P'_i (global, centred)
+    H = np.einsum("...n,...ni,...nj->...ij", w, M_c, P_c)  # Formula (6)
+    U, _, Vt = np.linalg.svd(H)  # Formula (7)
+    V = np.swapaxes(Vt, -1, -2)
+    Ut = np.swapaxes(U, -1, -2)
+    d = np.sign(np.linalg.det(V @ Ut))
+    d = np.where(d == 0, 1.0, d)
+    D = np.zeros(d.shape + (3,))
+    D[..., 0] = 1.0
+    D[..., 1] = 1.0
+    D[..., 2] = d
+    R = (V * D[..., None, :]) @ Ut  # Formula (8): V D U^T
+    D[..., 2] = -d
+    R_mirror = (V * D[..., None, :]) @ Ut
+    t = q_bar - np.einsum("...ij,...j->...i", R, p_bar)  # Formula (9)
+    t_mirror = q_bar - np.einsum("...ij,...j->...i", R_mirror, p_bar)
+    return R, t, R_mirror, t_mirror
