@@ -3,13 +3,23 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import logging
+import os
+import signal
 import sys
-from typing import Sequence
+from collections.abc import Iterator
+from typing import TYPE_CHECKING, Sequence
 
-from crossfield.config import Config, load_config, with_overrides
+from crossfield.config import SIMULATOR_OPTIONS, Config, session_config
 from crossfield.errors import CrossfieldError
 from crossfield.registry import STAGES, implementations, make_plugin_manager
+
+if TYPE_CHECKING:
+    import pluggy
+
+logger = logging.getLogger(__name__)
 
 
 def _add_stage_flags(parser: argparse.ArgumentParser) -> None:
@@ -21,14 +31,36 @@ def _add_stage_flags(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _verbosity_flags() -> argparse.ArgumentParser:
+    """-v / -q of every command: the level of the ``crossfield`` loggers (:func:`configure_logging`)."""
+    flags = argparse.ArgumentParser(add_help=False)
+    flags.add_argument(
+        "-v", "--verbose", action="count", default=0,
+        help="log more: -v progress of the steps (INFO), -vv details (DEBUG)",
+    )
+    flags.add_argument(
+        "-q", "--quiet", action="count", default=0,
+        help="log only errors (and no progress display for run and replay)",
+    )
+    return flags
+
+
 def build_parser() -> argparse.ArgumentParser:
+    from crossfield import __version__
+
     parser = argparse.ArgumentParser(
         prog="crossfield",
         description="Local stereo vision registered to out-of-view CMM references (metrology pipeline).",
     )
+    parser.add_argument("--version", action="version", version=f"crossfield {__version__}")
+    verbosity = _verbosity_flags()
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    run = sub.add_parser("run", help="run a measurement session (default: the built-in simulator)")
+    def command(name: str, **kwargs: object) -> argparse.ArgumentParser:
+        """A subcommand; every one takes -v / -q."""
+        return sub.add_parser(name, parents=[verbosity], **kwargs)  # type: ignore[arg-type]
+
+    run = command("run", help="run a measurement session (default: the built-in simulator)")
     run.add_argument("-c", "--config", metavar="FILE", help="session config (TOML); defaults apply otherwise")
     run.add_argument("--scenario", help="simulator scenario: station or table3")
     run.add_argument("--frames", type=int, help="number of stereo pairs (simulator)")
@@ -38,7 +70,6 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--name", help="session folder name (default: time stamp and scenario)")
     run.add_argument("--no-record", action="store_true", help="do not write session.mcap")
     run.add_argument("--no-rerun", action="store_true", help="do not write session.rrd")
-    run.add_argument("-q", "--quiet", action="store_true", help="no progress display")
     run.add_argument(
         "--view", nargs="?", const="new", metavar="URL",
         help="stream the session live to a Rerun viewer: a new native viewer, or the running one at URL "
@@ -51,7 +82,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="run the simulated ROMER arm on a pseudo-terminal or TCP port (see romer-sim --help)",
     )
 
-    replay = sub.add_parser(
+    replay = command(
         "replay",
         help="re-run a recorded session from its raw inputs, optionally with other plugins",
         description="Re-run the session recorded in SESSION.mcap from its raw inputs (images, serial bytes, "
@@ -66,10 +97,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     replay.add_argument("--no-record", action="store_true", help="do not write an MCAP file")
     replay.add_argument("--no-rerun", action="store_true", help="do not write session.rrd")
-    replay.add_argument("-q", "--quiet", action="store_true", help="no progress display")
     _add_stage_flags(replay)
 
-    compare = sub.add_parser(
+    compare = command(
         "compare",
         help="compare two recorded sessions side by side (characteristics, registration, centroids)",
         description="Side by side: every characteristic, the registration (R, t, RMS, per-point residuals) "
@@ -80,7 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
     compare.add_argument("b", metavar="B.mcap")
     compare.add_argument("--json", action="store_true", help="machine-readable output")
 
-    audit = sub.add_parser(
+    audit = command(
         "audit",
         help="check a recorded session: integrity chain, provenance, reproduction by replay",
         description="Check a recorded session: (1) integrity: the SHA-256 chain over every message; "
@@ -92,7 +122,7 @@ def build_parser() -> argparse.ArgumentParser:
     audit.add_argument("--json", action="store_true", help="machine-readable output")
     audit.add_argument("--no-replay", action="store_true", help="skip the reproduction check")
 
-    view = sub.add_parser(
+    view = command(
         "view",
         help="show a session in the Rerun viewer (native, --web, or --screenshot PNG)",
         description="Open a session in the Rerun viewer with the crossfield blueprint. SESSION is a session.rrd, "
@@ -111,40 +141,35 @@ def build_parser() -> argparse.ArgumentParser:
         "the recorded session's rerun_image_every)",
     )
 
-    plugins = sub.add_parser("plugins", help="list every stage's registered implementations")
+    plugins = command("plugins", help="list every stage's registered implementations")
     plugins.add_argument("--json", action="store_true", help="machine-readable output")
     return parser
 
 
 def resolve_run_config(args: argparse.Namespace) -> Config:
-    """The config file (or defaults) with the command-line flags applied."""
-    config = load_config(args.config)
-    options = list(args.option)
-    acquire_plugin = args.acquire or config.stages["acquire"].plugin
-    for flag, key in (("scenario", "scenario"), ("frames", "frames"), ("seed", "seed")):
-        value = getattr(args, flag)
-        if value is not None:
-            if acquire_plugin != "simulator":
-                raise CrossfieldError(f"--{flag} applies to the simulator source, not to {acquire_plugin!r}")
-            options.append(f"acquire.{key}={json.dumps(value)}")
-    if args.plan:
-        options.append(f"session.plan={json.dumps(args.plan)}")
-    if args.output_dir:
-        options.append(f"session.output_dir={json.dumps(args.output_dir)}")
-    if args.name:
-        options.append(f"session.name={json.dumps(args.name)}")
-    if args.no_record:
-        options.append("session.record=false")
-    if args.no_rerun:
-        options.append("session.rerun=false")
-    plugins = {stage: getattr(args, stage) for stage in STAGES}
-    # The demo default: the serial plugin talks to the simulated arm.
-    reference_plugin = args.reference or config.stages["reference"].plugin
-    keeps_port = not args.reference or args.reference == config.stages["reference"].plugin
-    has_port = keeps_port and "port" in config.stages["reference"].options
-    if reference_plugin == "romer-serial" and acquire_plugin == "simulator" and not has_port:
-        options.append('reference.port="simulator"')
-    return with_overrides(config, plugins, options)
+    """The config file (or defaults) with the command-line flags applied
+    (:func:`crossfield.config.session_config`, shared with :func:`crossfield.run`)."""
+    return session_config(
+        args.config,
+        plugins={stage: getattr(args, stage) for stage in STAGES},
+        simulator={key: getattr(args, key) for key in SIMULATOR_OPTIONS},
+        session={
+            "plan": args.plan or None,
+            "output_dir": args.output_dir or None,
+            "name": args.name or None,
+            "record": False if args.no_record else None,
+            "rerun": False if args.no_rerun else None,
+        },
+        option_texts=args.option,
+        spell=lambda key: f"--{key}",
+    )
+
+
+def plugin_manager() -> "pluggy.PluginManager":
+    """The built-in plugins and the installed third-party ones (entry-point group ``crossfield``)."""
+    pm = make_plugin_manager(entry_points=True)
+    logger.debug("plugins registered: %s", ", ".join(sorted(name for name, _ in pm.list_name_plugin())))
+    return pm
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -152,7 +177,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     from crossfield.runner import run_session
 
     config = resolve_run_config(args)
-    pm = make_plugin_manager(entry_points=True)
+    logger.info(
+        "config %s: %s", config.source, ", ".join(f"{s}={config.stages[s].plugin}" for s in STAGES)
+    )
+    logger.debug("resolved config: %s", json.dumps(config.to_dict(), default=str))
+    pm = plugin_manager()
     frames = config.stages["acquire"].options.get("frames")
     observers = [] if args.quiet else [Progress(total=frames if isinstance(frames, int) else None)]
     live = None
@@ -164,7 +193,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         observers.append(live)
     summary = run_session(config, pm, observers=observers)
     for warning in live.warnings if live is not None else ():
-        print(f"crossfield: warning: {warning}", file=sys.stderr)
+        logger.warning("%s", warning)
     reporter = summary.info.plugins["report"]["name"]
     from crossfield.registry import get_implementation
 
@@ -177,7 +206,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_plugins(args: argparse.Namespace) -> int:
-    pm = make_plugin_manager(entry_points=True)
+    pm = plugin_manager()
     table = {
         stage: [
             {
@@ -209,7 +238,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from crossfield.registry import get_implementation
     from crossfield.replay import load_recorded_session, replay_session
 
-    pm = make_plugin_manager(entry_points=True)
+    pm = plugin_manager()
+    logger.info("replaying %s", args.recording)
     recorded = load_recorded_session(args.recording)
     total = None
     if recorded.complete:  # the summary's statistics give the count without reading the images
@@ -267,7 +297,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
 def cmd_audit(args: argparse.Namespace) -> int:
     from crossfield.audit import audit, format_report, to_json
 
-    report = audit(args.recording, make_plugin_manager(entry_points=True), reproduce=not args.no_replay)
+    report = audit(args.recording, plugin_manager(), reproduce=not args.no_replay)
     print(to_json(report) if args.json else format_report(report))
     return 0 if report.passed else 1
 
@@ -293,6 +323,52 @@ COMMANDS = {
 }
 
 
+def log_level(verbose: int = 0, quiet: int = 0) -> int:
+    """The logging level of ``-q`` (ERROR), no flag (WARNING), ``-v`` (INFO), ``-vv`` (DEBUG)."""
+    if quiet:
+        return logging.ERROR
+    return (logging.WARNING, logging.INFO, logging.DEBUG)[min(verbose, 2)]
+
+
+class _Formatter(logging.Formatter):
+    """``<logger>: <level>: <message>``, e.g. ``crossfield.cli: warning: ...``."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        return f"{record.name}: {record.levelname.lower()}: {record.getMessage()}" + (
+            "\n" + self.formatException(record.exc_info) if record.exc_info else ""
+        )
+
+
+@contextlib.contextmanager
+def logging_to_stderr(level: int) -> Iterator[None]:
+    """While a command runs, the ``crossfield`` loggers (one per module, named
+    ``crossfield.<module>``, and the device plugins' ``crossfield.<stage>.<name>``)
+    write records of ``level`` and above to stderr."""
+    root = logging.getLogger("crossfield")
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(_Formatter())
+    previous = root.level
+    root.setLevel(level)
+    root.addHandler(handler)
+    try:
+        yield
+    finally:
+        root.removeHandler(handler)
+        root.setLevel(previous)
+
+
+def _stdout_gone() -> int:
+    """The reader of stdout went away (``crossfield plugins | head -1``): end quietly,
+    with the status of a command stopped by SIGPIPE. Later writes (the interpreter
+    flushes stdout at exit) go to /dev/null (docs.python.org, signal: Note on SIGPIPE)."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError):  # stdout without a file descriptor
+        pass
+    return 128 + signal.SIGPIPE
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["romer-sim"]:
@@ -301,7 +377,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return main_romer_sim(argv[1:])
     args = build_parser().parse_args(argv)
     try:
-        return COMMANDS[args.command](args)
+        with logging_to_stderr(log_level(args.verbose, args.quiet)):
+            status = COMMANDS[args.command](args)
+            sys.stdout.flush()  # here, so that a closed pipe is caught below
+            return status
+    except BrokenPipeError:
+        return _stdout_gone()
     except CrossfieldError as exc:
         print(f"crossfield: error: {exc}", file=sys.stderr)
         return 2

@@ -26,7 +26,7 @@ import copy
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping, Sequence
 
 from crossfield.errors import ConfigError
 from crossfield.registry import STAGES
@@ -144,18 +144,91 @@ def parse_option(text: str) -> tuple[str, str, Any]:
 def with_overrides(
     config: Config,
     plugins: Mapping[str, str | None] | None = None,
-    options: list[str] | tuple[str, ...] = (),
+    options: Sequence[str] = (),
+    values: Mapping[str, Mapping[str, Any]] | None = None,
+    *,
+    by: str = "command-line overrides",
 ) -> Config:
-    """A copy of ``config`` with stage plugins replaced and ``stage.key=value``
-    options set. Replacing a stage's plugin drops that stage's options (they
-    belonged to the old implementation) unless given again."""
-    if not options and not any(plugins.values() if plugins else ()):
+    """A copy of ``config`` with stage plugins replaced and options set:
+    ``options`` as ``stage.key=value`` texts, then ``values`` as
+    ``{stage: {key: value}}`` (``stage`` may be ``session``). Replacing a
+    stage's plugin drops that stage's options (they belonged to the old
+    implementation) unless given again. ``by`` names the overrides in the
+    new config's ``source``."""
+    values = {stage: table for stage, table in (values or {}).items() if table}
+    if not options and not values and not any(plugins.values() if plugins else ()):
         return config
     data = copy.deepcopy(config.to_dict())
     for stage, plugin in (plugins or {}).items():
+        if stage not in STAGES:
+            raise ConfigError(f"{by}: unknown stage {stage!r}; stages: {', '.join(STAGES)}")
         if plugin and plugin != data[stage]["plugin"]:
             data[stage] = {"plugin": plugin}
     for text in options:
         stage, key, value = parse_option(text)
         data.setdefault(stage, {})[key] = value
-    return parse_config(data, config.source + " (with command-line overrides)")
+    for stage, table in values.items():
+        if stage != "session" and stage not in STAGES:
+            raise ConfigError(f"{by}: unknown stage {stage!r}; stages: session, {', '.join(STAGES)}")
+        if not isinstance(table, Mapping):
+            raise ConfigError(f"{by}: the options of {stage!r} must be a mapping of option -> value, got {table!r}")
+        data.setdefault(stage, {}).update(table)
+    return parse_config(data, f"{config.source} (with {by})")
+
+
+#: Options of the simulator source that ``crossfield run`` and :func:`crossfield.run`
+#: take directly (``--scenario``, ``scenario=``).
+SIMULATOR_OPTIONS = ("scenario", "frames", "seed")
+
+#: ``[reference] port`` value that connects the serial plugin to the simulated arm
+#: (the runner's ``SIMULATED_PORT``).
+SIMULATED_ARM_PORT = "simulator"
+
+
+def session_config(
+    path: str | Path | None = None,
+    *,
+    plugins: Mapping[str, str | None] | None = None,
+    simulator: Mapping[str, Any] | None = None,
+    session: Mapping[str, Any] | None = None,
+    options: Mapping[str, Mapping[str, Any]] | None = None,
+    option_texts: Sequence[str] = (),
+    spell: Callable[[str], str] = str,
+    by: str = "command-line overrides",
+) -> Config:
+    """The config of a ``crossfield run`` session: one code path for the CLI and the Python API.
+
+    path: the config file (None: the defaults). plugins: stage -> implementation
+    name (None: as configured). option_texts: ``stage.key=value`` texts (the
+    CLI's ``--option``); options: ``{stage: {key: value}}`` (the API's dicts;
+    ``stage`` may be ``session``). simulator: the :data:`SIMULATOR_OPTIONS`
+    (scenario, frames, seed), an error for any other source. session:
+    ``[session]`` keys (plan, output_dir, name, record, rerun). A value of
+    None means "not given". Later wins: file, option_texts, options,
+    simulator, session.
+
+    The demo default: when the source is the simulator and the reference is
+    ``romer-serial`` with no port, the port is the simulated arm
+    (:data:`SIMULATED_ARM_PORT`). ``spell(key)`` names an argument in errors
+    (``--scenario`` on the command line, ``scenario`` in Python).
+    """
+    base = load_config(path)
+    values: dict[str, dict[str, Any]] = {stage: dict(table) for stage, table in (options or {}).items()}
+    given = {key: value for key, value in (simulator or {}).items() if value is not None}
+    for key in given:
+        if key not in SIMULATOR_OPTIONS:
+            raise ConfigError(f"{spell(key)}: not a simulator option; those are {', '.join(SIMULATOR_OPTIONS)}")
+    if given:
+        values.setdefault("acquire", {}).update(given)
+    session_values = {key: value for key, value in (session or {}).items() if value is not None}
+    if session_values:
+        values.setdefault("session", {}).update(session_values)
+    config = with_overrides(base, plugins, option_texts, values, by=by)
+    acquire = config.stages["acquire"].plugin
+    if given and acquire != "simulator":
+        raise ConfigError(f"{spell(next(iter(given)))} applies to the simulator source, not to {acquire!r}")
+    reference = config.stages["reference"]
+    if reference.plugin == "romer-serial" and acquire == "simulator" and "port" not in reference.options:
+        values.setdefault("reference", {})["port"] = SIMULATED_ARM_PORT
+        config = with_overrides(base, plugins, option_texts, values, by=by)
+    return config

@@ -14,6 +14,7 @@ from typing import Any, Iterable, Mapping
 from crossfield.aggregate import CharacteristicSummary, SessionAccumulator, SessionAggregate, aggregate_frames
 from crossfield.config import Config
 from crossfield.plan import MeasurementPlan
+from crossfield.tables import SummaryTables
 from crossfield.types import (
     CameraPoints,
     GroundTruth,
@@ -73,7 +74,7 @@ class FrameResult:
 
 
 @dataclass(frozen=True)
-class SessionSummary:
+class SessionSummary(SummaryTables):
     """A finished session: what the report stage and the ``on_session_end`` observers get.
 
     frames: the per-frame results kept for the report, slim (no centroids, no

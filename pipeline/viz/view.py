@@ -26,6 +26,7 @@ import shutil
 import signal
 import socket
 import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterator
@@ -494,10 +495,23 @@ def view(
         for report in reports:
             say(str(report))
         return 1 if any(r.severity == "error" for r in reports) else 0
+    if not web:
+        resolve_session_path(path)  # a wrong path is the first thing to say
+        require_display()
     with session_rrd(path, save=save, image_every=image_every, say=say) as rrd:
         if web:
             return serve_web(rrd, port=port, say=say)
         return open_native(rrd)
+
+
+def require_display() -> None:
+    """:class:`ViewerError` when the native viewer cannot open a window: on Linux,
+    neither ``$DISPLAY`` (X11) nor ``$WAYLAND_DISPLAY`` is set."""
+    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise ViewerError(
+            "no display for the native viewer ($DISPLAY and $WAYLAND_DISPLAY are not set): "
+            "use --web to serve the web viewer, or --screenshot PNG to render a picture headless"
+        )
 
 
 def _listening(port: int) -> bool:
