@@ -213,7 +213,9 @@ def session_config(
     (``--scenario`` on the command line, ``scenario`` in Python).
     """
     base = load_config(path)
-    values: dict[str, dict[str, Any]] = {stage: dict(table) for stage, table in (options or {}).items()}
+    values: dict[str, Any] = {  # copies; a table that is no mapping is named by with_overrides
+        stage: dict(table) if isinstance(table, Mapping) else table for stage, table in (options or {}).items()
+    }
     given = {key: value for key, value in (simulator or {}).items() if value is not None}
     for key in given:
         if key not in SIMULATOR_OPTIONS:
