@@ -166,7 +166,7 @@ def test_user_guide_states_the_default_scenario():
 
 
 def test_user_guide_states_the_simulator_defaults():
-    text = (REPO / "docs" / "user-guide.md").read_text()
+    text = " ".join((REPO / "docs" / "user-guide.md").read_text().split())
     defaults = get_implementation(make_plugin_manager(), "acquire", "simulator").options()
     assert f"`{defaults['scenario']}` (default)" in text
     assert f"number of stereo pairs (default {defaults['frames']}), noise seed (default {defaults['seed']})" in text
