@@ -14,6 +14,7 @@ first use, so that ``import crossfield.<module>`` stays light.
 
 from __future__ import annotations
 
+import importlib
 from importlib import metadata
 from typing import TYPE_CHECKING, Any
 
@@ -31,9 +32,7 @@ if TYPE_CHECKING:
 def __getattr__(name: str) -> Any:
     """The API names of :mod:`crossfield.api`, imported when first asked for (PEP 562)."""
     if name in __all__:
-        from crossfield import api
-
-        value = getattr(api, name)
+        value = getattr(importlib.import_module("crossfield.api"), name)
         globals()[name] = value
         return value
     raise AttributeError(f"module 'crossfield' has no attribute {name!r}")

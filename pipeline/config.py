@@ -171,7 +171,9 @@ def with_overrides(
         if stage != "session" and stage not in STAGES:
             raise ConfigError(f"{by}: unknown stage {stage!r}; stages: session, {', '.join(STAGES)}")
         if not isinstance(table, Mapping):
-            raise ConfigError(f"{by}: the options of {stage!r} must be a mapping of option -> value, got {table!r}")
+            raise ConfigError(
+                f"{by}: the options of {stage!r} must be a mapping of option -> value, got {table!r}"
+            )
         data.setdefault(stage, {}).update(table)
     return parse_config(data, f"{config.source} (with {by})")
 
@@ -214,12 +216,15 @@ def session_config(
     """
     base = load_config(path)
     values: dict[str, Any] = {  # copies; a table that is no mapping is named by with_overrides
-        stage: dict(table) if isinstance(table, Mapping) else table for stage, table in (options or {}).items()
+        stage: dict(table) if isinstance(table, Mapping) else table
+        for stage, table in (options or {}).items()
     }
     given = {key: value for key, value in (simulator or {}).items() if value is not None}
     for key in given:
         if key not in SIMULATOR_OPTIONS:
-            raise ConfigError(f"{spell(key)}: not a simulator option; those are {', '.join(SIMULATOR_OPTIONS)}")
+            raise ConfigError(
+                f"{spell(key)}: not a simulator option; those are {', '.join(SIMULATOR_OPTIONS)}"
+            )
     if given:
         values.setdefault("acquire", {}).update(given)
     session_values = {key: value for key, value in (session or {}).items() if value is not None}

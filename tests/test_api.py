@@ -52,14 +52,16 @@ def test_characteristics_hold_the_reported_values(table3):
 def test_the_api_runs_the_cli_config(table3):
     """Same code path: the API's arguments and the CLI's flags give the same config."""
     out = str(table3.info.out_dir.parent)
-    flags = ["run", "--scenario", "table3", "--frames", "3", "--seed", "4", "-o", out, "--name", "api", "--no-rerun"]
+    flags = ["run", "--scenario", "table3", "--frames", "3", "--seed", "4"]
+    flags += ["-o", out, "--name", "api", "--no-rerun"]
     cli = resolve_run_config(build_parser().parse_args(flags))
     assert table3.info.config.to_dict() == cli.to_dict()
     assert table3.info.config.stages["reference"].options == {"port": "simulator"}  # the simulated arm
 
 
 def test_defaults_are_the_clis():
-    assert crossfield.run_config().to_dict() == resolve_run_config(build_parser().parse_args(["run"])).to_dict()
+    cli = resolve_run_config(build_parser().parse_args(["run"]))
+    assert crossfield.run_config().to_dict() == cli.to_dict()
 
 
 def _table_rows(text: str) -> dict[str, list[str]]:
@@ -75,7 +77,9 @@ def test_summary_prints_as_a_table(table3):
     text = str(table3)
     lines = text.splitlines()
     header = next(line.split() for line in lines if line.startswith("No."))
-    assert header == ["No.", "Characteristic", "n", "Measured", "u", "Actual", "Error", "Nominal", "Tol", "Dev", "Result"]
+    assert header == [
+        "No.", "Characteristic", "n", "Measured", "u", "Actual", "Error", "Nominal", "Tol", "Dev", "Result"
+    ]
     rows = _table_rows(text)
     assert list(rows) == [c.name for c in table3.characteristics]
     for c in table3.characteristics:
@@ -135,7 +139,9 @@ def test_open_recording_gives_the_recorded_frames(table3):
         frames = [m.decoded for m in rec.messages(["/measurement"])]
     assert [f["sequence"] for f in frames] == [0, 1, 2]
     for c in table3.characteristics:
-        per_frame = [next(x for x in f["characteristics"] if x["name"] == c.name)["measured_mm"] for f in frames]
+        per_frame = [
+            next(x for x in f["characteristics"] if x["name"] == c.name)["measured_mm"] for f in frames
+        ]
         assert c.measured_mm == pytest.approx(np.mean(per_frame), abs=1e-9)
 
 
@@ -166,7 +172,9 @@ def test_bad_arguments_name_the_key(tmp_path):
     with pytest.raises(ConfigError, match="frames applies to the simulator source, not to 'folder'"):
         crossfield.run(acquire="folder", frames=3, output_dir=tmp_path, plugin_manager=pm)
     with pytest.raises(ConfigError, match=r"\[centroid\]: unknown option 'threshold'"):
-        crossfield.run(frames=1, options={"centroid": {"threshold": 3}}, output_dir=tmp_path, plugin_manager=pm)
+        crossfield.run(
+            frames=1, options={"centroid": {"threshold": 3}}, output_dir=tmp_path, plugin_manager=pm
+        )
     with pytest.raises(ConfigError, match="unknown stage 'centroids'"):
         crossfield.run(options={"centroids": {"threshold_sigma": 3}}, output_dir=tmp_path, plugin_manager=pm)
     with pytest.raises(ConfigError, match="must be a mapping"):

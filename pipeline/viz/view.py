@@ -507,7 +507,8 @@ def view(
 def require_display() -> None:
     """:class:`ViewerError` when the native viewer cannot open a window: on Linux,
     neither ``$DISPLAY`` (X11) nor ``$WAYLAND_DISPLAY`` is set."""
-    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+    has_display = os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+    if sys.platform.startswith("linux") and not has_display:
         raise ViewerError(
             "no display for the native viewer ($DISPLAY and $WAYLAND_DISPLAY are not set): "
             "use --web to serve the web viewer, or --screenshot PNG to render a picture headless"
