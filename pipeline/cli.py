@@ -32,7 +32,7 @@ def _add_stage_flags(parser: argparse.ArgumentParser) -> None:
 
 
 def _verbosity_flags() -> argparse.ArgumentParser:
-    """-v / -q of every command: the level of the ``crossfield`` loggers (:func:`configure_logging`)."""
+    """-v / -q of every command: the level of the ``crossfield`` loggers (:func:`logging_to_stderr`)."""
     flags = argparse.ArgumentParser(add_help=False)
     flags.add_argument(
         "-v", "--verbose", action="count", default=0,

@@ -15,7 +15,9 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
-__all__ = ["SummaryTables", "format_table", "html_table", "session_rows", "session_text", "session_html"]
+__all__ = [
+    "SummaryTables", "format_table", "html_table", "printable", "session_html", "session_rows", "session_text"
+]
 
 #: The numeric columns of the characteristics table: (header, summary field, signed).
 _COLUMNS: tuple[tuple[str, str, bool], ...] = (
@@ -36,7 +38,7 @@ def _number(value: float | None, decimals: int, signed: bool) -> str:
     return f"{value:+.{decimals}f}" if signed else f"{value:.{decimals}f}"
 
 
-def _printable(text: Any) -> str:
+def printable(text: Any) -> str:
     """``text`` with control characters (ANSI escapes, newlines) made visible."""
     return "".join(ch if ch.isprintable() else repr(ch)[1:-1] for ch in str(text))
 
@@ -80,7 +82,7 @@ def session_rows(summary: Any, decimals: int = 4) -> tuple[list[str], list[list[
     rows = [
         [
             str(k),
-            _printable(c.name),
+            printable(c.name),
             str(c.n),
             *(_number(getattr(c, field, None), decimals, signed) for _, field, signed in columns),
             "PASS" if c.passed else "FAIL",
@@ -96,7 +98,7 @@ _CAPTION = "Characteristics (mm; u: standard uncertainty of the mean):"
 def _headline(summary: Any, decimals: int) -> list[str]:
     info = summary.info
     lines = [
-        f"Session {_printable(info.session_id)}  plan {_printable(info.plan.name)}  ({info.out_dir})",
+        f"Session {printable(info.session_id)}  plan {printable(info.plan.name)}  ({info.out_dir})",
         f"Frames: {summary.frames_processed} processed, {summary.frames_failed} failed",
     ]
     reg = summary.aggregate.registration
@@ -116,7 +118,7 @@ def _footer(summary: Any, decimals: int) -> list[str]:
     if rms is not None:
         lines.append(f"RMS error vs ground truth: {_number(rms, decimals, False)} mm")
     if summary.incomplete:
-        lines.append(f"Incomplete: {_printable(summary.incomplete)}")
+        lines.append(f"Incomplete: {printable(summary.incomplete)}")
     lines.append(f"Result: {'PASS' if summary.passed else 'FAIL'}")
     return lines
 
