@@ -138,12 +138,8 @@ def resolve_run_config(args: argparse.Namespace) -> Config:
     if args.no_rerun:
         options.append("session.rerun=false")
     plugins = {stage: getattr(args, stage) for stage in STAGES}
-    # The demo default: the serial plugin talks to the simulated arm.
-    reference_plugin = args.reference or config.stages["reference"].plugin
-    keeps_port = not args.reference or args.reference == config.stages["reference"].plugin
-    has_port = keeps_port and "port" in config.stages["reference"].options
-    if reference_plugin == "romer-serial" and acquire_plugin == "simulator" and not has_port:
-        options.append('reference.port="simulator"')
+    # No port named: the runner reads the simulator's own arm (the demo default);
+    # a port named in the file or by --option reference.port=... is read as given.
     return with_overrides(config, plugins, options)
 
 

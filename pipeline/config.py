@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from crossfield.errors import ConfigError
-from crossfield.registry import STAGES
+from crossfield.stages import STAGES
 
 DEFAULT_PLUGINS: dict[str, str] = {
     "acquire": "simulator",

@@ -421,7 +421,7 @@ class BaslerStereoSource:
     features, upper_features, lower_features: further GenICam features to
     write (name = value), to both cameras / one camera, after the above.
 
-    ``log`` (attribute, not an option): a callable receiving ``level``,
+    ``log`` (attribute, not an option; set by :meth:`connect_log`): a callable receiving ``level``,
     ``message``, ``timestamp_ns`` keyword arguments for each incident.
     """
 
@@ -528,6 +528,11 @@ class BaslerStereoSource:
             raise
 
     # ---- set-up ------------------------------------------------------------------------------
+
+    def connect_log(self, log: LogCallable) -> None:
+        """Report incidents through ``log`` from now on
+        (:class:`crossfield.stages.ReportsIncidents`; the runner passes ``on_log``)."""
+        self.log = log
 
     def _open(self, upper: str, lower: str, trigger_source: str, trigger_activation: str) -> None:
         pylon = self.pylon

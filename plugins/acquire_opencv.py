@@ -86,7 +86,7 @@ class OpenCVStereoSource:
     sources give timestamps). backend: ``any``, ``ffmpeg``, ``images``,
     ``v4l2`` or ``gstreamer``.
 
-    ``log`` (attribute): as for the basler source, a callable receiving
+    ``log`` (attribute, set by :meth:`connect_log`): as for the basler source, a callable receiving
     ``level``, ``message``, ``timestamp_ns`` for each incident.
     """
 
@@ -159,6 +159,11 @@ class OpenCVStereoSource:
             raise
 
     # ---- set-up ------------------------------------------------------------------------------
+
+    def connect_log(self, log: LogCallable) -> None:
+        """Report incidents through ``log`` from now on
+        (:class:`crossfield.stages.ReportsIncidents`; the runner passes ``on_log``)."""
+        self.log = log
 
     def _open(self, camera: str, spec: int | str) -> cv2.VideoCapture:
         if isinstance(spec, bool) or not isinstance(spec, (int, str)) or spec == "":
