@@ -24,6 +24,13 @@ from crossfield.types import (
     StereoCentroids,
 )
 
+__all__ = [
+    "FrameResult",
+    "SessionInfo",
+    "SessionSummary",
+    "summarise",
+]
+
 
 @dataclass(frozen=True)
 class SessionInfo:

@@ -282,7 +282,7 @@ def _arity_problem(bound: Any, spec: Any) -> str | None:
     try:
         have.bind(*args, **kwargs)
     except TypeError as exc:
-        return f"{spec.__name__}{inspect.signature(spec)} cannot be called on it: {exc}"
+        return f"{spec.__name__}({', '.join(p.name for p in params)}) cannot be called on it: {exc}"
     return None
 
 
