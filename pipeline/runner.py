@@ -83,8 +83,11 @@ __all__ = [
 #: of a :class:`~crossfield.stages.ServesSimulatedArm` acquisition.
 SIMULATED_PORT = "simulator"
 
-#: What a session folder may be called: letters, digits, '.', '_', '-' (not only dots).
+#: What ``[session] name`` may be: letters, digits, '.', '_', '-' (not only dots).
 _NAME = re.compile(r"(?!\.+$)[A-Za-z0-9._-]+")
+#: What an identifier read from a recording or a device must be to name a folder:
+#: the same letters, starting with a letter or digit, at most 128 of them.
+_SAFE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
 
 
 @dataclass
@@ -198,16 +201,16 @@ def register_frame(
 
 
 def safe_session_name(text: str) -> str | None:
-    """``text`` if it may name a session folder (letters, digits, '.', '_', '-';
-    not only dots), else None. Identifiers read from a recording or a device
-    pass here before they become part of a path."""
-    return text if _NAME.fullmatch(text) else None
+    """``text`` if it may name a session folder (letters, digits, '.', '_', '-',
+    starting with a letter or digit, at most 128), else None. Identifiers read
+    from a recording or a device pass here before they become part of a path."""
+    return text if _SAFE_NAME.fullmatch(text) else None
 
 
 def _session_id(config: Config, acquisition_info: Mapping[str, Any]) -> str:
     name = str(config.session.get("name") or "")
     if name:
-        if safe_session_name(name) is None:
+        if not _NAME.fullmatch(name):
             raise ConfigError(
                 f"{config.source}: [session] key 'name' may hold only letters, digits, '.', '_', '-' "
                 f"(and not only dots), got {name!r}"
@@ -395,12 +398,14 @@ def run_session(
         else:
             base = Path(config.session.get("output_dir", "recordings"))
             name = _session_id(config, description)
+        # The reference is made before the folder: a bad option leaves nothing behind.
+        reader = _reference_reader(config, stages, pm.hook)
+        if cmm_raw is None:
+            import_reference = _live_reference(config, stages, source, plan, reader)
+        else:
+            import_reference = _recorded_reference(stages.implementations["reference"].name, reader, cmm_raw, plan)
         out_dir = new_session_dir(base, name)
         info = session_info(config, stages, source, plan, out_dir, parent, description)
-        if cmm_raw is None:
-            import_reference = _live_reference(config, stages, source, plan)
-        else:
-            import_reference = _recorded_reference(config, stages, cmm_raw, plan)
         recorded = source if isinstance(source, RecordedAcquisition) else None
         with _registered(pm, _session_observers(config, out_dir, observers, mcap_path)):
             return run_pipeline(
@@ -436,7 +441,11 @@ def _reference_reader(config: Config, stages: Stages, hook: Any, port: str | Non
     return reader
 
 
-def _live_reference(config: Config, stages: Stages, acquisition: Acquisition, plan: MeasurementPlan) -> ReferenceImport:
+def _live_reference(
+    config: Config, stages: Stages, acquisition: Acquisition, plan: MeasurementPlan, reader: ReferenceSource
+) -> ReferenceImport:
+    """Read the CMM data from the device (``reader``), or from the simulated arm
+    of the acquisition when the port is ``"simulator"`` (a reader for its pty is made then)."""
     source = stages.implementations["reference"].name
     simulated = config.stages["reference"].options.get("port") == SIMULATED_PORT
 
@@ -452,21 +461,21 @@ def _live_reference(config: Config, stages: Stages, acquisition: Acquisition, pl
             with acquisition.serve_arm() as port:
                 reference = _reference_reader(config, stages, hook, port).acquire(plan, sink)
         else:
-            reference = _reference_reader(config, stages, hook).acquire(plan, sink)
+            reference = reader.acquire(plan, sink)
         return reference, (last[0] if last else None)
 
     return import_reference
 
 
 def _recorded_reference(
-    config: Config, stages: Stages, chunks: Sequence[SerialChunk], plan: MeasurementPlan
+    name: str, reader: ReferenceSource, chunks: Sequence[SerialChunk], plan: MeasurementPlan
 ) -> ReferenceImport:
-    name = stages.implementations["reference"].name
+    """Hand the recorded reads to the observers with their recorded times, then
+    decode them as the live import did (``reader.decode``)."""
 
     def import_reference(hook: Any) -> tuple[ReferenceData, int | None]:
         for chunk in chunks:
             hook.on_serial_bytes(data=chunk.data, timestamp_ns=chunk.timestamp_ns, source=chunk.source or name)
-        reader = _reference_reader(config, stages, hook)
         reference = reader.decode(b"".join(c.data for c in chunks), plan)
         return reference, (chunks[-1].timestamp_ns if chunks else None)
 
