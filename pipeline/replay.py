@@ -313,15 +313,30 @@ def _default_output(recorded: RecordedSession) -> tuple[Path, str]:
     raise AssertionError("unreachable: 'session-replay' is a safe name")  # pragma: no cover
 
 
+#: Where a replay is written is set by its own arguments, not by ``--option``.
+_OUTPUT_ARGUMENTS = {
+    "session.name": "-o/--output (output=)",
+    "session.output_dir": "-o/--output (output_dir=)",
+    "session.record": "--no-record (record=)",
+    "session.rerun": "--no-rerun (rerun=)",
+}
+
+
 def _refuse_unreplayable(options: Sequence[str]) -> None:
-    """A replay re-reads the recorded frames, CMM bytes and plan: an option that
-    would change them is refused with the reason, never silently ignored."""
+    """A replay re-reads the recorded frames, CMM bytes and plan, and is written
+    where its own arguments say: an option that would change those is refused
+    with the reason, never silently ignored."""
     for text in options:
         key = text.split("=", 1)[0].strip()
         if key.startswith("acquire.") or key == "session.plan":
             raise ConfigError(
                 f"--option {text!r}: a replay reads the stereo pairs and the measurement plan from the "
                 f"recording, so {key} cannot be changed (run a new session instead)"
+            )
+        if key in _OUTPUT_ARGUMENTS:
+            raise ConfigError(
+                f"--option {text!r}: where and what a replay writes is set by {_OUTPUT_ARGUMENTS[key]}, "
+                f"not by {key}"
             )
 
 

@@ -323,10 +323,21 @@ def test_a_recorded_plan_path_is_never_opened(recorded, tmp_path):
     assert summary.passed and summary.info.plan.sha256 == load_recorded_session(path).plan.sha256
 
 
-@pytest.mark.parametrize("option", ["acquire.frames=1", "acquire.seed=9", 'session.plan="other.toml"'])
-def test_options_a_replay_cannot_honour_are_refused_with_the_reason(recorded, tmp_path, option, capsys):
+@pytest.mark.parametrize(
+    "option, reason",
+    [
+        ("acquire.frames=1", "reads the stereo pairs and the measurement plan from the recording"),
+        ("acquire.seed=9", "reads the stereo pairs and the measurement plan from the recording"),
+        ('session.plan="other.toml"', "reads the stereo pairs and the measurement plan from the recording"),
+        ('session.name="x"', r"set by -o/--output \(output=\), not by session.name"),
+        ('session.output_dir="/tmp"', r"set by -o/--output \(output_dir=\), not by session.output_dir"),
+        ("session.record=false", r"set by --no-record \(record=\)"),
+        ("session.rerun=true", r"set by --no-rerun \(rerun=\)"),
+    ],
+)
+def test_options_a_replay_cannot_honour_are_refused_with_the_reason(recorded, tmp_path, option, reason, capsys):
     _, path = recorded
-    with pytest.raises(ConfigError, match=r"reads the stereo pairs and the measurement plan from the recording"):
+    with pytest.raises(ConfigError, match=reason):
         replay_session(path, make_plugin_manager(), options=[option], output_dir=tmp_path)
     assert not any(tmp_path.iterdir())
     assert main(["replay", str(path), "--option", option, "-o", str(tmp_path / "x.mcap")]) == 2
