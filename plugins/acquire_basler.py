@@ -36,13 +36,14 @@ import threading
 import time
 from collections import deque
 from pathlib import Path
-from typing import Any, Callable, Iterator, Mapping
+from typing import Any, Iterator, Mapping
 
 import numpy as np
 
 from crossfield.camera.calibration_io import read_stereo_calibration
 from crossfield.errors import ConfigError, PluginError
-from crossfield.hookspecs import hookimpl
+from crossfield.hookspecs import Register, hookimpl
+from crossfield.stages import Acquisition
 from crossfield.types import CAMERAS, StereoCalibration, StereoFrame
 
 from crossfield.camera.pairing import ArrivalPairer, BlockCounter, GrabbedFrame, IncidentLog, LogCallable, pair_skew_ns
@@ -832,5 +833,5 @@ def _pypylon_version() -> str:
 
 
 @hookimpl
-def register_acquires(register: Callable[..., None]) -> None:
+def register_acquires(register: Register[Acquisition]) -> None:
     register("basler", BaslerStereoSource, "Two Basler cameras via pylon (pypylon; crossfield[basler])")

@@ -43,7 +43,8 @@ import numpy as np
 
 from crossfield.camera.calibration_io import read_stereo_calibration
 from crossfield.errors import ConfigError
-from crossfield.hookspecs import hookimpl
+from crossfield.hookspecs import Register, hookimpl
+from crossfield.stages import Acquisition
 from crossfield.types import CAMERAS, StereoCalibration, StereoFrame
 
 from crossfield.camera.pairing import IncidentLog, LogCallable
@@ -355,7 +356,7 @@ class OpenCVStereoSource:
 
 
 @hookimpl
-def register_acquires(register) -> None:
+def register_acquires(register: Register[Acquisition]) -> None:
     register(
         "opencv", OpenCVStereoSource,
         "Two OpenCV VideoCapture sources (devices, video files, image sequences)",

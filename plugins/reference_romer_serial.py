@@ -42,7 +42,7 @@ import numpy as np
 
 from crossfield.cmm.formats import FORMATS, UNITS, LineFormat
 from crossfield.errors import ReferenceImportError
-from crossfield.hookspecs import hookimpl
+from crossfield.hookspecs import Register, hookimpl
 from crossfield.plan import MeasurementPlan
 from crossfield.cmm.protocol import (
     Decoder,
@@ -53,7 +53,7 @@ from crossfield.cmm.protocol import (
     SerialTransport,
     Transport,
 )
-from crossfield.stages import BytesSink
+from crossfield.stages import BytesSink, ReferenceSource
 from crossfield.types import ProbedPoint, ReferenceData
 
 
@@ -574,7 +574,7 @@ class RomerSerialReference:
 
 
 @hookimpl
-def register_references(register):
+def register_references(register: Register[ReferenceSource]) -> None:
     register(
         "romer-serial",
         RomerSerialReference,

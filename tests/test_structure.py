@@ -200,9 +200,9 @@ def instance_attributes(klass: type) -> set[str]:
     except (OSError, TypeError, SyntaxError):  # pragma: no cover
         return names
     for node in ast.walk(source):
-        if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id == "self":
-            if isinstance(node.ctx, ast.Store):
-                names.add(node.attr)
+        is_self = isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id == "self"
+        if is_self and isinstance(node.ctx, ast.Store):
+            names.add(node.attr)
     return names
 
 
@@ -351,7 +351,7 @@ def test_core_modules_the_plugins_import_declare_their_public_api(module_name):
 def test_docs_list_the_public_api():
     text = PLUGINS_DOC.read_text(encoding="utf-8")
     section = text.split("## The public API", 1)[1].split("\n## ", 1)[0]
-    listed = set(re.findall(r"^\| `(crossfield(?:\.\w+)+)` \|", section, flags=re.M))
+    listed = set(re.findall(r"^\| `(crossfield(?:\.\w+)+)` \|", section, flags=re.MULTILINE))
     assert listed == set(PUBLIC)
     for module_name in PUBLIC:
         row = next(line for line in section.splitlines() if line.startswith(f"| `{module_name}` |"))
