@@ -12,8 +12,8 @@ per session, before the first frame; every stereo pair then runs centroid
 -> triangulate -> correspondence -> register -> measure. Every output goes
 to the observer hooks (recorder, Rerun logger, progress display) as soon
 as it exists. The session's :class:`SessionInfo` is built in
-:func:`session_info` and its :class:`SessionSummary` in
-:func:`finish_session`, nowhere else.
+:func:`session_info` and its :class:`SessionSummary` by
+:meth:`SessionSummary.of_session` (in :func:`finish_session`).
 """
 
 from __future__ import annotations
@@ -528,17 +528,9 @@ def finish_session(
     accumulator: SessionAccumulator,
     incomplete: str | None = None,
 ) -> SessionSummary:
-    """Summarise the aggregated frames, write the report, tell the observers;
-    returns the summary (the one place a session's :class:`SessionSummary` is made)."""
-    aggregate = accumulator.result()
-    summary = SessionSummary(
-        info=info,
-        reference=reference,
-        frames=accumulator.rows,
-        characteristics=aggregate.characteristics,
-        incomplete=incomplete,
-        aggregate=aggregate,
-    )
+    """Summarise the aggregated frames (:meth:`SessionSummary.of_session`), write
+    the report, tell the observers; returns the summary."""
+    summary = SessionSummary.of_session(info, reference, accumulator, incomplete)
     files = stages.report.write(summary, info.out_dir)
     summary = dataclasses.replace(summary, report_files=tuple(files))
     hook.on_session_end(summary=summary)

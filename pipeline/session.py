@@ -105,6 +105,29 @@ class SessionSummary:
         if self.aggregate is None:
             object.__setattr__(self, "aggregate", aggregate_frames(self.frames, self.info.plan))
 
+    @classmethod
+    def of_session(
+        cls,
+        info: SessionInfo,
+        reference: ReferenceData,
+        accumulator: SessionAccumulator,
+        incomplete: str | None = None,
+        report_files: Iterable[Path] = (),
+    ) -> SessionSummary:
+        """The summary of a session whose frames went through ``accumulator``:
+        the one place a session's summary is made (the runner's
+        :func:`~crossfield.runner.finish_session`, the viewer's reading of a recording)."""
+        aggregate = accumulator.result()
+        return cls(
+            info=info,
+            reference=reference,
+            frames=accumulator.rows,
+            characteristics=aggregate.characteristics,
+            report_files=tuple(report_files),
+            incomplete=incomplete,
+            aggregate=aggregate,
+        )
+
     @property
     def registrations(self) -> list[Registration]:
         """The registrations of the kept rows (:attr:`frames`)."""

@@ -165,6 +165,31 @@ def test_the_circle_finder_finds_one():
     assert cycle({"a": {"b"}, "b": set()}) is None
 
 
+# ---- the session's facts and summary are each made in one place --------------------
+
+#: class -> the modules that construct it. SessionInfo: the runner (every session
+#: run) and the viewer, which reads a recorded session's facts back for display.
+CONSTRUCTED_IN = {
+    "SessionSummary": {"crossfield.session"},
+    "SessionInfo": {"crossfield.runner", "crossfield.viz.rerun_mcap"},
+}
+
+
+def test_session_info_and_summary_are_each_built_in_one_place():
+    found: dict[str, set[str]] = {k: set() for k in CONSTRUCTED_IN}
+    for name in MODULES:
+        for node in ast.walk(tree(name)):
+            if isinstance(node, ast.Call):
+                called = node.func.id if isinstance(node.func, ast.Name) else getattr(node.func, "attr", "")
+                if called in found:
+                    found[called].add(name)
+                elif called == "cls" and name == "crossfield.session":
+                    found["SessionSummary"].add(name)
+    assert found == CONSTRUCTED_IN
+    runner = ast.unparse(tree("crossfield.runner"))
+    assert runner.count("SessionInfo(") == 1 and "SessionSummary.of_session(" in runner
+
+
 # ---- plugins/ holds implementations only ---------------------------------------------
 
 
