@@ -8,6 +8,7 @@ import pytest
 
 from crossfield.cli import main
 from crossfield.config import parse_config
+from crossfield.hookspecs import hookimpl
 from crossfield.registry import make_plugin_manager
 from crossfield.runner import run_session
 from crossfield.simulator.scenarios import TABLE3_ACTUAL_MM
@@ -196,3 +197,49 @@ def test_port_simulator_without_a_simulated_arm_is_refused_with_the_reason(tmp_p
         run_session(parse_config({"session": {"output_dir": str(tmp_path)}}, "c2.toml"), make_plugin_manager(),
                     source=source)
     assert not any(tmp_path.iterdir())
+
+
+class LogCollector:
+    def __init__(self):
+        self.lines = []
+
+    @hookimpl
+    def on_log(self, level, message, timestamp_ns):
+        self.lines.append((level, message))
+
+
+class ArmSource(NoArm):
+    """The simulator's frames and arm; reports one incident per pair through ``self.log``."""
+
+    log = None
+
+    def serve_arm(self):
+        return self.inner.serve_arm()
+
+    def frames(self):
+        for frame in self.inner.frames():
+            if self.log is not None:
+                self.log(level="warning", message=f"incident at pair {frame.sequence}", timestamp_ns=frame.timestamp_ns)
+            yield frame
+
+
+class ConnectedSource(ArmSource):
+    def connect_log(self, log):
+        self.log = log
+
+
+@pytest.mark.parametrize("klass, connected", [(ConnectedSource, True), (ArmSource, False)])
+def test_a_device_log_is_connected_by_its_declared_protocol_not_by_an_attribute(tmp_path, klass, connected):
+    from crossfield.plugins.acquire_simulator import SimulatorSource
+    from crossfield.stages import ReportsIncidents, ServesSimulatedArm
+
+    source = klass(SimulatorSource(scenario="table3", frames=2, seed=4))
+    assert isinstance(source, ServesSimulatedArm) and isinstance(source, ReportsIncidents) is connected
+    logs = LogCollector()
+    config = parse_config({"session": {"output_dir": str(tmp_path), "name": "log", "rerun": False}}, "<t>")
+    summary = run_session(config, make_plugin_manager(), source=source, observers=[logs])
+    assert summary.passed
+    incidents = [m for level, m in logs.lines if m.startswith("incident")]
+    assert incidents == (["incident at pair 0", "incident at pair 1"] if connected else [])
+    # the serial plugin's own incidents arrive through its connect_log in both cases
+    assert any(m.startswith("romer-serial ") and "points imported" in m for _, m in logs.lines)
