@@ -38,6 +38,7 @@ import pluggy
 from crossfield.errors import CrossfieldError
 from crossfield.recording.integrity import TOPIC_INTEGRITY, IntegrityResult, file_sha256, name_message, verify
 from crossfield.recording.reader import open_recording
+from crossfield.provenance import package_versions
 from crossfield.registry import STAGES, implementations
 
 LOG_TOPIC = "/log"
@@ -115,8 +116,6 @@ class AuditReport:
 
 def provenance(path: Path, pm: pluggy.PluginManager | None) -> dict[str, Any]:
     """The session's recorded facts and their consistency (hashes, versions)."""
-    from crossfield.runner import package_versions
-
     rec = open_recording(path)
     meta = rec.metadata()
     problems: list[str] = []

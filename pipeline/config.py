@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
 from crossfield.errors import ConfigError
-from crossfield.registry import STAGES
+from crossfield.stages import STAGES
 
 DEFAULT_PLUGINS: dict[str, str] = {
     "acquire": "simulator",
@@ -182,11 +182,6 @@ def with_overrides(
 #: take directly (``--scenario``, ``scenario=``).
 SIMULATOR_OPTIONS = ("scenario", "frames", "seed")
 
-#: ``[reference] port`` value that connects the serial plugin to the simulated arm
-#: (the runner's ``SIMULATED_PORT``).
-SIMULATED_ARM_PORT = "simulator"
-
-
 def session_config(
     path: str | Path | None = None,
     *,
@@ -209,9 +204,9 @@ def session_config(
     None means "not given". Later wins: file, option_texts, options,
     simulator, session.
 
-    The demo default: when the source is the simulator and the reference is
-    ``romer-serial`` with no port, the port is the simulated arm
-    (:data:`SIMULATED_ARM_PORT`). ``spell(key)`` names an argument in errors
+    No ``[reference] port`` is added here: with none named, the runner reads
+    the arm that the acquisition serves, if it serves one
+    (:class:`crossfield.stages.ServesSimulatedArm`). ``spell(key)`` names an argument in errors
     (``--scenario`` on the command line, ``scenario`` in Python).
     """
     base = load_config(path)
@@ -234,8 +229,4 @@ def session_config(
     acquire = config.stages["acquire"].plugin
     if given and acquire != "simulator":
         raise ConfigError(f"{spell(next(iter(given)))} applies to the simulator source, not to {acquire!r}")
-    reference = config.stages["reference"]
-    if reference.plugin == "romer-serial" and acquire == "simulator" and "port" not in reference.options:
-        values.setdefault("reference", {})["port"] = SIMULATED_ARM_PORT
-        config = with_overrides(base, plugins, option_texts, values, by=by)
     return config

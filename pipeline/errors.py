@@ -1,5 +1,16 @@
 """Exceptions with messages that name the file, line, key or message at fault."""
 
+__all__ = [
+    "ConfigError",
+    "CorrespondenceError",
+    "CrossfieldError",
+    "MeasurementError",
+    "PluginError",
+    "RecordingError",
+    "ReferenceImportError",
+    "RegistrationError",
+]
+
 
 class CrossfieldError(Exception):
     """Base class: an error the user can act on (shown without a traceback)."""

@@ -28,6 +28,16 @@ from scipy.optimize import least_squares
 
 from crossfield.types import Line3D, frozen_array
 
+__all__ = [
+    "AxisFit",
+    "distance_point_line",
+    "distance_point_point",
+    "fit_cylinder_axis",
+    "fit_line",
+    "perpendicular_basis",
+    "point_line_distance",
+]
+
 
 def perpendicular_basis(direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Two unit vectors (3,) completing unit ``direction`` to a right-handed orthonormal basis."""

@@ -11,13 +11,30 @@ Two kinds of hook (``docs/plugins.md``):
   each stage output as it is produced: the recorder, the Rerun logger and
   the progress display are observers. An observer must not change what it
   is given (the data classes are frozen and their arrays read-only).
+
+Hook parameters are typed the way tox 4 types its hooks: the spec
+functions carry the real parameter types (imported for type checking only,
+so this module imports nothing at run time but pluggy and
+:mod:`crossfield.stages`), and ``Register`` is a protocol with the call
+signature, generic in what the stage's factories build.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Callable
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Protocol, TypeVar
 
 import pluggy
+
+from crossfield.stages import (
+    Acquisition,
+    CentroidExtractor,
+    Measurer,
+    ReferenceSource,
+    Registrar,
+    Reporter,
+    Triangulator,
+)
 
 if TYPE_CHECKING:  # pragma: no cover
     from crossfield.session import FrameResult, SessionInfo, SessionSummary
@@ -30,50 +47,68 @@ if TYPE_CHECKING:  # pragma: no cover
         StereoFrame,
     )
 
+__all__ = ["PROJECT", "Factory", "Register", "hookimpl", "hookspec"]
+
 PROJECT = "crossfield"
 hookspec = pluggy.HookspecMarker(PROJECT)
 hookimpl = pluggy.HookimplMarker(PROJECT)
 
-#: ``register(name, factory, description="")`` as passed to the registry hooks.
-Register = Callable[..., None]
+T_co = TypeVar("T_co", covariant=True)
+
+#: A stage factory: called with the stage's options as keyword arguments
+#: (its keyword parameters *are* the options), returns the implementation.
+Factory = Callable[..., T_co]
+
+
+class Register(Protocol[T_co]):
+    """The ``register`` callable passed to every registry hook.
+
+    ``register(name, factory, description="")``: ``name`` is what users type
+    (``--centroid NAME``); ``factory(**options)`` builds an implementation
+    of the stage (``T_co``, e.g. :class:`~crossfield.stages.CentroidExtractor`);
+    ``description`` is shown by ``crossfield plugins`` (default: the first
+    line of the factory's docstring).
+    """
+
+    def __call__(self, name: str, factory: Factory[T_co], description: str = "") -> None: ...
 
 
 # ---- registry hooks -------------------------------------------------------
 
 
 @hookspec
-def register_acquires(register: Register) -> None:
+def register_acquires(register: Register[Acquisition]) -> None:
     """Offer acquisition sources. ``factory(**options)`` returns an
     :class:`crossfield.stages.Acquisition`."""
 
 
 @hookspec
-def register_centroids(register: Register) -> None:
+def register_centroids(register: Register[CentroidExtractor]) -> None:
     """Offer centroid extractors (:class:`crossfield.stages.CentroidExtractor`)."""
 
 
 @hookspec
-def register_triangulates(register: Register) -> None:
+def register_triangulates(register: Register[Triangulator]) -> None:
     """Offer stereo matchers/triangulators (:class:`crossfield.stages.Triangulator`)."""
 
 
 @hookspec
-def register_references(register: Register) -> None:
+def register_references(register: Register[ReferenceSource]) -> None:
     """Offer CMM reference importers (:class:`crossfield.stages.ReferenceSource`)."""
 
 
 @hookspec
-def register_registers(register: Register) -> None:
+def register_registers(register: Register[Registrar]) -> None:
     """Offer rigid registration solvers (:class:`crossfield.stages.Registrar`)."""
 
 
 @hookspec
-def register_measures(register: Register) -> None:
+def register_measures(register: Register[Measurer]) -> None:
     """Offer characteristic evaluators (:class:`crossfield.stages.Measurer`)."""
 
 
 @hookspec
-def register_reports(register: Register) -> None:
+def register_reports(register: Register[Reporter]) -> None:
     """Offer report writers (:class:`crossfield.stages.Reporter`)."""
 
 
@@ -81,12 +116,12 @@ def register_reports(register: Register) -> None:
 
 
 @hookspec
-def on_session_start(session: "SessionInfo") -> None:
+def on_session_start(session: SessionInfo) -> None:
     """A session begins: resolved config, calibration, plan, plugin versions."""
 
 
 @hookspec
-def on_frame(frame: "StereoFrame") -> None:
+def on_frame(frame: StereoFrame) -> None:
     """A stereo pair was acquired (raw input: recorded losslessly)."""
 
 
@@ -96,32 +131,32 @@ def on_serial_bytes(data: bytes, timestamp_ns: int, source: str) -> None:
 
 
 @hookspec
-def on_reference(reference: "ReferenceData") -> None:
+def on_reference(reference: ReferenceData) -> None:
     """The CMM reference points were imported and labelled."""
 
 
 @hookspec
-def on_centroids(centroids: "StereoCentroids") -> None:
+def on_centroids(centroids: StereoCentroids) -> None:
     """Centroids of one stereo pair."""
 
 
 @hookspec
-def on_camera_points(points: "CameraPoints") -> None:
+def on_camera_points(points: CameraPoints) -> None:
     """Triangulated camera-frame points of one stereo pair."""
 
 
 @hookspec
-def on_registration(registration: "Registration") -> None:
+def on_registration(registration: Registration) -> None:
     """``T_global_camera`` of one stereo pair."""
 
 
 @hookspec
-def on_measurement(measurement: "Measurement") -> None:
+def on_measurement(measurement: Measurement) -> None:
     """Characteristics of one stereo pair."""
 
 
 @hookspec
-def on_frame_done(result: "FrameResult") -> None:
+def on_frame_done(result: FrameResult) -> None:
     """All stages of one stereo pair have run (or one failed: see result.error)."""
 
 
@@ -131,7 +166,7 @@ def on_log(level: str, message: str, timestamp_ns: int) -> None:
 
 
 @hookspec
-def on_session_end(summary: "SessionSummary") -> None:
+def on_session_end(summary: SessionSummary) -> None:
     """The session is over; ``summary.report`` holds the aggregated results."""
 
 

@@ -47,6 +47,17 @@ import numpy as np
 from crossfield.errors import ConfigError
 from crossfield.types import frozen_array
 
+__all__ = [
+    "KINDS",
+    "LINE_FITS",
+    "CharacteristicSpec",
+    "MeasurementPlan",
+    "ReferenceLineSpec",
+    "TargetSpec",
+    "load_plan",
+    "parse_plan",
+]
+
 KINDS = ("point_point", "point_line", "depth")
 LINE_FITS = ("cylinder", "line")
 

@@ -10,24 +10,29 @@ from __future__ import annotations
 import functools
 import importlib
 import inspect
+from collections.abc import Iterable
 from dataclasses import dataclass
 from importlib import metadata
-from typing import Any, Callable, Iterable
+from typing import Any, Generic, TypeVar
 
 import pluggy
 
 from crossfield import hookspecs
 from crossfield.errors import ConfigError, PluginError
+from crossfield.hookspecs import Factory
+from crossfield.provenance import crossfield_version
+from crossfield.stages import STAGES, check_implementation
 
-STAGES: tuple[str, ...] = (
-    "acquire",
-    "centroid",
-    "triangulate",
-    "reference",
-    "register",
-    "measure",
-    "report",
-)
+__all__ = [
+    "BUILTIN_PLUGINS",
+    "STAGES",
+    "Implementation",
+    "get_implementation",
+    "implementations",
+    "make_plugin_manager",
+]
+
+T = TypeVar("T")
 
 #: Modules of the built-in plugins, loaded by every plugin manager.
 BUILTIN_PLUGINS: tuple[str, ...] = (
@@ -51,12 +56,13 @@ BUILTIN_PLUGINS: tuple[str, ...] = (
 
 
 @dataclass(frozen=True)
-class Implementation:
-    """One named implementation of a stage."""
+class Implementation(Generic[T]):
+    """One named implementation of a stage; ``T`` is the stage's protocol
+    (:data:`crossfield.stages.STAGE_PROTOCOLS`)."""
 
     stage: str
     name: str
-    factory: Callable[..., Any]
+    factory: Factory[T]
     description: str
     plugin: str  # name of the pluggy plugin (module) that registered it
     package: str  # distribution that ships it
@@ -71,8 +77,12 @@ class Implementation:
             if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)
         }
 
-    def create(self, options: dict[str, Any], where: str = "") -> Any:
-        """Build the implementation; unknown or missing options name the key."""
+    def create(self, options: dict[str, Any], where: str = "") -> T:
+        """Build the implementation; unknown or missing options name the key.
+
+        The object built is checked against the stage's protocol: one that
+        lacks a method or attribute is a :class:`PluginError` naming the
+        implementation, the plugin that registered it and what is missing."""
         known = self.options()
         prefix = f"{where}: " if where else ""
         for key in options:
@@ -86,9 +96,11 @@ class Implementation:
             if default is inspect.Parameter.empty and key not in options:
                 raise ConfigError(f"{prefix}{self.stage} plugin {self.name!r} needs option {key!r}")
         try:
-            return self.factory(**options)
+            made = self.factory(**options)
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"{prefix}{self.stage} plugin {self.name!r}: {exc}") from None
+        who = f"{self.stage} plugin {self.name!r} (registered by {self.plugin}, {self.package} {self.version})"
+        return check_implementation(made, self.stage, who)
 
 
 @functools.cache
@@ -105,15 +117,8 @@ def _distribution_of(module_name: str) -> tuple[str, str]:
         except metadata.PackageNotFoundError:  # pragma: no cover
             continue
     if top == "crossfield":
-        return "crossfield", _crossfield_version()
+        return "crossfield", crossfield_version()
     return top, "unknown"
-
-
-def _crossfield_version() -> str:
-    try:
-        return metadata.version("crossfield")
-    except metadata.PackageNotFoundError:  # running from a source tree
-        return "0+unknown"
 
 
 def make_plugin_manager(
@@ -151,7 +156,7 @@ def implementations(pm: pluggy.PluginManager, stage: str) -> dict[str, Implement
         if entry is not None:
             package, version = entry
 
-        def register(name: str, factory: Callable[..., Any], description: str = "") -> None:
+        def register(name: str, factory: Factory[Any], description: str = "") -> None:
             if not isinstance(name, str) or not name:
                 raise PluginError(f"plugin {plugin_name} registered a {stage} with no name")
             if name in found:

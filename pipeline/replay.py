@@ -34,14 +34,14 @@ import pluggy
 
 from crossfield.camera.calibration_io import stereo_calibration_from_yaml
 from crossfield.config import Config, parse_config, with_overrides
-from crossfield.errors import ConfigError, PluginError, RecordingError
+from crossfield.errors import ConfigError, RecordingError
 from crossfield.recording.integrity import file_sha256, utc
 from crossfield.plan import MeasurementPlan, parse_plan
 from crossfield.recording.reader import Recording, open_recording
-from crossfield.registry import STAGES
-from crossfield.runner import Stages, _registered, _session_observers, _unique_dir, package_versions, run_pipeline
-from crossfield.session import SessionInfo, SessionSummary
-from crossfield.types import CAMERAS, GroundTruth, Line3D, ReferenceData, StereoCalibration, StereoFrame
+from crossfield.runner import run_session, safe_session_name
+from crossfield.session import SessionSummary
+from crossfield.stages import STAGES, SerialChunk
+from crossfield.types import CAMERAS, GroundTruth, Line3D, StereoCalibration, StereoFrame
 
 #: The recording layouts this replay reads.
 READABLE_FORMATS = ("crossfield-mcap/1",)
@@ -208,7 +208,7 @@ def decode_image(data: bytes, where: str) -> tuple[np.ndarray, int]:
 class RecordingSource:
     """The acquisition of a replay: the recorded stereo pairs and serial bytes.
 
-    Implements :class:`crossfield.stages.Acquisition`. Frames come in the order
+    Implements :class:`crossfield.stages.RecordedAcquisition`. Frames come in the order
     they were recorded (file order), each with its recorded capture time
     (the image messages' log time). After :meth:`frames` is exhausted,
     ``incomplete`` says where a cut-short recording ends (None if complete).
@@ -219,6 +219,8 @@ class RecordingSource:
         self.calibration = recorded.calibration
         self.ground_truth = recorded.ground_truth
         self.default_plan = recorded.plan
+        self.recorded_plugins = recorded.plugins
+        self.start_time_ns = int(recorded.session.get("start_time_ns") or 0)
         self.incomplete: str | None = None
         self.frames_read = 0
 
@@ -258,11 +260,11 @@ class RecordingSource:
             notes.append(f"stereo pair {seq} has only its {' and '.join(have)} image, not replayed")
         self.incomplete = "; ".join(notes) or None
 
-    def serial_chunks(self) -> list[tuple[bytes, int, str]]:
-        """Every recorded read from the CMM line: (bytes, read time ns, source), in read order."""
+    def serial_chunks(self) -> list[SerialChunk]:
+        """Every recorded read from the CMM line (bytes, read time ns, source), in read order."""
         rec = self.recorded.recording
         return [
-            (m.data, m.log_time_ns, str(m.channel_metadata.get("source", "")))
+            SerialChunk(m.data, m.log_time_ns, str(m.channel_metadata.get("source", "")))
             for m in rec.messages("/cmm/raw", decode=False, file_order=True)
         ]
 
@@ -271,26 +273,6 @@ class RecordingSource:
 
     def close(self) -> None:
         pass
-
-
-def _recorded_reference(source: RecordingSource, stages: Stages, config: Config, plan: MeasurementPlan):
-    impl = stages.implementations["reference"]
-    where = f"{config.source}: [reference]"
-
-    def import_reference(hook: Any) -> tuple[ReferenceData, int | None]:
-        chunks = source.serial_chunks()
-        for data, t, name in chunks:
-            hook.on_serial_bytes(data=data, timestamp_ns=t, source=name or impl.name)
-        reader = impl.create(dict(config.stages["reference"].options), where)
-        if not callable(getattr(reader, "decode", None)):
-            raise PluginError(
-                f"reference plugin {impl.name!r} has no decode(raw, plan) method, so it cannot re-read "
-                f"recorded bytes; choose another with --reference"
-            )
-        reference = reader.decode(b"".join(c[0] for c in chunks), plan)
-        return reference, (chunks[-1][1] if chunks else None)
-
-    return import_reference
 
 
 def changes(recorded: Config, replayed: Config) -> dict[str, Any]:
@@ -315,10 +297,47 @@ def changes(recorded: Config, replayed: Config) -> dict[str, Any]:
 
 
 def _default_output(recorded: RecordedSession) -> tuple[Path, str]:
-    """(base folder, session id) for a replay written next to the recorded session."""
+    """(base folder, session id) for a replay written next to the recorded session.
+
+    The recorded session id is data: it names the replay's folder only if it
+    is a plain folder name (:func:`crossfield.runner.safe_session_name`);
+    otherwise (``../..``, an absolute path, ...) the recording's own folder
+    or file name does."""
     path = recorded.path.resolve()
     base = path.parent.parent if path.name == "session.mcap" else path.parent
-    return base, f"{recorded.session_id or path.stem}-replay"
+    own = path.parent.name if path.name == "session.mcap" else path.stem
+    for candidate in (recorded.session_id, own, "session"):
+        name = safe_session_name(f"{candidate}-replay") if candidate else None
+        if name:
+            return base, name
+    raise AssertionError("unreachable: 'session-replay' is a safe name")  # pragma: no cover
+
+
+#: Where a replay is written is set by its own arguments, not by ``--option``.
+_OUTPUT_ARGUMENTS = {
+    "session.name": "-o/--output (output=)",
+    "session.output_dir": "-o/--output (output_dir=)",
+    "session.record": "--no-record (record=)",
+    "session.rerun": "--no-rerun (rerun=)",
+}
+
+
+def _refuse_unreplayable(options: Sequence[str]) -> None:
+    """A replay re-reads the recorded frames, CMM bytes and plan, and is written
+    where its own arguments say: an option that would change those is refused
+    with the reason, never silently ignored."""
+    for text in options:
+        key = text.split("=", 1)[0].strip()
+        if key.startswith("acquire.") or key == "session.plan":
+            raise ConfigError(
+                f"--option {text!r}: a replay reads the stereo pairs and the measurement plan from the "
+                f"recording, so {key} cannot be changed (run a new session instead)"
+            )
+        if key in _OUTPUT_ARGUMENTS:
+            raise ConfigError(
+                f"--option {text!r}: where and what a replay writes is set by {_OUTPUT_ARGUMENTS[key]}, "
+                f"not by {key}"
+            )
 
 
 def replay_session(
@@ -354,14 +373,12 @@ def replay_session(
             f"(--acquire {plugins['acquire']})"
         )
     plugins.pop("acquire", None)
+    _refuse_unreplayable(options)
     config = with_overrides(recorded.config, plugins, list(options))
     changed = changes(recorded.config, config)
 
-    stages = Stages.build(
-        pm, config, skip=("acquire",)
-    )  # unknown plugins / bad options fail here, before any folder
     if output is not None:
-        mcap_path = Path(output)
+        mcap_path: Path | None = Path(output)
         base, session_id = mcap_path.parent, mcap_path.stem
         if record and mcap_path.exists():
             raise RecordingError(f"{mcap_path}: a file already exists there (not overwritten)")
@@ -370,10 +387,8 @@ def replay_session(
         base, session_id = _default_output(recorded)
         if output_dir is not None:
             base = Path(output_dir)
-    base.mkdir(parents=True, exist_ok=True)
-    out_dir = _unique_dir(base, session_id)
     session_options = [
-        f"session.name={json.dumps(out_dir.name)}",
+        f"session.name={json.dumps(session_id)}",
         f"session.output_dir={json.dumps(str(base))}",
         f"session.record={'true' if record else 'false'}",
     ]
@@ -383,9 +398,6 @@ def replay_session(
     source_name = f"{recorded.path} (recorded config" + (", with replay overrides)" if overridden else ")")
     config = dataclasses.replace(with_overrides(config, {}, session_options), source=source_name)
 
-    described = stages.describe()
-    described["acquire"] = dict(recorded.plugins.get("acquire", {}))
-    described = {stage: described[stage] for stage in STAGES if stage in described}
     source = RecordingSource(recorded)
     parent = {
         "path": str(recorded.path.resolve()),
@@ -395,27 +407,12 @@ def replay_session(
         "changed": changed,
         "replayed_at_utc": utc(time.time_ns()),
     }
-    info = SessionInfo(
-        session_id=out_dir.name,
-        out_dir=out_dir,
-        config=config,
-        calibration=recorded.calibration,
-        plan=recorded.plan,
-        plugins=described,
-        packages=package_versions(),
-        acquisition=source.describe(),
-        ground_truth=recorded.ground_truth,
-        start_time_ns=int(recorded.session.get("start_time_ns") or 0),
+    return run_session(
+        config,
+        pm,
+        observers=observers,
+        source=source,
+        cmm_raw=source.serial_chunks(),
+        mcap_path=mcap_path,
         parent=parent,
     )
-    tolerance = float(config.session.get("match_tolerance_mm", 0.5))
-    with _registered(pm, _session_observers(config, out_dir, observers, mcap_path)):
-        return run_pipeline(
-            pm.hook,
-            stages,
-            info,
-            _recorded_reference(source, stages, config, recorded.plan),
-            source.frames(),
-            tolerance,
-            incomplete=lambda: source.incomplete,
-        )

@@ -51,6 +51,17 @@ import numpy as np
 
 from crossfield.errors import RegistrationError
 
+__all__ = [
+    "COLLINEAR_RATIO",
+    "REFLECTION_RATIO",
+    "check_ratio",
+    "check_reflection",
+    "kabsch",
+    "point_set_size",
+    "residual_rms",
+    "validate_pairs",
+]
+
 #: Default ratio rms_proper / rms_improper above which the pair set is a mirror image.
 REFLECTION_RATIO = 5.0
 

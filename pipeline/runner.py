@@ -2,10 +2,18 @@
 
     acquire -> centroid -> triangulate -> (reference) -> register -> measure -> report
 
-The CMM reference is imported once per session, before the first frame;
-every stereo pair then runs centroid -> triangulate -> correspondence ->
-register -> measure. Every output goes to the observer hooks (recorder,
-Rerun logger, progress display) as soon as it exists.
+:func:`run_session` is the one entry: ``crossfield run``, ``crossfield
+replay``, ``crossfield audit`` and the Python API all start a session
+there. A live session creates its acquisition from the config; a replay
+passes in its recorded source (a :class:`~crossfield.stages.RecordedAcquisition`)
+and the recorded raw CMM bytes, which the reference implementation then
+decodes instead of reading a device. The CMM reference is imported once
+per session, before the first frame; every stereo pair then runs centroid
+-> triangulate -> correspondence -> register -> measure. Every output goes
+to the observer hooks (recorder, Rerun logger, progress display) as soon
+as it exists. The session's :class:`SessionInfo` is built in
+:func:`session_info` and its :class:`SessionSummary` by
+:meth:`SessionSummary.of_session` (in :func:`finish_session`).
 """
 
 from __future__ import annotations
@@ -13,12 +21,11 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import re
-import sys
 import time
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
-from importlib import metadata
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator
+from typing import Any
 
 import numpy as np
 import pluggy
@@ -28,9 +35,24 @@ from crossfield.config import Config
 from crossfield.correspondence import match_control_points
 from crossfield.errors import ConfigError, CrossfieldError
 from crossfield.plan import MeasurementPlan, load_plan
-from crossfield.registry import STAGES, Implementation, get_implementation
+from crossfield.provenance import package_versions
+from crossfield.registry import Implementation, get_implementation
 from crossfield.session import FrameResult, SessionInfo, SessionSummary
-from crossfield.stages import Acquisition
+from crossfield.stages import (
+    STAGES,
+    Acquisition,
+    CentroidExtractor,
+    Measurer,
+    RecordedAcquisition,
+    ReferenceSource,
+    Registrar,
+    Reporter,
+    ReportsIncidents,
+    SerialChunk,
+    ServesSimulatedArm,
+    Triangulator,
+    check_implementation,
+)
 from crossfield.types import (
     CameraPoints,
     GroundTruth,
@@ -41,48 +63,46 @@ from crossfield.types import (
     StereoFrame,
 )
 
-#: Distributions whose versions are recorded with every session.
-RECORDED_PACKAGES = (
-    "crossfield",
-    "numpy",
-    "scipy",
-    "opencv-python-headless",
-    "pluggy",
-    "mcap",
-    "mcap-protobuf-support",
-    "foxglove-schemas-protobuf",
-    "protobuf",
-    "rerun-sdk",
-    "pyserial",
-)
+__all__ = [
+    "SIMULATED_PORT",
+    "ReferenceImport",
+    "Stages",
+    "control_points",
+    "finish_session",
+    "new_session_dir",
+    "process_frame",
+    "register_frame",
+    "resolve_plan",
+    "run_pipeline",
+    "run_session",
+    "safe_session_name",
+    "session_info",
+]
 
-#: Reference option value that connects the serial plugin to the simulated arm.
+#: Reference ``port`` value that connects the serial plugin to the simulated arm
+#: of a :class:`~crossfield.stages.ServesSimulatedArm` acquisition.
 SIMULATED_PORT = "simulator"
 
-
-def package_versions() -> dict[str, str]:
-    versions = {"python": sys.version.split()[0]}
-    for name in RECORDED_PACKAGES:
-        try:
-            versions[name] = metadata.version(name)
-        except metadata.PackageNotFoundError:
-            versions[name] = "not installed"
-    return versions
+#: What ``[session] name`` may be: letters, digits, '.', '_', '-' (not only dots).
+_NAME = re.compile(r"(?!\.+$)[A-Za-z0-9._-]+")
+#: What an identifier read from a recording or a device must be to name a folder:
+#: the same letters, starting with a letter or digit, at most 128 of them.
+_SAFE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
 
 
 @dataclass
 class Stages:
     """The implementations chosen for a session (acquisition excepted)."""
 
-    implementations: dict[str, Implementation]
-    centroid: Any
-    triangulate: Any
-    register: Any
-    measure: Any
-    report: Any
+    implementations: dict[str, Implementation[Any]]
+    centroid: CentroidExtractor
+    triangulate: Triangulator
+    register: Registrar
+    measure: Measurer
+    report: Reporter
 
     @classmethod
-    def build(cls, pm: pluggy.PluginManager, config: Config, *, skip: Iterable[str] = ()) -> "Stages":
+    def build(cls, pm: pluggy.PluginManager, config: Config, *, skip: Iterable[str] = ()) -> Stages:
         """Look up every stage's implementation (those in ``skip`` excepted: replay
         does not need the acquisition plugin) and create the per-frame ones."""
         skip = set(skip)
@@ -159,7 +179,7 @@ def register_frame(
     points: CameraPoints,
     reference: ReferenceData,
     plan: MeasurementPlan,
-    registrar: Any,
+    registrar: Registrar,
     match_tolerance_mm: float,
 ) -> Registration:
     """Match camera points to the CMM control points by rigid distances, then fit."""
@@ -177,23 +197,43 @@ def register_frame(
     return Registration(points.sequence, fit, correspondence)
 
 
-def _session_id(config: Config, acquisition_info: dict[str, Any]) -> str:
+# ---- the session folder -------------------------------------------------------
+
+
+def safe_session_name(text: str) -> str | None:
+    """``text`` if it may name a session folder (letters, digits, '.', '_', '-',
+    starting with a letter or digit, at most 128), else None. Identifiers read
+    from a recording or a device pass here before they become part of a path."""
+    return text if _SAFE_NAME.fullmatch(text) else None
+
+
+def _session_id(config: Config, acquisition_info: Mapping[str, Any]) -> str:
     name = str(config.session.get("name") or "")
     if name:
-        if not re.fullmatch(r"[A-Za-z0-9._-]+", name):
-            raise ConfigError(f"{config.source}: [session] key 'name' may hold only letters, digits, '.', '_', '-'")
+        if not _NAME.fullmatch(name):
+            raise ConfigError(
+                f"{config.source}: [session] key 'name' may hold only letters, digits, '.', '_', '-' "
+                f"(and not only dots), got {name!r}"
+            )
         return name
     stamp = time.strftime("%Y%m%d-%H%M%S")
-    tag = acquisition_info.get("scenario") or acquisition_info.get("source") or "session"
-    return f"{stamp}-{tag}"
+    tag = str(acquisition_info.get("scenario") or acquisition_info.get("source") or "session")
+    # The tag comes from the device's description: data, never a path.
+    return f"{stamp}-{re.sub(r'[^A-Za-z0-9._-]+', '_', tag)}"
 
 
-def _unique_dir(base: Path, session_id: str) -> Path:
-    out = base / session_id
+def new_session_dir(base: Path, name: str) -> Path:
+    """Create and return ``base/name`` (``base/name-2``, ... if it exists).
+
+    ``name`` must be one path component (no separator, not ``.`` or ``..``):
+    the folder is always a direct child of ``base``."""
+    if name in ("", ".", "..") or "/" in name or "\\" in name or Path(name).name != name:
+        raise ConfigError(f"session folder name {name!r} is not a single folder name")
+    out = base / name
     k = 1
     while out.exists():
         k += 1
-        out = base / f"{session_id}-{k}"
+        out = base / f"{name}-{k}"
     out.mkdir(parents=True)
     return out
 
@@ -232,15 +272,81 @@ def _session_observers(
     return observers
 
 
+# ---- the session --------------------------------------------------------------
+
+
 def resolve_plan(config: Config, acquisition: Acquisition) -> MeasurementPlan:
+    """The measurement plan: a replay's recorded one; else ``[session] plan``,
+    else the source's default plan."""
+    if isinstance(acquisition, RecordedAcquisition):
+        # The recorded plan (an attachment); a path read from a recording is never opened.
+        if acquisition.default_plan is None:
+            raise ConfigError(f"{config.source}: the recorded source has no measurement plan")
+        return acquisition.default_plan
     path = config.session.get("plan") or ""
     if path:
         return load_plan(path)
-    if getattr(acquisition, "default_plan", None) is not None:
+    if acquisition.default_plan is not None:
         return acquisition.default_plan
     raise ConfigError(
         f"{config.source}: [session] key 'plan' is empty and the {config.stages['acquire'].plugin!r} "
         f"source has no default measurement plan; name a plan file"
+    )
+
+
+def _with_simulated_arm(config: Config, reference: Implementation[Any], acquisition: Acquisition) -> Config:
+    """The config with ``[reference] port = "simulator"`` when that is what will
+    be read: the reference implementation takes a ``port``, the user named
+    none, and the acquisition serves a simulated arm. A port the user named
+    is kept as it is; ``"simulator"`` with a source that serves no arm is an error."""
+    options = config.stages["reference"].options
+    where = f"{config.source}: [reference]"
+    if "port" not in reference.options():
+        return config
+    if "port" not in options:
+        if not isinstance(acquisition, ServesSimulatedArm):
+            return config  # creating the reference then says the port is needed
+        stages = dict(config.stages)
+        stages["reference"] = dataclasses.replace(stages["reference"], options={**options, "port": SIMULATED_PORT})
+        return dataclasses.replace(config, stages=stages)
+    if options["port"] == SIMULATED_PORT and not isinstance(acquisition, ServesSimulatedArm):
+        raise ConfigError(
+            f"{where}: port = {SIMULATED_PORT!r} needs an acquire source that serves a simulated arm "
+            f"(the simulator), not {config.stages['acquire'].plugin!r}"
+        )
+    return config
+
+
+def session_info(
+    config: Config,
+    stages: Stages,
+    acquisition: Acquisition,
+    plan: MeasurementPlan,
+    out_dir: Path,
+    parent: Mapping[str, Any] | None = None,
+    description: Mapping[str, Any] | None = None,
+) -> SessionInfo:
+    """The facts fixed at the start of a session: the one place a
+    :class:`SessionInfo` is made (live run and replay alike).
+    description: ``acquisition.describe()`` when already asked."""
+    plugins = stages.describe()
+    if isinstance(acquisition, RecordedAcquisition):
+        plugins["acquire"] = dict(acquisition.recorded_plugins.get("acquire", {}))
+        start_time_ns = int(acquisition.start_time_ns or 0)
+    else:
+        start_time_ns = time.time_ns()
+    return SessionInfo(
+        session_id=out_dir.name,
+        out_dir=out_dir,
+        config=config,
+        calibration=acquisition.calibration,
+        plan=plan,
+        plugins={stage: plugins[stage] for stage in STAGES if stage in plugins},
+        packages=package_versions(),
+        acquisition=dict(acquisition.describe() if description is None else description),
+        ground_truth=acquisition.ground_truth,
+        start_time_ns=start_time_ns,
+        parent=parent,
     )
 
 
@@ -249,38 +355,71 @@ def run_session(
     pm: pluggy.PluginManager,
     *,
     observers: Iterable[object] = (),
+    source: Acquisition | None = None,
+    cmm_raw: Sequence[SerialChunk] | None = None,
+    mcap_path: str | Path | None = None,
+    parent: Mapping[str, Any] | None = None,
 ) -> SessionSummary:
     """Run one session as configured; returns its summary.
 
     The session folder ``<output_dir>/<name>/`` receives session.mcap,
     session.rrd and the report files. ``observers`` are extra observer
     plugins (e.g. the progress display) registered for this session only.
+
+    source: the acquisition; None creates the config's ``[acquire]``
+    implementation (and closes it at the end). A replay passes its
+    :class:`~crossfield.stages.RecordedAcquisition`: then the recorded plan,
+    start time and acquire plugin are the session's, and the session is
+    ``incomplete`` where the recording is.
+    cmm_raw: recorded reads of the CMM line (``/cmm/raw``, read order): they
+    go to ``on_serial_bytes`` with their recorded times and the reference
+    implementation decodes them (``decode``) instead of reading a device.
+    mcap_path: the MCAP file to write (default ``<session folder>/session.mcap``);
+    the session folder is then named after it, next to it.
+    parent: the recording a replay re-runs and what it changed (``SessionInfo.parent``).
     """
-    stages = Stages.build(pm, config)
-    acquire_impl = stages.implementations["acquire"]
-    acquisition = acquire_impl.create(dict(config.stages["acquire"].options), f"{config.source}: [acquire]")
-    _connect_log(acquisition, pm.hook)
+    stages = Stages.build(pm, config, skip=("acquire",) if source is not None else ())
+    owned = source is None
+    if source is None:
+        impl = stages.implementations["acquire"]
+        source = impl.create(dict(config.stages["acquire"].options), f"{config.source}: [acquire]")
+    else:
+        source = check_implementation(source, "acquire", f"the session's source {type(source).__name__}")
+    if isinstance(source, ReportsIncidents):
+        source.connect_log(pm.hook.on_log)
     try:
-        plan = resolve_plan(config, acquisition)
-        description = acquisition.describe()
-        session_id = _session_id(config, description)
-        out_dir = _unique_dir(Path(config.session.get("output_dir", "recordings")), session_id)
-        info = SessionInfo(
-            session_id=out_dir.name,
-            out_dir=out_dir,
-            config=config,
-            calibration=acquisition.calibration,
-            plan=plan,
-            plugins=stages.describe(),
-            packages=package_versions(),
-            acquisition=description,
-            ground_truth=acquisition.ground_truth,
-            start_time_ns=time.time_ns(),
-        )
-        with _registered(pm, _session_observers(config, out_dir, observers)):
-            return _run(pm, config, stages, acquisition, info)
+        plan = resolve_plan(config, source)
+        if cmm_raw is None:
+            config = _with_simulated_arm(config, stages.implementations["reference"], source)
+        description = source.describe()
+        if mcap_path is not None:
+            mcap_path = Path(mcap_path)
+            base, name = mcap_path.parent, mcap_path.stem
+        else:
+            base = Path(config.session.get("output_dir", "recordings"))
+            name = _session_id(config, description)
+        # The reference is made before the folder: a bad option leaves nothing behind.
+        reader = _reference_reader(config, stages, pm.hook)
+        if cmm_raw is None:
+            import_reference = _live_reference(config, stages, source, plan, reader)
+        else:
+            import_reference = _recorded_reference(stages.implementations["reference"].name, reader, cmm_raw, plan)
+        out_dir = new_session_dir(base, name)
+        info = session_info(config, stages, source, plan, out_dir, parent, description)
+        recorded = source if isinstance(source, RecordedAcquisition) else None
+        with _registered(pm, _session_observers(config, out_dir, observers, mcap_path)):
+            return run_pipeline(
+                pm.hook,
+                stages,
+                info,
+                import_reference,
+                source.frames(),
+                float(config.session.get("match_tolerance_mm", 0.5)),
+                incomplete=(lambda: recorded.incomplete) if recorded is not None else (lambda: None),
+            )
     finally:
-        acquisition.close()
+        if owned:
+            source.close()
 
 
 #: ``import_reference(hook) -> (reference, time_ns)``: reads (or replays) the
@@ -289,21 +428,26 @@ def run_session(
 ReferenceImport = Callable[[Any], tuple[ReferenceData, int | None]]
 
 
-def _connect_log(device: Any, hook: Any) -> Any:
-    """Device plugins with a ``log`` attribute (dropped frames, link down/up)
-    report through the ``on_log`` hook, so the session records them."""
-    if hasattr(device, "log"):
-        device.log = hook.on_log
-    return device
+def _reference_reader(config: Config, stages: Stages, hook: Any, port: str | None = None) -> ReferenceSource:
+    """The configured reference implementation (``port`` replacing the option
+    when given), its incident log connected to ``hook.on_log``."""
+    impl = stages.implementations["reference"]
+    options = dict(config.stages["reference"].options)
+    if port is not None:
+        options["port"] = port
+    reader = impl.create(options, f"{config.source}: [reference]")
+    if isinstance(reader, ReportsIncidents):
+        reader.connect_log(hook.on_log)
+    return reader
 
 
 def _live_reference(
-    config: Config, stages: Stages, acquisition: Any, plan: MeasurementPlan
+    config: Config, stages: Stages, acquisition: Acquisition, plan: MeasurementPlan, reader: ReferenceSource
 ) -> ReferenceImport:
-    impl = stages.implementations["reference"]
-    options = dict(config.stages["reference"].options)
-    where = f"{config.source}: [reference]"
-    source = f"{impl.name}"
+    """Read the CMM data from the device (``reader``), or from the simulated arm
+    of the acquisition when the port is ``"simulator"`` (a reader for its pty is made then)."""
+    source = stages.implementations["reference"].name
+    simulated = config.stages["reference"].options.get("port") == SIMULATED_PORT
 
     def import_reference(hook: Any) -> tuple[ReferenceData, int | None]:
         last: list[int] = []
@@ -313,28 +457,29 @@ def _live_reference(
             last[:] = [t]
             hook.on_serial_bytes(data=data, timestamp_ns=t, source=source)
 
-        if options.get("port") == SIMULATED_PORT:
-            if not hasattr(acquisition, "serve_arm"):
-                raise ConfigError(f"{where}: port = {SIMULATED_PORT!r} needs the simulator as the acquire source")
+        if simulated and isinstance(acquisition, ServesSimulatedArm):
             with acquisition.serve_arm() as port:
-                reader = _connect_log(impl.create({**options, "port": port}, where), hook)
-                reference = reader.acquire(plan, sink)
+                reference = _reference_reader(config, stages, hook, port).acquire(plan, sink)
         else:
-            reference = _connect_log(impl.create(options, where), hook).acquire(plan, sink)
+            reference = reader.acquire(plan, sink)
         return reference, (last[0] if last else None)
 
     return import_reference
 
 
-def _run(pm: pluggy.PluginManager, config: Config, stages: Stages, acquisition: Any, info: SessionInfo) -> SessionSummary:
-    return run_pipeline(
-        pm.hook,
-        stages,
-        info,
-        _live_reference(config, stages, acquisition, info.plan),
-        acquisition.frames(),
-        float(config.session.get("match_tolerance_mm", 0.5)),
-    )
+def _recorded_reference(
+    name: str, reader: ReferenceSource, chunks: Sequence[SerialChunk], plan: MeasurementPlan
+) -> ReferenceImport:
+    """Hand the recorded reads to the observers with their recorded times, then
+    decode them as the live import did (``reader.decode``)."""
+
+    def import_reference(hook: Any) -> tuple[ReferenceData, int | None]:
+        for chunk in chunks:
+            hook.on_serial_bytes(data=chunk.data, timestamp_ns=chunk.timestamp_ns, source=chunk.source or name)
+        reference = reader.decode(b"".join(c.data for c in chunks), plan)
+        return reference, (chunks[-1].timestamp_ns if chunks else None)
+
+    return import_reference
 
 
 def run_pipeline(
@@ -383,16 +528,9 @@ def finish_session(
     accumulator: SessionAccumulator,
     incomplete: str | None = None,
 ) -> SessionSummary:
-    """Summarise the aggregated frames, write the report, tell the observers; returns the summary."""
-    aggregate = accumulator.result()
-    summary = SessionSummary(
-        info=info,
-        reference=reference,
-        frames=accumulator.rows,
-        characteristics=aggregate.characteristics,
-        incomplete=incomplete,
-        aggregate=aggregate,
-    )
+    """Summarise the aggregated frames (:meth:`SessionSummary.of_session`), write
+    the report, tell the observers; returns the summary."""
+    summary = SessionSummary.of_session(info, reference, accumulator, incomplete)
     files = stages.report.write(summary, info.out_dir)
     summary = dataclasses.replace(summary, report_files=tuple(files))
     hook.on_session_end(summary=summary)

@@ -25,6 +25,13 @@ from crossfield.types import (
     StereoCentroids,
 )
 
+__all__ = [
+    "FrameResult",
+    "SessionInfo",
+    "SessionSummary",
+    "summarise",
+]
+
 
 @dataclass(frozen=True)
 class SessionInfo:
@@ -98,6 +105,29 @@ class SessionSummary(SummaryTables):
     def __post_init__(self) -> None:
         if self.aggregate is None:
             object.__setattr__(self, "aggregate", aggregate_frames(self.frames, self.info.plan))
+
+    @classmethod
+    def of_session(
+        cls,
+        info: SessionInfo,
+        reference: ReferenceData,
+        accumulator: SessionAccumulator,
+        incomplete: str | None = None,
+        report_files: Iterable[Path] = (),
+    ) -> SessionSummary:
+        """The summary of a session whose frames went through ``accumulator``:
+        the one place a session's summary is made (the runner's
+        :func:`~crossfield.runner.finish_session`, the viewer's reading of a recording)."""
+        aggregate = accumulator.result()
+        return cls(
+            info=info,
+            reference=reference,
+            frames=accumulator.rows,
+            characteristics=aggregate.characteristics,
+            report_files=tuple(report_files),
+            incomplete=incomplete,
+            aggregate=aggregate,
+        )
 
     @property
     def registrations(self) -> list[Registration]:

@@ -1,17 +1,34 @@
-"""What each stage implementation must provide (structural protocols).
+"""The stages, and what each stage implementation must provide.
 
-A registry hook offers ``factory(**options) -> implementation``; the
-implementation then satisfies one of these protocols. Units and frames as
-in :mod:`crossfield.types`.
+:data:`STAGES` names the stages in data-flow order; :data:`STAGE_PROTOCOLS`
+maps each to the structural protocol its implementations satisfy. A
+registry hook offers ``factory(**options) -> implementation``;
+:meth:`crossfield.registry.Implementation.create` checks the object it makes
+against the stage's protocol (:func:`check_implementation`), so a plugin
+that lacks a method fails when it is chosen, with an error naming it.
+
+Besides the stage contracts, a device may declare optional side channels
+(:class:`ReportsIncidents`, :class:`ServesSimulatedArm`) and a replay's
+source is a :class:`RecordedAcquisition`; the runner checks them with
+``isinstance``, never by attribute or name. Units and frames as in
+:mod:`crossfield.types`.
+
+This module imports only the data modules (:mod:`crossfield.types`,
+:mod:`crossfield.plan`), so the config, the registry and the hook specs
+can all import it without a circle.
 """
 
 from __future__ import annotations
 
+import inspect
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import AbstractContextManager
 from pathlib import Path
-from typing import Any, Callable, Iterator, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 
+from crossfield.errors import PluginError
 from crossfield.plan import MeasurementPlan
 from crossfield.types import (
     CameraPoints,
@@ -26,8 +43,58 @@ from crossfield.types import (
     StereoFrame,
 )
 
+if TYPE_CHECKING:  # pragma: no cover
+    from crossfield.session import SessionSummary
+
+__all__ = [
+    "STAGES",
+    "STAGE_PROTOCOLS",
+    "Acquisition",
+    "BytesSink",
+    "CentroidExtractor",
+    "LogCallback",
+    "Measurer",
+    "RecordedAcquisition",
+    "ReferenceSource",
+    "Registrar",
+    "Reporter",
+    "ReportsIncidents",
+    "SerialChunk",
+    "ServesSimulatedArm",
+    "Triangulator",
+    "check_implementation",
+    "protocol_members",
+]
+
+#: The stages, in data-flow order (the config's tables, the registry hooks).
+STAGES: tuple[str, ...] = (
+    "acquire",
+    "centroid",
+    "triangulate",
+    "reference",
+    "register",
+    "measure",
+    "report",
+)
+
 #: Called with each chunk of raw bytes as it is read, before parsing.
 BytesSink = Callable[[bytes], None]
+
+
+class SerialChunk(NamedTuple):
+    """One read from the CMM line as recorded on ``/cmm/raw``: the bytes, the
+    read time (ns since the Unix epoch) and the reference implementation's name."""
+
+    data: bytes
+    timestamp_ns: int
+    source: str
+
+
+class LogCallback(Protocol):
+    """``log(level=..., message=..., timestamp_ns=...)``, as ``pm.hook.on_log``:
+    level is debug, info, warning or error; timestamp_ns since the Unix epoch."""
+
+    def __call__(self, *, level: str, message: str, timestamp_ns: int) -> Any: ...
 
 
 @runtime_checkable
@@ -100,8 +167,145 @@ class Measurer(Protocol):
 
 @runtime_checkable
 class Reporter(Protocol):
-    def write(self, summary: "SessionSummary", out_dir: Path) -> list[Path]:  # noqa: F821
+    def write(self, summary: SessionSummary, out_dir: Path) -> list[Path]:
         """Write the report files into ``out_dir``; return their paths."""
 
-    def summary_text(self, summary: "SessionSummary") -> str:  # noqa: F821
+    def summary_text(self, summary: SessionSummary) -> str:
         """A short terminal summary."""
+
+
+#: stage -> the protocol its implementations satisfy.
+STAGE_PROTOCOLS: Mapping[str, type] = {
+    "acquire": Acquisition,
+    "centroid": CentroidExtractor,
+    "triangulate": Triangulator,
+    "reference": ReferenceSource,
+    "register": Registrar,
+    "measure": Measurer,
+    "report": Reporter,
+}
+
+
+# ---- optional side channels (checked with isinstance) -------------------
+
+
+@runtime_checkable
+class ReportsIncidents(Protocol):
+    """A device that reports incidents as they happen (dropped frames, link
+    down and up, rejected lines). The runner connects it to the session's
+    ``on_log`` hook, so the recording holds them on ``/log``."""
+
+    def connect_log(self, log: LogCallback) -> None:
+        """Report every later incident through ``log``."""
+
+
+@runtime_checkable
+class ServesSimulatedArm(Protocol):
+    """An acquisition that can also run the simulated CMM arm of its scene.
+
+    Used only when the reference implementation takes a ``port`` option and
+    the user named none, or named ``"simulator"``: any other port is read
+    as given."""
+
+    def serve_arm(self) -> AbstractContextManager[str]:
+        """Run the simulated arm on a pseudo-terminal while the context is open;
+        yields its device path."""
+
+
+@runtime_checkable
+class RecordedAcquisition(Acquisition, Protocol):
+    """The acquisition of a replay: stereo pairs read back from a recording.
+
+    recorded_plugins: the recording's ``crossfield.plugins`` record (stage ->
+    {name, plugin, package, version}); its ``acquire`` entry is what the
+    replay names as its source. start_time_ns: the recorded session start.
+    incomplete: after :meth:`frames` is exhausted, where a cut-short
+    recording ends (None if it is complete).
+    """
+
+    recorded_plugins: Mapping[str, Mapping[str, str]]
+    start_time_ns: int
+    incomplete: str | None
+
+
+# ---- the check ----------------------------------------------------------
+
+_PROTOCOL_BASES = frozenset(vars(object)) | frozenset(vars(Protocol)) | {
+    "__annotations__",
+    "__dict__",
+    "__weakref__",
+    "__parameters__",
+    "__protocol_attrs__",
+    "__non_callable_proto_members__",
+    "__abstractmethods__",
+    "__orig_bases__",
+    "__callable_proto_members_only__",
+    "_is_protocol",
+    "_is_runtime_protocol",
+    "__subclasshook__",
+    "__init__",
+    "__module__",
+    "__qualname__",
+    "__doc__",
+}
+
+
+def protocol_members(protocol: type) -> tuple[dict[str, Any], tuple[str, ...]]:
+    """(methods, attributes) a protocol declares: method name -> the protocol's
+    function, and the names of its annotated data attributes (bases included)."""
+    methods: dict[str, Any] = {}
+    attributes: list[str] = []
+    for klass in reversed(protocol.__mro__):
+        if klass in (object, Protocol) or not getattr(klass, "_is_protocol", False):
+            continue
+        for name, value in vars(klass).items():
+            if name in _PROTOCOL_BASES or name.startswith("_abc"):
+                continue
+            if callable(value):
+                methods[name] = value
+        for name in vars(klass).get("__annotations__", {}):
+            if name not in attributes:
+                attributes.append(name)
+    return methods, tuple(attributes)
+
+
+def _arity_problem(bound: Any, spec: Any) -> str | None:
+    """Why ``bound`` (a method of the implementation) cannot be called as the
+    protocol's ``spec`` is (same positional parameters), or None."""
+    try:
+        have = inspect.signature(bound)
+    except (TypeError, ValueError):  # a builtin without a signature: not checkable
+        return None
+    params = list(inspect.signature(spec).parameters.values())[1:]  # without self
+    args = [object()] * sum(p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD) and p.default is p.empty for p in params)
+    kwargs = {p.name: object() for p in params if p.kind is p.KEYWORD_ONLY and p.default is p.empty}
+    try:
+        have.bind(*args, **kwargs)
+    except TypeError as exc:
+        return f"{spec.__name__}({', '.join(p.name for p in params)}) cannot be called on it: {exc}"
+    return None
+
+
+def check_implementation(obj: Any, stage: str, who: str) -> Any:
+    """``obj`` if it satisfies ``STAGE_PROTOCOLS[stage]``; else
+    :class:`~crossfield.errors.PluginError` naming ``who`` (the implementation
+    and the plugin that registered it) and every missing or uncallable member."""
+    protocol = STAGE_PROTOCOLS[stage]
+    methods, attributes = protocol_members(protocol)
+    problems = [f"no attribute {a!r}" for a in attributes if not hasattr(obj, a)]
+    for name, spec in methods.items():
+        member = getattr(obj, name, None)
+        if member is None:
+            problems.append(f"no method {name}()")
+        elif not callable(member):
+            problems.append(f"{name} is not callable")
+        else:
+            problem = _arity_problem(member, spec)
+            if problem:
+                problems.append(problem)
+    if problems:
+        raise PluginError(
+            f"{who} made a {type(obj).__name__}, which is not a {stage} implementation "
+            f"(crossfield.stages.{protocol.__name__}): {'; '.join(problems)}"
+        )
+    return obj

@@ -22,6 +22,27 @@ from typing import Mapping
 
 import numpy as np
 
+__all__ = [
+    "CAMERAS",
+    "CameraIntrinsics",
+    "CameraPoints",
+    "CentroidSet",
+    "CharacteristicResult",
+    "Correspondence",
+    "GroundTruth",
+    "Line3D",
+    "Measurement",
+    "ProbedPoint",
+    "ReferenceData",
+    "Registration",
+    "RejectedBlob",
+    "RigidFit",
+    "StereoCalibration",
+    "StereoCentroids",
+    "StereoFrame",
+    "frozen_array",
+]
+
 CAMERAS: tuple[str, str] = ("upper", "lower")
 
 

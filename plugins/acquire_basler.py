@@ -36,13 +36,14 @@ import threading
 import time
 from collections import deque
 from pathlib import Path
-from typing import Any, Callable, Iterator, Mapping
+from typing import Any, Iterator, Mapping
 
 import numpy as np
 
 from crossfield.camera.calibration_io import read_stereo_calibration
 from crossfield.errors import ConfigError, PluginError
-from crossfield.hookspecs import hookimpl
+from crossfield.hookspecs import Register, hookimpl
+from crossfield.stages import Acquisition
 from crossfield.types import CAMERAS, StereoCalibration, StereoFrame
 
 from crossfield.camera.pairing import ArrivalPairer, BlockCounter, GrabbedFrame, IncidentLog, LogCallable, pair_skew_ns
@@ -421,7 +422,7 @@ class BaslerStereoSource:
     features, upper_features, lower_features: further GenICam features to
     write (name = value), to both cameras / one camera, after the above.
 
-    ``log`` (attribute, not an option): a callable receiving ``level``,
+    ``log`` (attribute, not an option; set by :meth:`connect_log`): a callable receiving ``level``,
     ``message``, ``timestamp_ns`` keyword arguments for each incident.
     """
 
@@ -528,6 +529,11 @@ class BaslerStereoSource:
             raise
 
     # ---- set-up ------------------------------------------------------------------------------
+
+    def connect_log(self, log: LogCallable) -> None:
+        """Report incidents through ``log`` from now on
+        (:class:`crossfield.stages.ReportsIncidents`; the runner passes ``on_log``)."""
+        self.log = log
 
     def _open(self, upper: str, lower: str, trigger_source: str, trigger_activation: str) -> None:
         pylon = self.pylon
@@ -827,5 +833,5 @@ def _pypylon_version() -> str:
 
 
 @hookimpl
-def register_acquires(register: Callable[..., None]) -> None:
+def register_acquires(register: Register[Acquisition]) -> None:
     register("basler", BaslerStereoSource, "Two Basler cameras via pylon (pypylon; crossfield[basler])")

@@ -33,7 +33,8 @@ import numpy as np
 
 from crossfield.camera.calibration_io import read_stereo_calibration
 from crossfield.errors import ConfigError
-from crossfield.hookspecs import hookimpl
+from crossfield.hookspecs import Register, hookimpl
+from crossfield.stages import Acquisition
 from crossfield.types import CAMERAS, StereoCalibration, StereoFrame
 
 DEFAULT_CALIBRATION_FILES: tuple[tuple[str, ...], ...] = (
@@ -222,5 +223,5 @@ class FolderAcquisition:
 
 
 @hookimpl
-def register_acquires(register) -> None:
+def register_acquires(register: Register[Acquisition]) -> None:
     register("folder", FolderAcquisition, "Paired 16-bit PNG/TIFF images from a folder + OpenCV calibration")

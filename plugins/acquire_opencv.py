@@ -43,7 +43,8 @@ import numpy as np
 
 from crossfield.camera.calibration_io import read_stereo_calibration
 from crossfield.errors import ConfigError
-from crossfield.hookspecs import hookimpl
+from crossfield.hookspecs import Register, hookimpl
+from crossfield.stages import Acquisition
 from crossfield.types import CAMERAS, StereoCalibration, StereoFrame
 
 from crossfield.camera.pairing import IncidentLog, LogCallable
@@ -86,7 +87,7 @@ class OpenCVStereoSource:
     sources give timestamps). backend: ``any``, ``ffmpeg``, ``images``,
     ``v4l2`` or ``gstreamer``.
 
-    ``log`` (attribute): as for the basler source, a callable receiving
+    ``log`` (attribute, set by :meth:`connect_log`): as for the basler source, a callable receiving
     ``level``, ``message``, ``timestamp_ns`` for each incident.
     """
 
@@ -159,6 +160,11 @@ class OpenCVStereoSource:
             raise
 
     # ---- set-up ------------------------------------------------------------------------------
+
+    def connect_log(self, log: LogCallable) -> None:
+        """Report incidents through ``log`` from now on
+        (:class:`crossfield.stages.ReportsIncidents`; the runner passes ``on_log``)."""
+        self.log = log
 
     def _open(self, camera: str, spec: int | str) -> cv2.VideoCapture:
         if isinstance(spec, bool) or not isinstance(spec, (int, str)) or spec == "":
@@ -350,7 +356,7 @@ class OpenCVStereoSource:
 
 
 @hookimpl
-def register_acquires(register) -> None:
+def register_acquires(register: Register[Acquisition]) -> None:
     register(
         "opencv", OpenCVStereoSource,
         "Two OpenCV VideoCapture sources (devices, video files, image sequences)",

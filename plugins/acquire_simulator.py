@@ -15,7 +15,8 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from crossfield.hookspecs import hookimpl
+from crossfield.hookspecs import Register, hookimpl
+from crossfield.stages import Acquisition
 from crossfield.simulator.scenarios import SCENARIOS, build_scene
 from crossfield.types import StereoFrame
 
@@ -98,5 +99,5 @@ class SimulatorSource:
 
 
 @hookimpl
-def register_acquires(register):
+def register_acquires(register: Register[Acquisition]) -> None:
     register("simulator", SimulatorSource, "Built-in station simulator (paper's set-up), deterministic")

@@ -18,9 +18,10 @@ press) gives one point; points resent after a reconnect are recognised and
 dropped; a lost link is reopened until the idle timeout.
 
 Link events are not in the bytes (``decode(raw)`` cannot see them), so the
-plugin reports them as they happen through its ``log`` attribute (set by
-the session runner to ``pm.hook.on_log``; the recorder writes them to
-``/log``): each disconnect (``link down at <time>: <reason>``), each
+plugin reports them as they happen through its ``log`` callback (connected
+by the session runner to ``pm.hook.on_log`` through :meth:`connect_log`, the
+:class:`crossfield.stages.ReportsIncidents` side channel; the recorder writes
+them to ``/log``): each disconnect (``link down at <time>: <reason>``), each
 reconnect (``link up again after X s ...``), the idle timeout, and each
 rejected line. Without ``log`` they go to the Python logger
 ``crossfield.reference.romer-serial``; outages are also kept in
@@ -41,7 +42,7 @@ import numpy as np
 
 from crossfield.cmm.formats import FORMATS, UNITS, LineFormat
 from crossfield.errors import ReferenceImportError
-from crossfield.hookspecs import hookimpl
+from crossfield.hookspecs import Register, hookimpl
 from crossfield.plan import MeasurementPlan
 from crossfield.cmm.protocol import (
     Decoder,
@@ -52,7 +53,7 @@ from crossfield.cmm.protocol import (
     SerialTransport,
     Transport,
 )
-from crossfield.stages import BytesSink
+from crossfield.stages import BytesSink, ReferenceSource
 from crossfield.types import ProbedPoint, ReferenceData
 
 
@@ -342,8 +343,9 @@ class RomerSerialReference:
     burst_radius_mm: repeats of one press within this distance are a held
     button and give one point (mm).
 
-    ``log`` (attribute, not an option; default None): a callable receiving
-    ``level``, ``message`` and ``timestamp_ns`` keyword arguments, called
+    ``log`` (attribute, not an option; default None; set by
+    :meth:`connect_log`): a callable receiving ``level``, ``message`` and
+    ``timestamp_ns`` keyword arguments, called
     as things happen during :meth:`acquire` (link down / up, timeout,
     each rejected line); without it they go to the Python logger
     ``crossfield.reference.romer-serial``. ``outages``: the
@@ -389,6 +391,11 @@ class RomerSerialReference:
         self.log: LogCallable | None = None
         self.outages: list[LinkOutage] = []
         self._logger = logging.getLogger("crossfield.reference.romer-serial")
+
+    def connect_log(self, log: LogCallable) -> None:
+        """Report incidents through ``log`` from now on
+        (:class:`crossfield.stages.ReportsIncidents`; the runner passes ``on_log``)."""
+        self.log = log
 
     def _report(self, level: str, message: str, timestamp_ns: int | None = None) -> None:
         """One incident: to ``log`` if set, else to the Python logger (not
@@ -567,7 +574,7 @@ class RomerSerialReference:
 
 
 @hookimpl
-def register_references(register):
+def register_references(register: Register[ReferenceSource]) -> None:
     register(
         "romer-serial",
         RomerSerialReference,

@@ -125,8 +125,10 @@ def test_flags_and_api_arguments_give_one_config(tmp_path):
     assert api.to_dict() == run_config(*flags).to_dict()
 
 
-def test_the_simulated_arm_is_the_default_reference_port_but_never_overrides_one():
-    assert run_config().stages["reference"].options == {"port": "simulator"}
+def test_the_config_keeps_the_users_reference_port_and_adds_none():
+    # With no port named the runner reads the arm the simulator serves
+    # (crossfield.stages.ServesSimulatedArm; tests/test_structure.py, test_cmm_link.py).
+    assert run_config().stages["reference"].options == {}
     assert run_config("--option", "reference.port=/dev/ttyUSB0").stages["reference"].options == {
         "port": "/dev/ttyUSB0"
     }

@@ -125,3 +125,23 @@ def test_replay_and_audit_with_the_entry_point_plugin(site, recorded, tmp_path):
         "package": "crossfield-squared-centroid",
         "version": "0.1.0",
     }
+
+
+def test_the_example_uses_only_the_public_api_and_the_core_blob_detector():
+    """The example imports only names the core declares public (``__all__``) and
+    leaves blob detection to crossfield.imaging.blobs (no OpenCV of its own)."""
+    import ast
+    import importlib
+
+    source = (EXAMPLE / "crossfield_squared_centroid" / "__init__.py").read_text(encoding="utf-8")
+    imported: dict[str, set[str]] = {}
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.ImportFrom) and node.module != "__future__":
+            imported.setdefault(node.module, set()).update(a.name for a in node.names)
+        elif isinstance(node, ast.Import):
+            imported.update({a.name: set() for a in node.names})
+    assert "cv2" not in imported
+    assert "BlobDetector" in imported["crossfield.imaging.blobs"]
+    for module, names in imported.items():
+        if module.startswith("crossfield"):
+            assert names <= set(importlib.import_module(module).__all__), module

@@ -8,6 +8,7 @@ import pytest
 
 from crossfield.cli import main
 from crossfield.config import parse_config
+from crossfield.hookspecs import hookimpl
 from crossfield.registry import make_plugin_manager
 from crossfield.runner import run_session
 from crossfield.simulator.scenarios import TABLE3_ACTUAL_MM
@@ -107,3 +108,138 @@ def test_cli_plugins_lists_every_stage(capsys):
     table = json.loads(capsys.readouterr().out)
     assert {e["name"] for e in table["register"]} >= {"svd", "umeyama", "horn"}
     assert all(table[stage] for stage in table)
+
+
+# ---- every option the user sets is honoured or refused (issue 9, class 5) -----------
+
+
+def recorded_run(folder):
+    """(config, CMM bytes, reference source) recorded by a session in ``folder``."""
+    from crossfield.recording.reader import open_recording
+
+    with open_recording(folder / "session.mcap") as rec:
+        config = rec.metadata_doc("crossfield.config")
+        raw = b"".join(m.data for m in rec.messages("/cmm/raw", decode=False))
+    report = json.loads((folder / "report.json").read_text(encoding="utf-8"))
+    return config, raw, report["reference"]["source"]
+
+
+def test_option_reference_port_is_read_never_replaced_by_the_simulated_arm(tmp_path, capsys):
+    """The documented romer-sim set-up: an arm on a real pty named with --option
+    reference.port=...; the session reads that arm, not the simulator's own."""
+    from crossfield.plugins.acquire_simulator import SimulatorSource
+    from crossfield.simulator.arm import SimulatedArm
+    from crossfield.simulator.scenarios import build_scene
+
+    # Another arm than the built-in one: the same scene probed with other noise.
+    outside = SimulatedArm(build_scene("table3").arm_probes(np.random.default_rng(99)))
+    builtin = SimulatedArm(SimulatorSource(scenario="table3", seed=4).arm_probes())
+    assert outside.expected_bytes() != builtin.expected_bytes()
+    with outside.serve_pty() as port:
+        code = main(
+            ["run", "--scenario", "table3", "--frames", "1", "--seed", "4", "-o", str(tmp_path), "--name", "ext",
+             "--no-rerun", "-q", "--option", f"reference.port={json.dumps(port)}"]
+        )
+        assert outside.wait_done(5.0)
+    assert code == 0, capsys.readouterr().err
+    config, raw, source = recorded_run(tmp_path / "ext")
+    assert config["reference"]["port"] == port and source == port
+    assert raw == outside.expected_bytes()
+
+    # Without a port the simulator's own arm is read, and the config says so.
+    assert main(["run", "--scenario", "table3", "--frames", "1", "--seed", "4", "-o", str(tmp_path),
+                 "--name", "own", "--no-rerun", "-q"]) == 0
+    config, raw, source = recorded_run(tmp_path / "own")
+    assert config["reference"]["port"] == "simulator" and source.startswith("/")
+    assert raw == builtin.expected_bytes()
+
+
+def test_the_python_api_gets_the_simulated_arm_by_default(tmp_path):
+    config = parse_config(
+        {"session": {"output_dir": str(tmp_path), "name": "api", "rerun": False, "record": False},
+         "acquire": {"frames": 1, "scenario": "table3", "seed": 4}},
+        "<api>",
+    )
+    summary = run_session(config, make_plugin_manager())
+    assert summary.passed and summary.info.config.stages["reference"].options["port"] == "simulator"
+    assert len(summary.reference.points) == len(summary.info.plan.probing_order())
+
+
+class NoArm:
+    """A stereo source (the simulator's frames) that serves no simulated arm."""
+
+    def __init__(self, inner):
+        self.inner = inner
+        self.calibration, self.ground_truth, self.default_plan = inner.calibration, inner.ground_truth, inner.default_plan
+
+    def frames(self):
+        return self.inner.frames()
+
+    def describe(self):
+        return self.inner.describe()
+
+    def close(self):
+        pass
+
+
+def test_port_simulator_without_a_simulated_arm_is_refused_with_the_reason(tmp_path):
+    from crossfield.errors import ConfigError
+    from crossfield.plugins.acquire_simulator import SimulatorSource
+
+    source = NoArm(SimulatorSource(scenario="table3", frames=1))
+    config = parse_config(
+        {"session": {"output_dir": str(tmp_path), "name": "x"}, "reference": {"port": "simulator"}}, "cfg.toml"
+    )
+    with pytest.raises(ConfigError, match=r"cfg.toml: \[reference\]: port = 'simulator' needs an acquire source"):
+        run_session(config, make_plugin_manager(), source=source)
+    # and with no port at all the reference says it needs one
+    with pytest.raises(ConfigError, match=r"romer-serial' needs option 'port'"):
+        run_session(parse_config({"session": {"output_dir": str(tmp_path)}}, "c2.toml"), make_plugin_manager(),
+                    source=source)
+    assert not any(tmp_path.iterdir())
+
+
+class LogCollector:
+    def __init__(self):
+        self.lines = []
+
+    @hookimpl
+    def on_log(self, level, message, timestamp_ns):
+        self.lines.append((level, message))
+
+
+class ArmSource(NoArm):
+    """The simulator's frames and arm; reports one incident per pair through ``self.log``."""
+
+    log = None
+
+    def serve_arm(self):
+        return self.inner.serve_arm()
+
+    def frames(self):
+        for frame in self.inner.frames():
+            if self.log is not None:
+                self.log(level="warning", message=f"incident at pair {frame.sequence}", timestamp_ns=frame.timestamp_ns)
+            yield frame
+
+
+class ConnectedSource(ArmSource):
+    def connect_log(self, log):
+        self.log = log
+
+
+@pytest.mark.parametrize("klass, connected", [(ConnectedSource, True), (ArmSource, False)])
+def test_a_device_log_is_connected_by_its_declared_protocol_not_by_an_attribute(tmp_path, klass, connected):
+    from crossfield.plugins.acquire_simulator import SimulatorSource
+    from crossfield.stages import ReportsIncidents, ServesSimulatedArm
+
+    source = klass(SimulatorSource(scenario="table3", frames=2, seed=4))
+    assert isinstance(source, ServesSimulatedArm) and isinstance(source, ReportsIncidents) is connected
+    logs = LogCollector()
+    config = parse_config({"session": {"output_dir": str(tmp_path), "name": "log", "rerun": False}}, "<t>")
+    summary = run_session(config, make_plugin_manager(), source=source, observers=[logs])
+    assert summary.passed
+    incidents = [m for level, m in logs.lines if m.startswith("incident")]
+    assert incidents == (["incident at pair 0", "incident at pair 1"] if connected else [])
+    # the serial plugin's own incidents arrive through its connect_log in both cases
+    assert any(m.startswith("romer-serial ") and "points imported" in m for _, m in logs.lines)

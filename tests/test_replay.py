@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -186,7 +187,7 @@ def test_cli_bad_option_is_one_line_and_leaves_no_folder(recorded, tmp_path, cap
     )
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "Traceback" not in err
-    assert "(recorded config) (with command-line overrides): [register]" in err and "reflection_ratio" in err
+    assert "session.mcap (recorded config, with replay overrides): [register]" in err and "reflection_ratio" in err
     assert not any(tmp_path.iterdir())
     assert main(["replay", str(path), "--centroid", "nope", "-q"]) == 2
     assert "no centroid implementation named 'nope'; available: ellipse, weighted" in capsys.readouterr().err
@@ -231,3 +232,114 @@ def test_load_recorded_session_reads_the_inputs_exactly(recorded):
     )
     assert session.config.to_dict() == info.config.to_dict()
     assert session.machine is not None and session.machine["cpu_count"] >= 1
+
+
+# ---- recorded identifiers are data, never paths (issue 9, class 7) -----------------
+
+
+def crafted(recorded_path, dst, session_id, name, output_dir):
+    """A copy of the recording (rewritten with the mcap writer) whose session id,
+    config [session] name and output_dir are the given strings."""
+    from session_tools import rewrite_mcap
+
+    def edit(meta):
+        out = []
+        for record_name, record in meta:
+            record = dict(record)
+            if record_name == "crossfield.session":
+                doc = json.loads(record["json"])
+                doc["session_id"] = session_id
+                record["session_id"] = session_id
+                record["json"] = json.dumps(doc)
+            elif record_name == "crossfield.config":
+                doc = json.loads(record["json"])
+                doc["session"].update(name=name, output_dir=output_dir)
+                record["json"] = json.dumps(doc)
+                record.pop("toml", None)
+            out.append((record_name, record))
+        return out
+
+    rewrite_mcap(recorded_path, dst, metadata=edit)
+    return dst
+
+
+def tree_of(folder):
+    return sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*"))
+
+
+@pytest.mark.parametrize(
+    "session_id",
+    ["../..", "../../escaped", "/tmp/crossfield-escaped-abs", "a/../../b", "..", ".", ""],
+)
+def test_a_crafted_session_id_never_becomes_a_path(recorded, tmp_path, session_id):
+    _, path = recorded
+    archive = tmp_path / "archive" / "deep" / "crafted"
+    archive.mkdir(parents=True)
+    src = crafted(path, archive / "session.mcap", session_id, "../../../name-escape", str(tmp_path / "elsewhere"))
+    assert load_recorded_session(src).session_id == session_id  # the crafted id is read as it is
+    before = tree_of(tmp_path)
+    out = tmp_path / "chosen"
+    # into the chosen output folder ...
+    summary = replay_session(src, make_plugin_manager(), output_dir=out)
+    assert summary.info.out_dir.parent == out and summary.info.out_dir.name == "crafted-replay"
+    # ... and by default next to the recorded session's folder
+    default = replay_session(src, make_plugin_manager(), rerun=False)
+    assert default.info.out_dir.parent == archive.parent and default.info.out_dir.name == "crafted-replay"
+    new = sorted(set(tree_of(tmp_path)) - set(before))
+    assert new and all(p.startswith(("chosen", "archive/deep/crafted-replay")) for p in new), new
+    assert not (tmp_path / "elsewhere").exists() and not any(p.startswith("escaped") for p in new)
+    assert not Path("/tmp/crossfield-escaped-abs-replay").exists()
+    # the replay names its parent by the id it read, as data
+    assert summary.info.parent["session_id"] == session_id
+    assert report_numbers(json.loads((summary.info.out_dir / "report.json").read_text()))["characteristics"] == (
+        report_numbers(json.loads((path.parent / "report.json").read_text()))["characteristics"]
+    )
+
+
+def test_a_recorded_plan_path_is_never_opened(recorded, tmp_path):
+    """[session] plan in a recording names a file on the recording machine: the
+    replay uses the attached plan and never reads that path."""
+    from session_tools import rewrite_mcap
+
+    _, path = recorded
+    decoy = tmp_path / "decoy-plan.toml"
+    decoy.write_text("this is not a plan [")
+
+    def edit(meta):
+        out = []
+        for name, record in meta:
+            record = dict(record)
+            if name == "crossfield.config":
+                doc = json.loads(record["json"])
+                doc["session"]["plan"] = str(decoy)
+                record["json"] = json.dumps(doc)
+                record.pop("toml", None)
+            out.append((name, record))
+        return out
+
+    src = tmp_path / "planpath.mcap"
+    rewrite_mcap(path, src, metadata=edit)
+    summary = replay_session(src, make_plugin_manager(), output_dir=tmp_path / "out", rerun=False)
+    assert summary.passed and summary.info.plan.sha256 == load_recorded_session(path).plan.sha256
+
+
+@pytest.mark.parametrize(
+    "option, reason",
+    [
+        ("acquire.frames=1", "reads the stereo pairs and the measurement plan from the recording"),
+        ("acquire.seed=9", "reads the stereo pairs and the measurement plan from the recording"),
+        ('session.plan="other.toml"', "reads the stereo pairs and the measurement plan from the recording"),
+        ('session.name="x"', r"set by -o/--output \(output=\), not by session.name"),
+        ('session.output_dir="/tmp"', r"set by -o/--output \(output_dir=\), not by session.output_dir"),
+        ("session.record=false", r"set by --no-record \(record=\)"),
+        ("session.rerun=true", r"set by --no-rerun \(rerun=\)"),
+    ],
+)
+def test_options_a_replay_cannot_honour_are_refused_with_the_reason(recorded, tmp_path, option, reason, capsys):
+    _, path = recorded
+    with pytest.raises(ConfigError, match=reason):
+        replay_session(path, make_plugin_manager(), options=[option], output_dir=tmp_path)
+    assert not any(tmp_path.iterdir())
+    assert main(["replay", str(path), "--option", option, "-o", str(tmp_path / "x.mcap")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and option.split("=")[0] in err

@@ -32,6 +32,16 @@ import numpy as np
 from crossfield.errors import ConfigError
 from crossfield.types import CameraIntrinsics, StereoCalibration
 
+__all__ = [
+    "DIST_LENGTHS",
+    "REQUIRED_KEYS",
+    "Size",
+    "read_stereo_calibration",
+    "stereo_calibration_from_yaml",
+    "stereo_calibration_to_yaml",
+    "write_stereo_calibration",
+]
+
 #: Keys a stereo calibration must provide (across the file or files given).
 REQUIRED_KEYS: tuple[str, ...] = ("M1", "D1", "M2", "D2", "R", "T")
 #: Lengths of OpenCV's distortion vectors (k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4 [tx ty]]]]).

@@ -29,6 +29,17 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
+__all__ = [
+    "INCIDENT_KINDS",
+    "ArrivalPairer",
+    "BlockCounter",
+    "GrabbedFrame",
+    "Incident",
+    "IncidentLog",
+    "LogCallable",
+    "pair_skew_ns",
+]
+
 #: ``log(level=..., message=..., timestamp_ns=...)``, e.g. ``pm.hook.on_log``.
 LogCallable = Callable[..., Any]
 

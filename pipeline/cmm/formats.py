@@ -36,6 +36,21 @@ from crossfield.cmm.protocol import (
     Rejection,
 )
 
+__all__ = [
+    "FORMATS",
+    "IPPDME_END",
+    "IPPDME_PORT",
+    "IPPDME_SESSION",
+    "MM_PER_INCH",
+    "UNITS",
+    "IppDmeDecoder",
+    "LineFormat",
+    "PcDmisDecoder",
+    "PlainLineFramer",
+    "encode_ippdme_event",
+    "encode_pcdmis",
+]
+
 MM_PER_INCH = 25.4
 UNITS = {"mm": 1.0, "inch": MM_PER_INCH}
 

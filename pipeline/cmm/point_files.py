@@ -29,6 +29,29 @@ from crossfield.cmm.protocol import show
 from crossfield.stages import BytesSink
 from crossfield.types import ProbedPoint, ReferenceData
 
+__all__ = [
+    "LENGTH_UNITS",
+    "MM_PER_INCH",
+    "UNIT_OPTIONS",
+    "UNIT_SPELLINGS",
+    "UNIT_VECTOR_TOLERANCE",
+    "FilePoint",
+    "PointFileReference",
+    "approach_direction",
+    "by_name",
+    "by_probing_order",
+    "check_path",
+    "check_sigma",
+    "check_units",
+    "finite",
+    "parse_float",
+    "quoted",
+    "read_point_file",
+    "resolve_units",
+    "text_lines",
+    "unit_name",
+]
+
 MM_PER_INCH = 25.4
 
 #: Length units a file may be in: name -> mm per unit.

@@ -41,6 +41,30 @@ import re
 from dataclasses import dataclass
 from typing import Protocol, Sequence
 
+__all__ = [
+    "MAX_LINE_BYTES",
+    "NOISE",
+    "OVERLONG",
+    "PARTIAL",
+    "POINT_FIELDS",
+    "POINT_SENTENCE",
+    "SENTENCE",
+    "UNIT_VECTOR_TOLERANCE",
+    "CfpDecoder",
+    "Decoder",
+    "Frame",
+    "LineDecoder",
+    "LineFramer",
+    "LinkLost",
+    "ProbeRecord",
+    "Rejection",
+    "SerialTransport",
+    "Transport",
+    "crc16",
+    "encode_point",
+    "show",
+]
+
 # --------------------------------------------------------------------------
 # Grammar constants
 # --------------------------------------------------------------------------

@@ -39,6 +39,17 @@ import numpy as np
 
 from crossfield.types import RejectedBlob
 
+__all__ = [
+    "REASONS",
+    "Background",
+    "Blob",
+    "BlobDetector",
+    "DetectorOptions",
+    "estimate_background",
+    "sort_order",
+    "sort_rejected",
+]
+
 #: Rejection reasons, in the order the tests are applied.
 REASONS: tuple[str, ...] = ("touches_border", "too_small", "too_large", "saturated", "no_signal", "not_round")
 

@@ -56,6 +56,7 @@ from scipy.spatial.transform import Rotation
 from crossfield.errors import RecordingError
 from crossfield.hookspecs import hookimpl
 from crossfield.recording.integrity import TOPIC_INTEGRITY, IntegrityChain
+from crossfield.provenance import crossfield_version, machine_info
 from crossfield.jsonable import ints, plain, real, reals
 from crossfield.types import CAMERAS, CameraIntrinsics, CameraPoints, CentroidSet, GroundTruth, StereoCalibration
 
@@ -536,42 +537,6 @@ def ground_truth_doc(truth: GroundTruth) -> dict[str, Any]:
     }
 
 
-def machine_info() -> dict[str, Any]:
-    """The machine a session runs on (the ``crossfield.machine`` metadata record)."""
-    import os
-    import platform
-    import socket
-
-    cpu = platform.processor() or ""
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    return {
-        "hostname": socket.gethostname(),
-        "platform": platform.platform(),
-        "system": platform.system(),
-        "release": platform.release(),
-        "machine": platform.machine(),
-        "cpu": cpu,
-        "cpu_count": os.cpu_count(),
-        "python": f"{platform.python_implementation()} {platform.python_version()}",
-    }
-
-
-def _crossfield_version(packages: Mapping[str, str]) -> str:
-    if packages.get("crossfield"):
-        return str(packages["crossfield"])
-    try:
-        return metadata.version("crossfield")
-    except metadata.PackageNotFoundError:
-        return "0+unknown"
-
-
 def _metadata_record(doc: Mapping[str, Any], flat: Mapping[str, Any] | None = None) -> dict[str, str]:
     """An MCAP metadata record (str -> str): readable flat keys plus ``json``,
     the exact document (what :mod:`crossfield.recording.reader` returns)."""
@@ -704,7 +669,7 @@ class McapRecorder:
         except OSError as exc:
             raise RecordingError(f"{self.path}: cannot create the recording: {exc.strerror}") from None
         library = (
-            f"crossfield/{_crossfield_version({})} {RECORDING_FORMAT} mcap-python/{metadata.version('mcap')}"
+            f"crossfield/{crossfield_version()} {RECORDING_FORMAT} mcap-python/{metadata.version('mcap')}"
         )
         self._sink = _McapSink(self._stream, chunk_size, flush_interval_s, library, COMPRESSIONS[compression])
         self._closed = False
@@ -814,7 +779,7 @@ class McapRecorder:
         self._session = session
         start = int(session.start_time_ns or time.time_ns())
         self._latest_time_ns = max(self._latest_time_ns, start)
-        version = _crossfield_version(session.packages)
+        version = crossfield_version(session.packages)
         calibration_text = calibration_yaml(session.calibration).encode()
         session_doc = {
             "session_id": session.session_id,

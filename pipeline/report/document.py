@@ -26,6 +26,19 @@ from crossfield.aggregate import project_to_rotation, rotation_angle  # noqa: F4
 from crossfield.jsonable import matrix, plain, real, vector
 from crossfield.session import FrameResult, SessionSummary
 
+__all__ = [
+    "REGISTRATION_AGGREGATE",
+    "REGISTRATION_AGGREGATE_TEXT",
+    "REPORT_FORMAT",
+    "build_report",
+    "dumps",
+    "frames_note",
+    "load_schema",
+    "problems",
+    "utc_time",
+    "validate",
+]
+
 #: Identifies the layout of report.json; bump on incompatible changes.
 REPORT_FORMAT = "crossfield-report/1"
 

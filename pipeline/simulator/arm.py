@@ -45,6 +45,19 @@ from crossfield.cmm.formats import encode_pcdmis
 from crossfield.cmm.protocol import encode_point
 from crossfield.simulator.scene import ArmProbe  # noqa: F401  (re-exported for the tools that build probes)
 
+__all__ = [
+    "FORMATS",
+    "ArmProbe",
+    "Fault",
+    "SimulatedArm",
+    "bad_checksum",
+    "dropped",
+    "probes_from_points",
+    "repeated",
+    "truncated",
+    "with_noise",
+]
+
 #: termios speed set on the slave before a client opens it; pyserial's
 #: open() replaces it, which tells the arm that the port is configured.
 _MARKER_SPEED = termios.B50

@@ -21,6 +21,21 @@ from crossfield.types import CameraIntrinsics, Line3D, StereoCalibration
 from crossfield.simulator.optics import project
 from crossfield.simulator.scene import Cylinder, Scene, Target
 
+__all__ = [
+    "BASELINE_MM",
+    "CYLINDER_RADIUS_MM",
+    "FOCAL_LENGTH_MM",
+    "IMAGE_SIZE",
+    "PIXEL_PITCH_MM",
+    "SCENARIOS",
+    "TABLE3_ACTUAL_MM",
+    "TARGET_RADIUS_MM",
+    "VIEW_CENTRE",
+    "WORKING_DISTANCE_MM",
+    "build_scene",
+    "station_calibration",
+]
+
 SCENARIOS = ("station", "table3")
 
 #: Paper, Table 3, "Actual Size" column (mm).

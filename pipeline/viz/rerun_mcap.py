@@ -369,15 +369,8 @@ def log_recording(mcap_path: str | Path, logger: RerunLogger) -> SessionSummary:
     incomplete = result.get("incomplete")
     if not recording.complete or not result:
         incomplete = f"the recording ends early ({recording.damage or 'no session result recorded'})"
-    aggregate = accumulator.result()
-    summary = SessionSummary(
-        info=info,
-        reference=reference,
-        frames=accumulator.rows,
-        characteristics=aggregate.characteristics,
-        aggregate=aggregate,
-        report_files=tuple(Path(p) for p in result.get("report_files", ())),
-        incomplete=incomplete,
+    summary = SessionSummary.of_session(
+        info, reference, accumulator, incomplete, (Path(p) for p in result.get("report_files", ()))
     )
     logger.on_session_end(summary=summary)
     return summary

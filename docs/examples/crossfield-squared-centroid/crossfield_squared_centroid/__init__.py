@@ -2,81 +2,74 @@
 
 Registers the centroid implementation ``squared`` through the ``crossfield``
 entry-point group (see pyproject.toml). Only crossfield's public API is
-used: ``crossfield.hookspecs.hookimpl`` and the data class
-``crossfield.types.CentroidSet``.
+used (docs/plugins.md, "The public API"): ``crossfield.hookspecs.hookimpl``,
+the blob detector ``crossfield.imaging.blobs`` (threshold, contours,
+rejection tests, local background: the same detection as the built-in
+centroid plugins) and the data class ``crossfield.types.CentroidSet``. The
+plugin only does its own sub-pixel step.
 """
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
 from crossfield.hookspecs import hookimpl
-from crossfield.types import CentroidSet, RejectedBlob
+from crossfield.imaging.blobs import Background, Blob, BlobDetector, DetectorOptions, sort_order, sort_rejected
+from crossfield.types import CentroidSet
+
+
+def squared_centroid(blob: Blob, background: Background) -> tuple[float, float, float, float]:
+    """(u, v, sigma_u, sigma_v) in image pixels of one blob.
+
+    Centre = sum(w u) / sum(w) with w = max(I - b, 0)^2 over the blob's
+    window (b: the blob's local background, DN). Uncertainty: first-order
+    propagation of the background noise sigma_n through the weighted mean,
+    du/dI_i = (u_i - u) dw_i/dI_i / sum(w) with dw/dI = 2 (I - b).
+    """
+    signal = np.clip(blob.roi.astype(np.float64) - blob.background_dn, 0.0, None) * blob.window
+    weights = signal**2
+    total = float(weights.sum())
+    if not total > 0:
+        return float("nan"), float("nan"), float("nan"), float("nan")
+    vv, uu = np.mgrid[0 : blob.roi.shape[0], 0 : blob.roi.shape[1]]
+    u = float((weights * uu).sum() / total)
+    v = float((weights * vv).sum() / total)
+    grad = 2.0 * signal
+    su = float(np.sqrt(((uu - u) ** 2 * grad**2).sum()) * background.sigma_dn / total)
+    sv = float(np.sqrt(((vv - v) ** 2 * grad**2).sum()) * background.sigma_dn / total)
+    return blob.x0 + u, blob.y0 + v, su, sv
 
 
 class SquaredCentroids:
-    """Blobs above ``background + threshold_sigma * noise``; centre = sum(w u) / sum(w)
-    with w = (I - background)^2 over the blob dilated by ``dilate_px`` pixels.
+    """Blobs found by crossfield's detector; centre = sum(w u) / sum(w) with
+    w = (I - background)^2 over the blob dilated by ``dilate_px`` pixels.
 
-    Units: pixels (OpenCV convention: (0, 0) is the centre of the top-left
-    pixel); DN for intensities.
+    Options: threshold_sigma (blob threshold = background + threshold_sigma
+    * noise), min_area_px (pixels), dilate_px (pixels). Units: pixels
+    (OpenCV convention: (0, 0) is the centre of the top-left pixel); DN for
+    intensities.
     """
 
     def __init__(self, *, threshold_sigma: float = 8.0, min_area_px: int = 30, dilate_px: int = 2) -> None:
-        if threshold_sigma <= 0 or min_area_px < 1 or dilate_px < 0:
-            raise ValueError("threshold_sigma, min_area_px and dilate_px must be positive")
-        self.threshold_sigma = threshold_sigma
-        self.min_area_px = min_area_px
-        self.dilate_px = dilate_px
+        # DetectorOptions checks the values (ValueError names the option).
+        self.detector = BlobDetector(
+            DetectorOptions(threshold_sigma=threshold_sigma, min_area_px=min_area_px, dilate_px=dilate_px)
+        )
 
     def extract(self, image: np.ndarray, camera: str, sequence: int) -> CentroidSet:
-        sample = image[::8, ::8].astype(np.float64)
-        background = float(np.median(sample))
-        noise = 1.4826 * float(np.median(np.abs(sample - background))) + 0.5
-        mask = (image > background + self.threshold_sigma * noise).astype(np.uint8)
-        count, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
-        height, width = image.shape
-        uv, sigma, area, roundness, peak, rejected = [], [], [], [], [], []
-        d = self.dilate_px
-        for k in range(1, count):
-            x, y, w, h, n = stats[k]
-            if n < self.min_area_px:
-                rejected.append(RejectedBlob((x + w / 2, y + h / 2), "too_small"))
-                continue
-            if x - d < 0 or y - d < 0 or x + w + d > width or y + h + d > height:
-                rejected.append(RejectedBlob((x + w / 2, y + h / 2), "touches_border"))
-                continue
-            roi = image[y - d : y + h + d, x - d : x + w + d].astype(np.float64) - background
-            window = cv2.dilate((labels[y - d : y + h + d, x - d : x + w + d] == k).astype(np.uint8), np.ones((2 * d + 1,) * 2, np.uint8))
-            weights = np.clip(roi, 0, None) ** 2 * window
-            total = weights.sum()
-            vv, uu = np.mgrid[y - d : y + h + d, x - d : x + w + d]
-            u = float((weights * uu).sum() / total)
-            v = float((weights * vv).sum() / total)
-            # First-order noise propagation of the weighted mean: dw/dI = 2 (I - b).
-            var_i = noise**2
-            grad = 2 * np.clip(roi, 0, None) * window
-            su = float(np.sqrt(((uu - u) ** 2 * grad**2 * var_i).sum()) / total)
-            sv = float(np.sqrt(((vv - v) ** 2 * grad**2 * var_i).sum()) / total)
-            cu = float((weights * (uu - u) ** 2).sum() / total)
-            cv_ = float((weights * (vv - v) ** 2).sum() / total)
-            cuv = float((weights * (uu - u) * (vv - v)).sum() / total)
-            eig = np.linalg.eigvalsh([[cu, cuv], [cuv, cv_]])
-            uv.append((u, v))
-            sigma.append((su, sv))
-            area.append(float(n))
-            roundness.append(float(np.sqrt(max(eig[0], 0) / eig[1])) if eig[1] > 0 else 0.0)
-            peak.append(float(roi.max()))
+        """Centroids of the targets in one (H, W) integer image (DN), raster order."""
+        blobs, rejected, background = self.detector.detect(image)
+        found = np.array([squared_centroid(blob, background) for blob in blobs], dtype=np.float64).reshape(-1, 4)
+        order = sort_order(found[:, :2])
         return CentroidSet(
             camera=camera,
             sequence=sequence,
-            uv=np.array(uv, dtype=np.float64).reshape(-1, 2),
-            sigma_uv=np.array(sigma, dtype=np.float64).reshape(-1, 2),
-            area_px=np.array(area),
-            roundness=np.array(roundness),
-            peak=np.array(peak),
-            rejected=tuple(rejected),
+            uv=found[order, :2],
+            sigma_uv=found[order, 2:],
+            area_px=np.array([blobs[i].area_px for i in order], dtype=np.float64),
+            roundness=np.array([blobs[i].roundness for i in order], dtype=np.float64),
+            peak=np.array([blobs[i].peak_dn for i in order], dtype=np.float64),
+            rejected=sort_rejected(rejected),
             method="squared",
         )
 
