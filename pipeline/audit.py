@@ -35,22 +35,25 @@ from typing import Any
 
 import pluggy
 
-from crossfield.errors import CrossfieldError
-from crossfield.recording.integrity import TOPIC_INTEGRITY, IntegrityResult, file_sha256, name_message, verify
+from crossfield.errors import CrossfieldError, RecordingError
+from crossfield.recording import layout as L
+from crossfield.recording.codec import decode_log
+from crossfield.recording.facts import require_session
+from crossfield.recording.integrity import IntegrityResult, file_sha256, name_message, verify
 from crossfield.recording.reader import open_recording
 from crossfield.provenance import package_versions
 from crossfield.registry import STAGES, implementations
 
-LOG_TOPIC = "/log"
+LOG_TOPIC = L.TOPIC_LOG
 
 #: Raw inputs: replay reads them, so they are not "reproduced".
-RAW_TOPICS = frozenset({"/camera/upper/image", "/camera/lower/image", "/cmm/raw", TOPIC_INTEGRITY})
+RAW_TOPICS = L.RAW_TOPICS
 
 #: JSON paths (per topic) not compared by the reproduction check: they name
 #: the run (session id, folder, replay parent, time of the replay, the
 #: serial port the bytes came from), not a result.
 IGNORED: dict[str, tuple[str, ...]] = {
-    "/report": (
+    L.TOPIC_REPORT: (
         "session.id",
         "session.out_dir",
         "session.parent",
@@ -64,7 +67,7 @@ IGNORED: dict[str, tuple[str, ...]] = {
         "packages",
         "plugins",
     ),
-    "/reference": ("source",),
+    L.TOPIC_REFERENCE: ("source",),
 }
 
 #: Findings of these kinds mean "cut short", not "altered".
@@ -121,24 +124,16 @@ def provenance(path: Path, pm: pluggy.PluginManager | None) -> dict[str, Any]:
     problems: list[str] = []
     notes: list[str] = []
     docs: dict[str, Any] = {}
-    for name in (
-        "crossfield.session",
-        "crossfield.config",
-        "crossfield.plugins",
-        "crossfield.packages",
-        "crossfield.acquisition",
-        "crossfield.machine",
-        "crossfield.result",
-    ):
+    for name in L.METADATA_RECORDS:
         if name in meta:
             docs[name] = rec.metadata_doc(name)
-        elif name == "crossfield.result":
-            notes.append("no crossfield.result record: the session did not end normally")
-        elif name == "crossfield.machine":
-            notes.append("no crossfield.machine record (recorded before the machine was recorded)")
+        elif name == L.META_RESULT:
+            notes.append(f"no {L.META_RESULT} record: the session did not end normally")
+        elif name == L.META_MACHINE:
+            notes.append(f"no {L.META_MACHINE} record (recorded before the machine was recorded)")
         else:
             problems.append(f"metadata record {name!r} is missing")
-    session = docs.get("crossfield.session", {})
+    session = docs.get(L.META_SESSION, {})
     attachments = rec.attachments()
 
     def digest_check(attachment: str, recorded: str | None) -> dict[str, Any]:
@@ -155,12 +150,12 @@ def provenance(path: Path, pm: pluggy.PluginManager | None) -> dict[str, Any]:
             notes.append(f"no recorded SHA-256 for {attachment!r} (recorded before it was recorded)")
         return {"recorded_sha256": recorded, "sha256": actual, "ok": ok}
 
-    plan = digest_check("plan.toml", session.get("plan_sha256"))
+    plan = digest_check(L.ATTACHMENT_PLAN, session.get("plan_sha256"))
     plan.update({"name": session.get("plan_name"), "source": session.get("plan_source")})
-    calibration = digest_check("calibration.yml", session.get("calibration_sha256"))
+    calibration = digest_check(L.ATTACHMENT_CALIBRATION, session.get("calibration_sha256"))
     calibration["source"] = session.get("calibration_source")
 
-    plugins = docs.get("crossfield.plugins", {})
+    plugins = docs.get(L.META_PLUGINS, {})
     installed_plugins: dict[str, Any] = {}
     if pm is not None:
         for stage in STAGES:
@@ -177,7 +172,7 @@ def provenance(path: Path, pm: pluggy.PluginManager | None) -> dict[str, Any]:
                     f"{entry.get('package')} {entry.get('version')}, "
                     f"installed {impl.package} {impl.version}"
                 )
-    packages = docs.get("crossfield.packages", {})
+    packages = docs.get(L.META_PACKAGES, {})
     current = package_versions()
     for name, version in packages.items():
         if current.get(name, "not installed") != version:
@@ -189,17 +184,17 @@ def provenance(path: Path, pm: pluggy.PluginManager | None) -> dict[str, Any]:
         "problems": problems,
         "notes": notes,
         "session": session,
-        "config": docs.get("crossfield.config"),
-        "config_toml": meta.get("crossfield.config", {}).get("toml"),
+        "config": docs.get(L.META_CONFIG),
+        "config_toml": meta.get(L.META_CONFIG, {}).get("toml"),
         "plugins": plugins,
         "installed_plugins": installed_plugins,
         "packages": packages,
-        "acquisition": docs.get("crossfield.acquisition"),
-        "machine": docs.get("crossfield.machine"),
-        "result": docs.get("crossfield.result"),
+        "acquisition": docs.get(L.META_ACQUISITION),
+        "machine": docs.get(L.META_MACHINE),
+        "result": docs.get(L.META_RESULT),
         "plan": plan,
         "calibration": calibration,
-        "ground_truth": "simulator_ground_truth.json" in attachments,
+        "ground_truth": L.ATTACHMENT_GROUND_TRUTH in attachments,
         "attachments": sorted(attachments),
         "writer": rec.library,
     }
@@ -249,21 +244,21 @@ def _keyed(messages: list[tuple[str, int, int, bytes]]) -> dict[tuple[str, int, 
 
 
 def _decode_log(data: bytes) -> str:
-    from foxglove_schemas_protobuf.Log_pb2 import Log
-
     try:
-        return Log.FromString(data).message
-    except Exception:  # noqa: BLE001
+        return decode_log(data, L.TOPIC_LOG)[1]
+    except RecordingError:
         return f"<{len(data)} bytes>"
 
 
 def reproduction(path: Path, pm: pluggy.PluginManager, *, limit: int = 500) -> dict[str, Any]:
     """Replay with the recorded plugins and compare every result message (see module doc)."""
-    from crossfield.recording.recorder import MessageCapture
+    from crossfield.recording.recorder import SessionRecorder
+    from crossfield.recording.writer import MemorySink
     from crossfield.replay import load_recorded_session, replay_session
 
     recorded = load_recorded_session(path)
-    capture = MessageCapture(skip_topics=RAW_TOPICS)
+    sink = MemorySink(skip_topics=RAW_TOPICS)
+    capture = SessionRecorder(sink)
     with tempfile.TemporaryDirectory(prefix="crossfield-audit-") as tmp:
         try:
             summary = replay_session(
@@ -285,9 +280,9 @@ def reproduction(path: Path, pm: pluggy.PluginManager, *, limit: int = 500) -> d
     # see; every result a log line reports is also on /frames, /reference or
     # /report, which are compared.
     logs_a = {k: v for k, v in _keyed(recorded_messages).items() if k[0] == LOG_TOPIC}
-    logs_b = {k: v for k, v in _keyed(capture.messages).items() if k[0] == LOG_TOPIC}
+    logs_b = {k: v for k, v in _keyed(sink.messages).items() if k[0] == LOG_TOPIC}
     a = {k: v for k, v in _keyed(recorded_messages).items() if k[0] != LOG_TOPIC}
-    b = {k: v for k, v in _keyed(capture.messages).items() if k[0] != LOG_TOPIC}
+    b = {k: v for k, v in _keyed(sink.messages).items() if k[0] != LOG_TOPIC}
     log_notes = [
         {
             "log_time_ns": k[2],
@@ -378,8 +373,6 @@ def reproduction(path: Path, pm: pluggy.PluginManager, *, limit: int = 500) -> d
 def audit(path: str | Path, pm: pluggy.PluginManager, *, reproduce: bool = True) -> AuditReport:
     """Run the three checks on ``path`` (``RecordingError`` if it is not a crossfield recording)."""
     path = Path(path)
-    from crossfield.replay import require_session
-
     rec = open_recording(path)
     require_session(rec)
     integrity = verify(path)

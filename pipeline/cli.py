@@ -243,7 +243,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
     recorded = load_recorded_session(args.recording)
     total = None
     if recorded.complete:  # the summary's statistics give the count without reading the images
-        info = recorded.recording.topics().get("/camera/upper/image")
+        from crossfield.recording.layout import IMAGE_TOPICS
+
+        info = recorded.recording.topics().get(IMAGE_TOPICS[0])
         total = info.message_count if info else None
     observers = [] if args.quiet else [Progress(total=total)]
     summary = replay_session(

@@ -31,8 +31,11 @@ from typing import Any
 
 import numpy as np
 
+from crossfield.recording import layout as L
+from crossfield.recording.facts import require_session
 from crossfield.recording.reader import Recording, open_recording
 from crossfield.registry import STAGES
+from crossfield.types import CAMERAS
 
 #: Per-characteristic values compared (report.json keys).
 CHARACTERISTIC_KEYS = (
@@ -79,12 +82,10 @@ class SessionView:
 def read_view(path: str | Path) -> SessionView:
     """Read the recorded results of a session (``RecordingError`` if it is not one)."""
     path = Path(path)
-    from crossfield.replay import require_session
-
     rec: Recording = open_recording(path)
     meta = require_session(rec)
-    session = rec.metadata_doc("crossfield.session")
-    plugins = rec.metadata_doc("crossfield.plugins") if "crossfield.plugins" in meta else {}
+    session = rec.metadata_doc(L.META_SESSION)
+    plugins = rec.metadata_doc(L.META_PLUGINS) if L.META_PLUGINS in meta else {}
     view = SessionView(
         path,
         str(session.get("session_id", "")),
@@ -94,17 +95,17 @@ def read_view(path: str | Path) -> SessionView:
         plugins,
         None,
     )
-    view.centroids = {"upper": {}, "lower": {}}
-    topics = ["/report", "/registration", "/centroids/upper", "/centroids/lower", "/frames"]
+    view.centroids = {camera: {} for camera in CAMERAS}
+    topics = [L.TOPIC_REPORT, L.TOPIC_REGISTRATION, *L.CENTROID_TOPICS, L.TOPIC_FRAMES]
     for m in rec.messages(topics, file_order=True):
-        if m.topic == "/report":
+        if m.topic == L.TOPIC_REPORT:
             view.report = m.decoded
-        elif m.topic == "/registration":
+        elif m.topic == L.TOPIC_REGISTRATION:
             view.registrations[int(m.decoded["sequence"])] = m.decoded
-        elif m.topic == "/frames":
+        elif m.topic == L.TOPIC_FRAMES:
             view.frames[int(m.decoded["sequence"])] = m.decoded
         else:
-            view.centroids[m.topic.rsplit("/", 1)[1]][int(m.decoded["sequence"])] = m.decoded
+            view.centroids[L.CAMERA_OF_TOPIC[m.topic]][int(m.decoded["sequence"])] = m.decoded
     return view
 
 

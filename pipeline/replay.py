@@ -25,184 +25,39 @@ import dataclasses
 import json
 import time
 from collections.abc import Iterable, Iterator, Mapping, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pluggy
 
-from crossfield.camera.calibration_io import stereo_calibration_from_yaml
-from crossfield.config import Config, parse_config, with_overrides
+from crossfield.config import Config, with_overrides
 from crossfield.errors import ConfigError, RecordingError
+from crossfield.recording import layout as L
+from crossfield.recording.codec import decode_image, ground_truth_from_doc  # noqa: F401 - public here too
+from crossfield.recording.facts import SessionFacts, load_session_facts, require_session  # noqa: F401
 from crossfield.recording.integrity import file_sha256, utc
-from crossfield.plan import MeasurementPlan, parse_plan
-from crossfield.recording.reader import Recording, open_recording
 from crossfield.runner import run_session, safe_session_name
 from crossfield.session import SessionSummary
 from crossfield.stages import STAGES, SerialChunk
-from crossfield.types import CAMERAS, GroundTruth, Line3D, StereoCalibration, StereoFrame
+from crossfield.types import CAMERAS, StereoFrame
 
 #: The recording layouts this replay reads.
-READABLE_FORMATS = ("crossfield-mcap/1",)
+READABLE_FORMATS = L.READABLE_FORMATS
 
 #: Session keys that say where and how a replay is written, not what it computes.
 OUTPUT_KEYS = ("name", "output_dir", "record", "rerun", "rerun_image_every")
 
-_IMAGE_TOPICS = tuple(f"/camera/{camera}/image" for camera in CAMERAS)
-_DTYPES = {"mono16": np.dtype("<u2"), "mono8": np.dtype("u1")}
-
-
-@dataclass(frozen=True)
-class RecordedSession:
-    """The facts of a recorded session, read from its metadata and attachments.
-
-    session: the ``crossfield.session`` document; config: the recorded,
-    resolved config; plugins / packages / acquisition / machine: the
-    records of the same names (machine is None for recordings made before
-    it was recorded); plan, calibration, ground_truth: from the attachments.
-    """
-
-    path: Path
-    recording: Recording
-    session: Mapping[str, Any]
-    config: Config
-    plugins: Mapping[str, Mapping[str, str]]
-    packages: Mapping[str, str]
-    acquisition: Mapping[str, Any]
-    machine: Mapping[str, Any] | None
-    plan: MeasurementPlan
-    calibration: StereoCalibration
-    ground_truth: GroundTruth | None
-
-    @property
-    def complete(self) -> bool:
-        return self.recording.complete
-
-    @property
-    def session_id(self) -> str:
-        return str(self.session.get("session_id", ""))
+#: The facts of a recorded session (:class:`crossfield.recording.facts.SessionFacts`).
+RecordedSession = SessionFacts
 
 
 def load_recorded_session(path: str | Path) -> RecordedSession:
-    """Open ``path`` and read its session facts.
+    """Open ``path`` and read its session facts (:func:`crossfield.recording.facts.load_session_facts`).
 
     :class:`RecordingError` (one line, naming the file) when it is not an
     MCAP file, is MCAP written by another program, or lacks what a replay needs.
     """
-    path = Path(path)
-    recording = open_recording(path)
-    metadata = require_session(recording)
-    session = recording.metadata_doc("crossfield.session")
-    fmt = session.get("recording_format")
-    if fmt not in READABLE_FORMATS:
-        raise RecordingError(
-            f"{path}: recording format {fmt!r} is not one this crossfield reads "
-            f"({', '.join(READABLE_FORMATS)})"
-        )
-    for name in ("crossfield.config", "crossfield.plugins", "crossfield.packages", "crossfield.acquisition"):
-        if name not in metadata:
-            raise RecordingError(f"{path}: metadata record {name!r} is missing")
-    try:
-        config = parse_config(json.loads(metadata["crossfield.config"]["json"]), f"{path} (recorded config)")
-    except (KeyError, ValueError) as exc:
-        raise RecordingError(f"{path}: metadata 'crossfield.config' is not a config: {exc}") from None
-    except ConfigError as exc:
-        raise RecordingError(str(exc)) from None
-    attachments = recording.attachments()
-    for name in ("plan.toml", "calibration.yml"):
-        if name not in attachments:
-            raise RecordingError(f"{path}: attachment {name!r} is missing; the session cannot be replayed")
-    try:
-        plan = parse_plan(
-            attachments["plan.toml"].text, str(session.get("plan_source") or f"{path}:plan.toml")
-        )
-    except (ConfigError, UnicodeDecodeError) as exc:
-        raise RecordingError(f"{path}: attachment 'plan.toml': {exc}") from None
-    try:
-        calibration = stereo_calibration_from_yaml(
-            attachments["calibration.yml"].text, f"{path}:calibration.yml"
-        )
-    except Exception as exc:  # noqa: BLE001 - calibration_io raises CrossfieldError or cv2.error
-        raise RecordingError(f"{path}: attachment 'calibration.yml': {exc}") from None
-    calibration = StereoCalibration(
-        calibration.upper,
-        calibration.lower,
-        calibration.R_lower_upper,
-        calibration.t_lower_upper,
-        str(session.get("calibration_source") or calibration.source),
-    )
-    truth = None
-    if "simulator_ground_truth.json" in attachments:
-        truth = ground_truth_from_doc(json.loads(attachments["simulator_ground_truth.json"].data))
-    machine = recording.metadata_doc("crossfield.machine") if "crossfield.machine" in metadata else None
-    return RecordedSession(
-        path=path,
-        recording=recording,
-        session=session,
-        config=config,
-        plugins=recording.metadata_doc("crossfield.plugins"),
-        packages=dict(metadata["crossfield.packages"]),
-        acquisition=recording.metadata_doc("crossfield.acquisition"),
-        machine=machine,
-        plan=plan,
-        calibration=calibration,
-        ground_truth=truth,
-    )
-
-
-def require_session(recording: Recording) -> dict[str, dict[str, str]]:
-    """The recording's metadata records; :class:`RecordingError` (one line) if
-    it is not a crossfield session (another program's MCAP, or cut short
-    before the session facts were written)."""
-    metadata = recording.metadata()
-    if "crossfield.session" not in metadata:
-        library = recording.library
-        if library.startswith("crossfield/"):
-            raise RecordingError(
-                f"{recording.path}: the recording ends before its session facts were written "
-                f"(no 'crossfield.session' metadata)"
-            )
-        writer = f"written by {library!r}" if library else "its header names no writer"
-        raise RecordingError(
-            f"{recording.path}: an MCAP file but not a crossfield session recording ({writer}; "
-            f"no 'crossfield.session' metadata)"
-        )
-    return metadata
-
-
-def ground_truth_from_doc(doc: Mapping[str, Any]) -> GroundTruth:
-    """The :class:`GroundTruth` of a ``simulator_ground_truth.json`` attachment (exact floats)."""
-    return GroundTruth(
-        points_global={k: np.array(v, dtype=np.float64) for k, v in doc["points_global_mm"].items()},
-        lines_global={
-            k: Line3D(np.array(v["point_mm"], dtype=np.float64), np.array(v["direction"], dtype=np.float64))
-            for k, v in doc["lines_global"].items()
-        },
-        R_global_camera=np.array(doc["R_global_camera"], dtype=np.float64),
-        t_global_camera=np.array(doc["t_global_camera_mm"], dtype=np.float64),
-    )
-
-
-def decode_image(data: bytes, where: str) -> tuple[np.ndarray, int]:
-    """(H, W) pixels and capture time (ns) of a serialized foxglove.RawImage."""
-    from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
-
-    try:
-        message = RawImage.FromString(data)
-    except Exception as exc:  # noqa: BLE001 - protobuf raises several types
-        raise RecordingError(f"{where}: not a foxglove.RawImage: {exc}") from None
-    dtype = _DTYPES.get(message.encoding)
-    if dtype is None:
-        raise RecordingError(f"{where}: image encoding {message.encoding!r}; replay reads mono16 and mono8")
-    width, height = int(message.width), int(message.height)
-    if message.step != width * dtype.itemsize or len(message.data) != height * message.step:
-        raise RecordingError(
-            f"{where}: {len(message.data)} bytes of pixel data for {width} x {height} {message.encoding} "
-            f"with step {message.step}"
-        )
-    pixels = np.frombuffer(message.data, dtype=dtype).reshape(height, width)
-    return pixels.astype(pixels.dtype.newbyteorder("="), copy=False), message.timestamp.ToNanoseconds()
+    return load_session_facts(path)
 
 
 class RecordingSource:
@@ -228,15 +83,15 @@ class RecordingSource:
         rec = self.recorded.recording
         pending: dict[int, dict[str, Any]] = {}
         last: tuple[int, int] | None = None
-        for m in rec.messages(_IMAGE_TOPICS, decode=False, file_order=True):
-            camera = m.topic.split("/")[2]
+        for m in rec.messages(L.IMAGE_TOPICS, decode=False, file_order=True):
+            camera = L.CAMERA_OF_TOPIC[m.topic]
             where = f"{rec.path}: {m.topic} sequence {m.sequence}"
             pixels, _ = decode_image(m.data, where)
             entry = pending.setdefault(m.sequence, {"time": m.log_time_ns, "bit_depth": 0})
             if camera in entry:
                 raise RecordingError(f"{where}: a second {camera} image for this stereo pair")
             entry[camera] = pixels
-            entry["bit_depth"] = int(m.channel_metadata.get("bit_depth") or 8 * pixels.itemsize)
+            entry["bit_depth"] = int(m.channel_metadata.get(L.CHANNEL_BIT_DEPTH) or 8 * pixels.itemsize)
             if all(c in entry for c in CAMERAS):
                 del pending[m.sequence]
                 self.frames_read += 1
@@ -264,8 +119,8 @@ class RecordingSource:
         """Every recorded read from the CMM line (bytes, read time ns, source), in read order."""
         rec = self.recorded.recording
         return [
-            SerialChunk(m.data, m.log_time_ns, str(m.channel_metadata.get("source", "")))
-            for m in rec.messages("/cmm/raw", decode=False, file_order=True)
+            SerialChunk(m.data, m.log_time_ns, str(m.channel_metadata.get(L.CHANNEL_SOURCE, "")))
+            for m in rec.messages(L.TOPIC_CMM_RAW, decode=False, file_order=True)
         ]
 
     def describe(self) -> dict[str, Any]:

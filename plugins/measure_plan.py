@@ -41,6 +41,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from crossfield.covariance import camera_covariance, registration_jacobian
 from crossfield.errors import MeasurementError
 from crossfield.geometry import AxisFit, fit_cylinder_axis, fit_line, point_line_distance
 from crossfield.hookspecs import hookimpl
@@ -63,10 +64,6 @@ class _Point:
     xyz: np.ndarray
     cov: np.ndarray
     J_reg: np.ndarray
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 class PlanMeasurer:
@@ -135,8 +132,8 @@ class PlanMeasurer:
         C_reg, g_bar = self._registration_covariance(reference, points, registration)
 
         def camera_point(index: int) -> _Point:
-            cov = R @ np.diag(points.sigma_xyz[index] ** 2) @ R.T
-            J = np.hstack([-_skew(global_xyz[index] - g_bar), np.eye(3)])
+            cov = camera_covariance(R, points.sigma_xyz[index])
+            J = registration_jacobian(global_xyz[index], g_bar)
             return _Point(global_xyz[index], cov, J)
 
         found, missing = self._identify_targets(plan, global_xyz, registration)
@@ -203,9 +200,9 @@ class PlanMeasurer:
         JtJ = np.zeros((6, 6))
         JtSJ = np.zeros((6, 6))
         trace_S = 0.0
-        for y, (cid, index) in zip(G - g_bar, pairs):
-            J = np.hstack([-_skew(y), np.eye(3)])
-            S = R @ np.diag(points.sigma_xyz[index] ** 2) @ R.T + by_label[cid].sigma_mm ** 2 * np.eye(3)
+        for g, (cid, index) in zip(G, pairs):
+            J = registration_jacobian(g, g_bar)
+            S = camera_covariance(R, points.sigma_xyz[index]) + by_label[cid].sigma_mm ** 2 * np.eye(3)
             JtJ += J.T @ J
             JtSJ += J.T @ S @ J
             trace_S += float(np.trace(S))

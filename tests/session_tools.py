@@ -69,16 +69,18 @@ def rewrite_mcap(
     messages: Callable[[list[Msg]], list[Msg]] = lambda m: m,
     metadata: Callable[[list[tuple[str, dict[str, str]]]], list[tuple[str, dict[str, str]]]] = lambda m: m,
     new_channels: dict[str, tuple[str, Any]] | None = None,
+    attachments: Callable[[list[Attachment]], list[Attachment]] = lambda a: a,
 ) -> None:
     """Copy ``src`` to ``dst`` through ``messages`` / ``metadata`` edits (message
-    order kept unless the edit changes it; /integrity messages are copied as they are).
-    new_channels: topic -> (message encoding, crossfield.recording.recorder.SchemaSpec or None)
+    order kept unless the edit changes it; /integrity messages are copied as they are;
+    ``attachments`` edits the list of mcap.records.Attachment).
+    new_channels: topic -> (message encoding, crossfield.recording.codec.SchemaSpec or None)
     for topics the edit adds."""
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
     msgs: list[Msg] = []
     meta: list[tuple[str, dict[str, str]]] = []
-    attachments: list[Attachment] = []
+    found_attachments: list[Attachment] = []
     library = profile = ""
     channel_of: dict[str, Channel] = {}
     with open(src, "rb") as f:
@@ -96,9 +98,10 @@ def rewrite_mcap(
             elif isinstance(record, Metadata):
                 meta.append((record.name, dict(record.metadata)))
             elif isinstance(record, Attachment):
-                attachments.append(record)
+                found_attachments.append(record)
     msgs = messages(msgs)
     meta = metadata(meta)
+    kept_attachments = attachments(found_attachments)
     with open(dst, "wb") as out:
         writer = Writer(out, chunk_size=1 << 20)
         writer.start(profile=profile, library=library)
@@ -114,7 +117,7 @@ def rewrite_mcap(
             channel_ids[topic] = writer.register_channel(topic, encoding, schema_id)
         for name, record in meta:
             writer.add_metadata(name, record)
-        for a in attachments:
+        for a in kept_attachments:
             writer.add_attachment(a.create_time, a.log_time, a.name, a.media_type, a.data)
         for m in msgs:
             writer.add_message(channel_ids[m.topic], m.log_time, m.data, m.log_time, m.sequence)

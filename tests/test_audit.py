@@ -187,7 +187,7 @@ def test_a_log_line_the_replay_cannot_see_is_a_note_not_a_failure(recorded, tmp_
     lists it as a note and passes."""
     from foxglove_schemas_protobuf.Log_pb2 import Log
 
-    from crossfield.recording.recorder import log_message, protobuf_schema
+    from crossfield.recording.codec import log_message, protobuf_schema
 
     def add(ms):
         at = next(k for k, m in enumerate(ms) if m.topic == "/reference")

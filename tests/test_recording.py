@@ -32,15 +32,9 @@ from crossfield.camera.calibration_io import stereo_calibration_from_yaml
 from crossfield.config import load_config, parse_config
 from crossfield.errors import RecordingError
 from crossfield.plan import parse_plan
-from crossfield.recording.recorder import (
-    JSON_SCHEMAS,
-    McapRecorder,
-    calibration_yaml,
-    load_json_schema,
-    raw_image_message,
-    recorded_topics,
-    toml_text,
-)
+from crossfield.recording.codec import calibration_yaml, load_json_schema, raw_image_message, toml_text
+from crossfield.recording.layout import JSON_SCHEMAS, recorded_topics
+from crossfield.recording.recorder import McapRecorder
 from crossfield.recording.reader import open_recording
 from crossfield.registry import make_plugin_manager
 from crossfield.session import FrameResult, SessionInfo, SessionSummary, summarise
@@ -646,7 +640,7 @@ def test_hooks_after_close_raise(tmp_path):
 
 def test_writer_error_surfaces_at_the_next_hook(tmp_path):
     recorder = McapRecorder(tmp_path / "s.mcap")
-    recorder._stream.close()  # the disk goes away under the writer
+    recorder.sink._stream.close()  # the disk goes away under the writer
     recorder.on_log(level="info", message="x", timestamp_ns=1)
     with pytest.raises(RecordingError, match="recording failed"):
         for _ in range(100):  # the writer thread reports asynchronously
@@ -851,3 +845,161 @@ def test_compressed_chunks_stay_lossless(tmp_path, compression):
     assert {c.compression for c in chunks} == {compression}
     with pytest.raises(ValueError, match="compression"):
         McapRecorder(tmp_path / "x.mcap", compression="gzip")
+
+
+# --------------------------------------------------------------------------
+# The recording wing's structure
+# --------------------------------------------------------------------------
+
+#: How a topic literal starts (every topic of docs/recording.md).
+TOPIC_PREFIXES = (
+    "/camera/",
+    "/points/",
+    "/cmm/raw",
+    "/tf",
+    "/log",
+    "/registration",
+    "/measurement",
+    "/centroids/",
+    "/integrity",
+    "/reference",
+    "/frame",
+    "/report",
+)
+
+
+def topic_literals(source: str) -> list[tuple[int, str]]:
+    """(line, text) of every string literal in ``source`` that starts like a topic.
+
+    The inner pieces of an f-string (after a ``{...}``) are not literals of their
+    own: ``f"{base}/centroids"`` is a Rerun entity path, not a topic.
+    """
+    import ast
+
+    tree = ast.parse(source)
+    inner = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.JoinedStr):
+            inner.update(id(v) for v in node.values[1:])
+    return [
+        (node.lineno, node.value)
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Constant)
+        and isinstance(node.value, str)
+        and id(node) not in inner
+        and node.value.startswith(TOPIC_PREFIXES)
+    ]
+
+
+def test_the_topic_finder_finds_topic_literals():
+    found = topic_literals('a = "/camera/upper/image"\nb = f"/log {x}"\nc = f"{base}/centroids"\nd = "/world"\n')
+    assert found == [(1, "/camera/upper/image"), (2, "/log ")]
+
+
+def test_no_topic_literal_outside_the_layout():
+    offenders = []
+    for folder in ("pipeline", "plugins"):
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            if path == ROOT / "pipeline" / "recording" / "layout.py":
+                continue
+            for line, text in topic_literals(path.read_text(encoding="utf-8")):
+                offenders.append(f"{path.relative_to(ROOT)}:{line}: {text!r}")
+    assert not offenders, "topic literals outside crossfield.recording.layout:\n" + "\n".join(offenders)
+
+
+def test_the_layout_names_every_topic_written(session):
+    synthetic, out = session
+    with open_recording(out / "session.mcap") as rec:
+        assert set(rec.topics()) <= set(recorded_topics())
+    assert set(EXPECTED_SCHEMAS) == set(recorded_topics())
+
+
+def test_a_memory_sink_receives_exactly_the_messages_the_file_holds(tmp_path):
+    from crossfield.recording.layout import TOPIC_INTEGRITY
+    from crossfield.recording.recorder import SessionRecorder
+    from crossfield.recording.writer import MemorySink
+
+    synthetic = Synthetic(tmp_path, seed=5)
+    sink = MemorySink()
+    memory = SessionRecorder(sink)
+    pm = make_plugin_manager(builtins=False, extra=[McapRecorder(tmp_path / "s.mcap"), memory])
+    synthetic.drive(pm)
+    assert sink.closed
+    with open_recording(tmp_path / "s.mcap") as rec:
+        in_file = [
+            (m.topic, m.log_time_ns, m.sequence, m.data)
+            for m in rec.messages(decode=False, file_order=True)
+            if m.topic != TOPIC_INTEGRITY
+        ]
+        assert sink.messages == in_file and len(in_file) > 30
+        assert dict(sink.metadata_records) == rec.metadata()
+        attachments = rec.attachments()
+        assert [(a[0], a[2]) for a in sink.attachments] == [(n, a.data) for n, a in attachments.items()]
+    with pytest.raises(RecordingError, match="closed"):
+        memory.on_log(level="info", message="late", timestamp_ns=1)
+
+
+def test_a_memory_sink_skips_the_topics_it_is_told_to(tmp_path):
+    from crossfield.recording.layout import IMAGE_TOPICS, RAW_TOPICS, TOPIC_REGISTRATION
+    from crossfield.recording.recorder import SessionRecorder
+    from crossfield.recording.writer import MemorySink
+
+    synthetic = Synthetic(tmp_path, seed=5)
+    sink = MemorySink(skip_topics=RAW_TOPICS)
+    synthetic.drive(make_plugin_manager(builtins=False, extra=[SessionRecorder(sink)]))
+    topics = {m[0] for m in sink.messages}
+    assert not topics & set(RAW_TOPICS) and set(IMAGE_TOPICS) <= set(RAW_TOPICS)
+    assert TOPIC_REGISTRATION in topics and len(topics) > 10
+
+
+def test_replay_and_the_viewer_load_the_same_facts_and_refuse_the_same_damage(session, tmp_path):
+    """One loader (crossfield.recording.facts): the same facts for replay and the
+    viewer, and the same one-line error naming the file and the record."""
+    from mcap.records import Attachment
+
+    from crossfield.recording.facts import load_session_facts
+    from crossfield.replay import load_recorded_session
+    from crossfield.viz.rerun_log import RerunLogger
+    from crossfield.viz.rerun_mcap import log_recording, session_info
+    from session_tools import rewrite_mcap
+
+    synthetic, out = session
+    good = out / "session.mcap"
+    facts = load_session_facts(good)
+    recorded = load_recorded_session(good)
+    with open_recording(good) as rec:
+        info = session_info(rec)
+    assert facts.session_id == recorded.session_id == info.session_id == synthetic.info.session_id
+    assert info.plan.text == recorded.plan.text == synthetic.plan.text
+    assert np.array_equal(info.calibration.R_lower_upper, synthetic.calibration.R_lower_upper)
+    assert info.calibration.source == recorded.calibration.source == "synthetic calibration"
+    assert facts.result is not None and facts.result["frames"] == len(synthetic.frames)
+
+    def garble(found):
+        return [
+            Attachment(a.create_time, a.log_time, a.name, a.media_type, b'{"points_global_mm": 3}')
+            if a.name == "simulator_ground_truth.json"
+            else a
+            for a in found
+        ]
+
+    bad = tmp_path / "bad.mcap"
+    rewrite_mcap(good, bad, attachments=garble)
+    messages_seen = []
+    for load in (
+        load_recorded_session,
+        lambda p: log_recording(p, RerunLogger(tmp_path / "x.rrd")),
+    ):
+        with pytest.raises(RecordingError) as err:
+            load(bad)
+        messages_seen.append(str(err.value))
+    assert messages_seen[0] == messages_seen[1]
+    assert str(bad) in messages_seen[0] and "simulator_ground_truth.json" in messages_seen[0]
+    assert "\n" not in messages_seen[0]
+
+    def no_plan(found):
+        return [a for a in found if a.name != "plan.toml"]
+
+    rewrite_mcap(good, bad, attachments=no_plan)
+    with pytest.raises(RecordingError, match=r"attachment 'plan.toml' is missing"):
+        load_session_facts(bad)

@@ -40,9 +40,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from crossfield.recording.layout import TOPIC_INTEGRITY
+
 #: Identifies this chain layout; written into every ``/integrity`` record.
 INTEGRITY_FORMAT = "crossfield-integrity/1"
-TOPIC_INTEGRITY = "/integrity"
 GENESIS = hashlib.sha256(INTEGRITY_FORMAT.encode()).digest()
 
 _U64_U32 = struct.Struct("<QI")
@@ -236,7 +237,7 @@ def utc(timestamp_ns: int) -> str:
 
 
 def name_message(topic: str, sequence: int, log_time_ns: int) -> str:
-    """'/camera/upper/image sequence 1 at 2026-...Z (1795... ns)'."""
+    """'<topic> sequence 1 at 2026-...Z (1795... ns)'."""
     return f"{topic} sequence {sequence} at {utc(log_time_ns)} ({log_time_ns} ns)"
 
 
@@ -447,7 +448,7 @@ def verify(path: str | Path) -> IntegrityResult:
     segment_problems: list[Problem] = []
     for number, (pos, fm) in enumerate(scan.records):
         doc = _record_doc(fm)
-        where = f"/integrity record at {utc(fm.log_time_ns)}"
+        where = f"{TOPIC_INTEGRITY} record at {utc(fm.log_time_ns)}"
         if doc is None:
             problems.append(
                 Problem(
@@ -460,7 +461,7 @@ def verify(path: str | Path) -> IntegrityResult:
             )
             continue
         index = doc.get("index")
-        where = f"/integrity record #{index}"
+        where = f"{TOPIC_INTEGRITY} record #{index}"
         if index != number:
             problems.append(
                 Problem(

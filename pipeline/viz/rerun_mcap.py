@@ -19,237 +19,70 @@ reference axes drawn are fitted to the recorded CMM points
 
 from __future__ import annotations
 
-import json
-import math
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from foxglove_schemas_protobuf.Log_pb2 import Log
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
 from crossfield.aggregate import SessionAccumulator
-from crossfield.camera.calibration_io import stereo_calibration_from_yaml
-from crossfield.config import parse_config
-from crossfield.errors import CrossfieldError, RecordingError
-from crossfield.plan import parse_plan
+from crossfield.errors import RecordingError
+from crossfield.recording import codec
+from crossfield.recording import layout as L
+from crossfield.recording.facts import SessionFacts, load_session_facts
 from crossfield.recording.reader import Recording, open_recording
-from crossfield.replay import ground_truth_from_doc
-from crossfield.viz.rerun_log import RerunLogger
 from crossfield.session import FrameResult, SessionInfo, SessionSummary
 from crossfield.types import (
     CAMERAS,
     CameraPoints,
     CentroidSet,
-    CharacteristicResult,
-    Correspondence,
     Measurement,
-    ProbedPoint,
     ReferenceData,
     Registration,
-    RejectedBlob,
-    RigidFit,
     StereoCentroids,
     StereoFrame,
 )
+from crossfield.viz.rerun_log import RerunLogger
 
 #: The topics read, in the order the recorder writes a pair's messages.
 TOPICS = (
-    "/reference",
-    "/camera/upper/image",
-    "/camera/lower/image",
-    "/centroids/upper",
-    "/centroids/lower",
-    "/points/camera/json",
-    "/registration",
-    "/measurement",
-    "/frames",
-    "/log",
+    L.TOPIC_REFERENCE,
+    *L.IMAGE_TOPICS,
+    *L.CENTROID_TOPICS,
+    L.TOPIC_POINTS_CAMERA_JSON,
+    L.TOPIC_REGISTRATION,
+    L.TOPIC_MEASUREMENT,
+    L.TOPIC_FRAMES,
+    L.TOPIC_LOG,
 )
-
-#: foxglove.Log levels (enum values) -> the pipeline's level names.
-_FOXGLOVE_LEVELS = {0: "info", 1: "debug", 2: "info", 3: "warning", 4: "error", 5: "critical"}
-_DTYPES = {"mono16": np.dtype("<u2"), "mono8": np.dtype("u1")}
-
-
-def _nan(value: Any) -> float:
-    """JSON null (not finite when recorded) -> NaN."""
-    return math.nan if value is None else float(value)
-
-
-def _array(values: Any, shape: tuple[int, ...] | None = None) -> np.ndarray:
-    out = np.array(
-        [[_nan(v) for v in row] if isinstance(row, list) else _nan(row) for row in values], dtype=np.float64
-    )
-    return out.reshape(shape) if shape is not None else out
-
-
-def centroid_set(doc: Mapping[str, Any]) -> CentroidSet:
-    """A ``/centroids/<camera>`` document (``crossfield.CentroidSet``) as a :class:`CentroidSet`."""
-    n = len(doc["uv"])
-    return CentroidSet(
-        camera=str(doc["camera"]),
-        sequence=int(doc["sequence"]),
-        uv=_array(doc["uv"], (n, 2)),
-        sigma_uv=_array(doc["sigma_uv"], (n, 2)),
-        area_px=_array(doc["area_px"], (n,)),
-        roundness=_array(doc["roundness"], (n,)),
-        peak=_array(doc["peak"], (n,)),
-        rejected=tuple(
-            RejectedBlob((_nan(b["uv"][0]), _nan(b["uv"][1])), str(b["reason"]))
-            for b in doc.get("rejected", ())
-        ),
-        method=str(doc.get("method", "")),
-    )
-
-
-def camera_points(doc: Mapping[str, Any]) -> CameraPoints:
-    """A ``/points/camera/json`` document (``crossfield.CameraPoints``)."""
-    n = len(doc["xyz_mm"])
-    return CameraPoints(
-        sequence=int(doc["sequence"]),
-        xyz=_array(doc["xyz_mm"], (n, 3)),
-        sigma_xyz=_array(doc["sigma_xyz_mm"], (n, 3)),
-        upper_index=np.array(doc["upper_index"], dtype=np.int64),
-        lower_index=np.array(doc["lower_index"], dtype=np.int64),
-        residual_px=_array(doc["residual_px"], (n,)),
-        rejected=tuple(str(r) for r in doc.get("rejected", ())),
-        method=str(doc.get("method", "")),
-    )
-
-
-def registration(doc: Mapping[str, Any]) -> Registration:
-    """A ``/registration`` document (``crossfield.Registration``)."""
-    rows = doc["residuals"]
-    fit = RigidFit(
-        R=_array(doc["R_global_camera"], (3, 3)),
-        t=_array(doc["t_global_camera_mm"], (3,)),
-        residuals=_array([r["residual_mm"] for r in rows], (len(rows), 3)),
-        rms_mm=_nan(doc["rms_mm"]),
-        method=str(doc.get("method", "")),
-        scale=1.0 if doc.get("scale") is None else float(doc["scale"]),
-    )
-    correspondence = Correspondence(
-        camera_index=np.array([int(r["camera_index"]) for r in rows], dtype=np.int64),
-        control_ids=tuple(str(r["control_id"]) for r in rows),
-        unmatched_camera=tuple(int(i) for i in doc.get("unmatched_camera", ())),
-        unmatched_control=tuple(str(c) for c in doc.get("unmatched_control", ())),
-    )
-    return Registration(int(doc["sequence"]), fit, correspondence)
-
-
-def measurement(doc: Mapping[str, Any]) -> Measurement:
-    """A ``/measurement`` document (``crossfield.Measurement``)."""
-
-    def optional(value: Any) -> float | None:
-        return None if value is None else float(value)
-
-    return Measurement(
-        sequence=int(doc["sequence"]),
-        characteristics=tuple(
-            CharacteristicResult(
-                name=str(c["name"]),
-                kind=str(c["kind"]),
-                measured_mm=_nan(c["measured_mm"]),
-                nominal_mm=_nan(c["nominal_mm"]),
-                tolerance_mm=_nan(c["tolerance_mm"]),
-                deviation_mm=_nan(c["deviation_mm"]),
-                passed=bool(c["passed"]),
-                uncertainty_mm=optional(c.get("uncertainty_mm")),
-                actual_mm=optional(c.get("actual_mm")),
-                error_mm=optional(c.get("error_mm")),
-                elements=tuple(str(e) for e in c.get("elements", ())),
-            )
-            for c in doc["characteristics"]
-        ),
-        target_points={str(k): tuple(_nan(v) for v in xyz) for k, xyz in doc["target_points_mm"].items()},
-        missing_targets=tuple(str(t) for t in doc.get("missing_targets", ())),
-    )
-
-
-def reference_data(doc: Mapping[str, Any]) -> ReferenceData:
-    """A ``/reference`` document (``crossfield.ReferenceData``)."""
-    return ReferenceData(
-        points=tuple(
-            ProbedPoint(
-                label=str(p["label"]),
-                xyz=_array(p["xyz_mm"], (3,)),
-                sigma_mm=_nan(p["sigma_mm"]),
-                device_sequence=int(p.get("device_sequence", -1)),
-                device_time_s=_nan(p.get("device_time_s")),
-                probe_vector=_array(p.get("probe_vector") or [0.0, 0.0, 0.0], (3,)),
-                probe_diameter_mm=_nan(p.get("probe_diameter_mm")),
-            )
-            for p in doc["points"]
-        ),
-        problems=tuple(str(p) for p in doc.get("problems", ())),
-        source=str(doc.get("source", "")),
-    )
-
-
-def image(message: Any, where: str) -> np.ndarray:
-    """(H, W) pixels of a decoded foxglove.RawImage (mono16 little-endian or mono8)."""
-    dtype = _DTYPES.get(message.encoding)
-    if dtype is None:
-        raise RecordingError(
-            f"{where}: image encoding {message.encoding!r}; crossfield writes mono16 or mono8"
-        )
-    height, width = int(message.height), int(message.width)
-    if message.step != width * dtype.itemsize or len(message.data) != height * message.step:
-        raise RecordingError(
-            f"{where}: image size {width}x{height} does not match its {len(message.data)} bytes"
-        )
-    return np.frombuffer(message.data, dtype=dtype).reshape(height, width)
 
 
 def session_info(recording: Recording) -> SessionInfo:
-    """The session facts of a crossfield recording (metadata and attachments).
+    """The session facts of a crossfield recording (metadata and attachments), as the
+    :class:`SessionInfo` the live session had (:func:`crossfield.recording.facts.load_session_facts`).
 
-    :class:`RecordingError` naming the file when it is not one.
+    :class:`RecordingError` naming the file and the record when it is not one.
     """
-    path = recording.path
-    metadata = recording.metadata()
-    if "crossfield.session" not in metadata:
-        raise RecordingError(
-            f"{path}: not a crossfield session recording (no 'crossfield.session' metadata); "
-            f"`rerun {path}` shows any MCAP file with Rerun's own import"
-        )
-    session = recording.metadata_doc("crossfield.session")
-    attachments = recording.attachments()
-    for name in ("plan.toml", "calibration.yml"):
-        if name not in attachments:
-            raise RecordingError(f"{path}: attachment {name!r} is missing")
-    try:
-        config = parse_config(recording.metadata_doc("crossfield.config"), f"{path} (recorded config)")
-        plan = parse_plan(
-            attachments["plan.toml"].text, str(session.get("plan_source") or f"{path}:plan.toml")
-        )
-        calibration = stereo_calibration_from_yaml(
-            attachments["calibration.yml"].text, f"{path}:calibration.yml"
-        )
-    except CrossfieldError as exc:
-        raise RecordingError(f"{path}: {exc}") from None
-    truth = None
-    if "simulator_ground_truth.json" in attachments:
-        truth = ground_truth_from_doc(json.loads(attachments["simulator_ground_truth.json"].data))
+    return info_from_facts(load_session_facts(recording))
 
-    def doc(name: str) -> Any:
-        return recording.metadata_doc(name) if name in metadata else {}
 
+def info_from_facts(facts: SessionFacts) -> SessionInfo:
+    """The :class:`SessionInfo` of a recorded session's facts (its folder: the recording's)."""
+    path = facts.path
     return SessionInfo(
-        session_id=str(session.get("session_id") or path.stem),
+        session_id=facts.session_id or path.stem,
         out_dir=path.parent,
-        config=config,
-        calibration=calibration,
-        plan=plan,
-        plugins=doc("crossfield.plugins"),
-        packages=doc("crossfield.packages"),
-        acquisition=doc("crossfield.acquisition"),
-        ground_truth=truth,
-        start_time_ns=int(session.get("start_time_ns") or 0),
-        parent=session.get("parent"),
+        config=facts.config,
+        calibration=facts.calibration,
+        plan=facts.plan,
+        plugins=facts.plugins,
+        packages=facts.packages,
+        acquisition=facts.acquisition,
+        ground_truth=facts.ground_truth,
+        start_time_ns=facts.start_time_ns,
+        parent=facts.session.get("parent"),
     )
 
 
@@ -278,13 +111,13 @@ def _events(recording: Recording, logger: RerunLogger) -> Iterator[tuple[str, An
     for m in recording.messages(TOPICS, file_order=True, decode=False):
         topic = m.topic
         where = f"{path}: {topic} #{m.sequence}"
-        if topic.startswith("/camera/"):
+        if topic in L.IMAGE_TOPICS:
             p = pair(m)
             if not logger.wants_images(p.sequence):
                 continue
-            camera = topic.split("/")[2]
-            p.images[camera] = image(RawImage.FromString(m.data), where)
-            p.bit_depth = int(m.channel_metadata.get("bit_depth", 16))
+            camera = L.CAMERA_OF_TOPIC[topic]
+            p.images[camera] = codec.raw_image_pixels(RawImage.FromString(m.data), where)
+            p.bit_depth = int(m.channel_metadata.get(L.CHANNEL_BIT_DEPTH, 16))
             if all(c in p.images for c in CAMERAS):
                 yield (
                     "frame",
@@ -294,29 +127,23 @@ def _events(recording: Recording, logger: RerunLogger) -> Iterator[tuple[str, An
                 )
                 p.images = {}
             continue
-        if topic == "/log":
-            message = Log.FromString(m.data)
-            yield (
-                "log",
-                (_FOXGLOVE_LEVELS.get(int(message.level), "info"), message.message, int(m.log_time_ns)),
-            )
+        if topic == L.TOPIC_LOG:
+            level, text = codec.decode_log(m.data, where)
+            yield "log", (level, text, int(m.log_time_ns))
             continue
+        doc = codec.decode_json(m.data, where)
         try:
-            doc = json.loads(m.data)
-        except ValueError as exc:
-            raise RecordingError(f"{where}: not valid JSON: {exc}") from None
-        try:
-            if topic == "/reference":
-                yield "reference", reference_data(doc)
-            elif topic.startswith("/centroids/"):
-                pair(m).centroids[topic.split("/")[2]] = centroid_set(doc)
-            elif topic == "/points/camera/json":
-                pair(m).points = camera_points(doc)
-            elif topic == "/registration":
-                pair(m).registration = registration(doc)
-            elif topic == "/measurement":
-                pair(m).measurement = measurement(doc)
-            elif topic == "/frames":
+            if topic == L.TOPIC_REFERENCE:
+                yield "reference", codec.reference_data(doc)
+            elif topic in L.CENTROID_TOPICS:
+                pair(m).centroids[L.CAMERA_OF_TOPIC[topic]] = codec.centroid_set(doc)
+            elif topic == L.TOPIC_POINTS_CAMERA_JSON:
+                pair(m).points = codec.camera_points(doc)
+            elif topic == L.TOPIC_REGISTRATION:
+                pair(m).registration = codec.registration(doc)
+            elif topic == L.TOPIC_MEASUREMENT:
+                pair(m).measurement = codec.measurement(doc)
+            elif topic == L.TOPIC_FRAMES:
                 p = pairs.pop(int(doc["sequence"]), None) or _Pair(
                     int(doc["sequence"]), int(doc["timestamp_ns"])
                 )
@@ -346,7 +173,8 @@ def log_recording(mcap_path: str | Path, logger: RerunLogger) -> SessionSummary:
     chunk; the summary's ``incomplete`` says so.
     """
     recording = open_recording(mcap_path)
-    info = session_info(recording)
+    facts = load_session_facts(recording)
+    info = info_from_facts(facts)
     logger.on_session_start(session=info)
     reference = ReferenceData(points=())
     accumulator = SessionAccumulator(info.plan)  # bounded, as in a live session
@@ -363,9 +191,7 @@ def log_recording(mcap_path: str | Path, logger: RerunLogger) -> SessionSummary:
             level, text, time_ns = payload
             logger.on_log(level=level, message=text, timestamp_ns=time_ns)
     # The session's end as recorded (crossfield.result), or where the recording stops.
-    result = (
-        recording.metadata_doc("crossfield.result") if "crossfield.result" in recording.metadata() else {}
-    )
+    result = dict(facts.result or {})
     incomplete = result.get("incomplete")
     if not recording.complete or not result:
         incomplete = f"the recording ends early ({recording.damage or 'no session result recorded'})"
