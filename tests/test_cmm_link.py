@@ -87,7 +87,7 @@ def test_pcdmis_encoding():
 def test_pcdmis_decoder_accepts(line, expected):
     record = PcDmisDecoder().decode(Frame(SENTENCE, 4, 0, line))
     assert isinstance(record, ProbeRecord) and record.xyz == expected and record.seq is None
-    inch = PcDmisDecoder("inch").decode(Frame(SENTENCE, 4, 0, line))
+    inch = PcDmisDecoder("inch", volume_mm=10_000).decode(Frame(SENTENCE, 4, 0, line))  # 300 in = 7.6 m
     assert np.allclose(inch.xyz, np.array(expected) * 25.4, rtol=1e-15)
 
 
