@@ -40,7 +40,9 @@ from crossfield.plan import MeasurementPlan, parse_plan
 from crossfield.recording.reader import Recording, open_recording
 from crossfield.registry import STAGES
 from crossfield.runner import Stages, _registered, _session_observers, _unique_dir, package_versions, run_pipeline
+from crossfield.recording.recorder import LINK_EVENTS
 from crossfield.session import SessionInfo, SessionSummary
+from crossfield.stages import LinkEvent
 from crossfield.types import CAMERAS, GroundTruth, Line3D, ReferenceData, StereoCalibration, StereoFrame
 
 #: The recording layouts this replay reads.
@@ -258,13 +260,18 @@ class RecordingSource:
             notes.append(f"stereo pair {seq} has only its {' and '.join(have)} image, not replayed")
         self.incomplete = "; ".join(notes) or None
 
-    def serial_chunks(self) -> list[tuple[bytes, int, str]]:
-        """Every recorded read from the CMM line: (bytes, read time ns, source), in read order."""
+    def serial_chunks(self) -> list[tuple[bytes | LinkEvent, int, str]]:
+        """Every recorded read from the CMM line, and its link events:
+        (bytes or LinkEvent, time ns, source), in the order they happened."""
         rec = self.recorded.recording
-        return [
-            (m.data, m.log_time_ns, str(m.channel_metadata.get("source", "")))
-            for m in rec.messages("/cmm/raw", decode=False, file_order=True)
-        ]
+        chunks: list[tuple[bytes | LinkEvent, int, str]] = []
+        for m in rec.messages("/cmm/raw", decode=False, file_order=True):
+            source = str(m.channel_metadata.get("source", ""))
+            if m.channel_metadata.get("content") == LINK_EVENTS:
+                chunks.append((link_event(m.data, f"{rec.path}: /cmm/raw link event {m.sequence}"), m.log_time_ns, source))
+            else:
+                chunks.append((m.data, m.log_time_ns, source))
+        return chunks
 
     def describe(self) -> dict[str, Any]:
         return dict(self.recorded.acquisition)
@@ -273,22 +280,47 @@ class RecordingSource:
         pass
 
 
+def link_event(data: bytes, where: str) -> LinkEvent:
+    """A recorded link event (``{"event": "down"|"up", "detail": str}``, JSON), or an error naming it."""
+    try:
+        doc = json.loads(data)
+    except (ValueError, UnicodeDecodeError):
+        doc = None
+    if not (isinstance(doc, dict) and doc.get("event") in ("down", "up") and isinstance(doc.get("detail"), str)):
+        raise RecordingError(f"{where}: not a link event ({{\"event\": \"down\"|\"up\", \"detail\": ...}})")
+    return LinkEvent(doc["event"], doc["detail"])
+
+
 def _recorded_reference(source: RecordingSource, stages: Stages, config: Config, plan: MeasurementPlan):
     impl = stages.implementations["reference"]
     where = f"{config.source}: [reference]"
 
     def import_reference(hook: Any) -> tuple[ReferenceData, int | None]:
         chunks = source.serial_chunks()
+        parts: list[bytes] = []
+        events: list[tuple[int, LinkEvent]] = []  # (offset in the joined bytes, event)
+        size = 0
+        last = None
         for data, t, name in chunks:
+            if isinstance(data, LinkEvent):
+                hook.on_serial_event(kind=data.kind, detail=data.detail, timestamp_ns=t, source=name or impl.name)
+                events.append((size, data))
+                continue
             hook.on_serial_bytes(data=data, timestamp_ns=t, source=name or impl.name)
+            parts.append(data)
+            size += len(data)
+            last = t
         reader = impl.create(dict(config.stages["reference"].options), where)
         if not callable(getattr(reader, "decode", None)):
             raise PluginError(
                 f"reference plugin {impl.name!r} has no decode(raw, plan) method, so it cannot re-read "
                 f"recorded bytes; choose another with --reference"
             )
-        reference = reader.decode(b"".join(c[0] for c in chunks), plan)
-        return reference, (chunks[-1][1] if chunks else None)
+        if events:
+            reference = reader.decode(b"".join(parts), plan, link_events=events)
+        else:
+            reference = reader.decode(b"".join(parts), plan)
+        return reference, last
 
     return import_reference
 

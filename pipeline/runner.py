@@ -30,7 +30,7 @@ from crossfield.errors import ConfigError, CrossfieldError
 from crossfield.plan import MeasurementPlan, load_plan
 from crossfield.registry import STAGES, Implementation, get_implementation
 from crossfield.session import FrameResult, SessionInfo, SessionSummary
-from crossfield.stages import Acquisition
+from crossfield.stages import Acquisition, LinkEvent
 from crossfield.types import (
     CameraPoints,
     GroundTruth,
@@ -308,8 +308,11 @@ def _live_reference(
     def import_reference(hook: Any) -> tuple[ReferenceData, int | None]:
         last: list[int] = []
 
-        def sink(data: bytes) -> None:
+        def sink(data: bytes | LinkEvent) -> None:
             t = time.time_ns()
+            if isinstance(data, LinkEvent):
+                hook.on_serial_event(kind=data.kind, detail=data.detail, timestamp_ns=t, source=source)
+                return
             last[:] = [t]
             hook.on_serial_bytes(data=data, timestamp_ns=t, source=source)
 

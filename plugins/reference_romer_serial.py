@@ -29,10 +29,11 @@ rejected line. Without ``log`` they go to the Python logger
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
@@ -46,13 +47,16 @@ from crossfield.plan import MeasurementPlan
 from crossfield.cmm.protocol import (
     Decoder,
     LineDecoder,
+    READ_BYTES,
     LinkLost,
     ProbeRecord,
     Rejection,
     SerialTransport,
     Transport,
 )
-from crossfield.stages import BytesSink
+from crossfield.cmm.controls import control_problems
+from crossfield.cmm.plausible import DEFAULT_VOLUME_MM, check_volume
+from crossfield.stages import BytesSink, LinkEvent
 from crossfield.types import ProbedPoint, ReferenceData
 
 
@@ -97,6 +101,39 @@ class _Run:
         return f"{where}: {self.count} resent point(s) already received ({shown}), ignored"
 
 
+#: Problems listed one by one between two accepted points; further ones are
+#: counted by kind in one summary line (a noise flood costs bounded output).
+LISTED_PROBLEMS = 5
+
+
+class _Flood:
+    """Problems beyond :data:`LISTED_PROBLEMS` since the last accepted point:
+    counts by kind, their lines and byte range."""
+
+    def __init__(self) -> None:
+        self.counts: dict[str, int] = {}
+        self.first_line = self.last_line = 0
+        self.first_byte = self.end_byte = -1
+
+    def add(self, kind: str, count: int, line: int, offset: int, size: int) -> None:
+        if not self.counts:
+            self.first_line = line
+        self.counts[kind] = self.counts.get(kind, 0) + count
+        self.last_line = max(self.last_line, line)
+        if offset >= 0:
+            if self.first_byte < 0:
+                self.first_byte = offset
+            self.end_byte = max(self.end_byte, offset + max(size, 1))
+
+    def __str__(self) -> str:
+        total = sum(self.counts.values())
+        where = _lines(self.first_line, self.last_line)
+        if self.first_byte >= 0:
+            where += f", bytes {self.first_byte}-{self.end_byte - 1}"
+        kinds = ", ".join(f"{n} {kind}" for kind, n in sorted(self.counts.items(), key=lambda kv: -kv[1]))
+        return f"{where}: {total} more problem(s), not listed one by one: {kinds}"
+
+
 class PointCollector:
     """Labels decoded records by the plan's probing order; keeps the problems.
 
@@ -113,6 +150,11 @@ class PointCollector:
     order): a point identical to a received one is *resent*; a point within
     ``burst_radius_mm`` of the last accepted one is *held*. Either way the
     first point is kept.
+
+    Between two accepted points at most :data:`LISTED_PROBLEMS` problems
+    are listed one by one; the others are counted by kind in one summary
+    (lines, byte range, counts), so the problems of a noise flood are
+    bounded by the plan's size, not by the input's.
     """
 
     def __init__(
@@ -136,6 +178,8 @@ class PointCollector:
         self._highest = -1  # highest label index received
         self._sentence_rejected_before_first = False
         self._run: _Run | None = None
+        self._listed = 0  # problems listed since the last accepted point
+        self._flood: _Flood | None = None
 
     @property
     def complete(self) -> bool:
@@ -146,7 +190,7 @@ class PointCollector:
     def add(self, item: ProbeRecord | Rejection) -> None:
         if isinstance(item, Rejection):
             self._flush_run()
-            self.problems.append(str(item))
+            self._emit(str(item), item.kind, item.count, item.line, item.offset, item.size)
             if not self._records and item.text.startswith(b"$"):
                 self._sentence_rejected_before_first = True
             return
@@ -196,10 +240,11 @@ class PointCollector:
                 item,
                 f"sequence gap: {len(lost)} point(s) missing before seq {item.seq}: "
                 f"{_label_list(self.labels, lost, self.first_seq)}",
+                listed=True,
             )
         elif index < self._highest:
             after = self.first_seq + self._highest
-            self._problem(item, f"seq {item.seq} arrived out of order (after seq {after})")
+            self._problem(item, f"seq {item.seq} arrived out of order (after seq {after})", listed=True)
         self._accept(index, item)
 
     def _add_unnumbered(self, item: ProbeRecord) -> None:
@@ -218,6 +263,8 @@ class PointCollector:
 
     def _accept(self, index: int, item: ProbeRecord) -> None:
         self._flush_run()
+        self._flush_flood()
+        self._listed = 0
         self._records[index] = item
         self._by_content.setdefault((item.xyz, item.probe_vector), index)
         self._last = (index, item)
@@ -235,8 +282,24 @@ class PointCollector:
 
     def _flush_run(self) -> None:
         if self._run is not None:
-            self.problems.append(str(self._run))
-            self._run = None
+            run, self._run = self._run, None
+            self._emit(str(run), "repeat", run.count, run.first_line)
+
+    def _emit(self, text: str, kind: str, count: int = 1, line: int = 0, offset: int = -1, size: int = 0) -> None:
+        """One problem: listed while fewer than LISTED_PROBLEMS were since the
+        last accepted point, else counted in the pending flood summary."""
+        if self._listed < LISTED_PROBLEMS:
+            self.problems.append(text)
+            self._listed += 1
+            return
+        if self._flood is None:
+            self._flood = _Flood()
+        self._flood.add(kind, count, line, offset, size)
+
+    def _flush_flood(self) -> None:
+        if self._flood is not None:
+            self.problems.append(str(self._flood))
+            self._flood = None
 
     @property
     def _seq_base(self) -> int | None:
@@ -247,8 +310,9 @@ class PointCollector:
         return [k for k in range(len(self.labels)) if k not in self._records]
 
     def finish(self) -> None:
-        """Report a pending run and the holes left in the probing order."""
+        """Report a pending run and flood, and the holes left in the probing order."""
         self._flush_run()
+        self._flush_flood()
         holes = [k for k in self.missing() if k < self._highest]
         if holes:
             self.problems.append(
@@ -270,9 +334,16 @@ class PointCollector:
                 text += f"; and {len(self.problems) - 10} more"
         return text
 
-    def _problem(self, item: ProbeRecord, reason: str) -> None:
+    def _problem(self, item: ProbeRecord, reason: str, listed: bool = False) -> None:
+        """A problem with a decoded point; ``listed``: always listed (a gap or
+        reordering, reported just before the point is kept)."""
         self._flush_run()
-        self.problems.append(str(Rejection(item.line, reason, item.text)))
+        text = str(Rejection(item.line, reason, item.text))
+        if listed:
+            self._flush_flood()
+            self.problems.append(text)
+        else:
+            self._emit(text, "ignored point", 1, item.line, item.offset, item.size)
 
     def _point(self, label: str, record: ProbeRecord) -> ProbedPoint:
         return ProbedPoint(
@@ -341,6 +412,8 @@ class RomerSerialReference:
     units: ``"mm"`` or ``"inch"`` (``pcdmis`` only; converted to mm).
     burst_radius_mm: repeats of one press within this distance are a held
     button and give one point (mm).
+    measuring_volume_mm: half-width of the measuring volume (mm): a point
+    with |X|, |Y| or |Z| above it (or not finite) is rejected, naming its line.
 
     ``log`` (attribute, not an option; default None): a callable receiving
     ``level``, ``message`` and ``timestamp_ns`` keyword arguments, called
@@ -361,6 +434,7 @@ class RomerSerialReference:
         format: str = "cfp",
         units: str = "mm",
         burst_radius_mm: float = 0.5,
+        measuring_volume_mm: float = DEFAULT_VOLUME_MM,
     ):
         if not isinstance(port, str) or not port:
             raise ValueError(f"option 'port' must be a device path or pyserial URL, got {port!r}")
@@ -382,6 +456,7 @@ class RomerSerialReference:
         self.format: LineFormat = FORMATS[format]
         self.units = units
         self.burst_radius_mm = _positive(burst_radius_mm, "burst_radius_mm", "mm")
+        self.measuring_volume_mm = check_volume(measuring_volume_mm)
         try:
             self.make_decoder()
         except ValueError as exc:
@@ -417,7 +492,7 @@ class RomerSerialReference:
         return LineDecoder(self.make_decoder(), self.format.framer())
 
     def make_decoder(self) -> Decoder:
-        return self.format.decoder(self.units)
+        return self.format.decoder(self.units, self.measuring_volume_mm)
 
     # -- ReferenceSource ----------------------------------------------------
 
@@ -496,6 +571,7 @@ class RomerSerialReference:
                     except (OSError, ValueError, LinkLost):
                         transport = None
                         continue
+                    sink(LinkEvent("up"))
                     outage = self.outages[-1]
                     outage.up_ns = time.time_ns()
                     self._report(
@@ -507,11 +583,15 @@ class RomerSerialReference:
                     )
                     continue
                 try:
-                    data = transport.read(4096)
+                    data = transport.read(READ_BYTES)
                 except LinkLost as exc:
                     lost = str(exc)
                     transport.close()
                     transport = None
+                    # the line in progress ends here: never joined to the bytes after the reconnect
+                    sink(LinkEvent("down", lost))
+                    self._feed(collector, stream.cut())
+                    reported = self._report_problems(collector, reported)
                     outage = LinkOutage(time.time_ns(), lost, len(collector.points))
                     self.outages.append(outage)
                     self._report(
@@ -541,21 +621,43 @@ class RomerSerialReference:
         if not collector.complete:
             self._report("error", f"{ended}: {collector.summary()}")
             raise ReferenceImportError(f"romer-serial: {self.port}: {ended}: {collector.summary()}")
+        result = self._result(collector, plan)
+        for problem in result.problems[len(collector.problems) :]:
+            self._report("warning", problem)
         summary = (
             f"{len(collector.points)} of {len(collector.labels)} points imported, "
-            f"{len(collector.problems)} problem(s)"
+            f"{len(result.problems)} problem(s)"
         )
         if self.outages:
             down = sum(o.duration_s or 0.0 for o in self.outages)
             summary += f"; the link was down {len(self.outages)} time(s), {down:.2f} s in all"
         self._report("info", summary)
-        return collector.result(self.port)
+        return result
 
-    def decode(self, raw: bytes, plan: MeasurementPlan) -> ReferenceData:
-        """Decode recorded bytes exactly as :meth:`acquire` did (replay)."""
+    def decode(
+        self, raw: bytes, plan: MeasurementPlan, link_events: Sequence[tuple[int, LinkEvent]] = ()
+    ) -> ReferenceData:
+        """Decode recorded bytes exactly as :meth:`acquire` did (replay).
+
+        link_events: ``(offset, LinkEvent)`` pairs in order, offset = bytes
+        of ``raw`` before the event (replay reads them from the recording):
+        at each ``down`` the line in progress is cut, as it was live.
+        """
         collector = self._collector(plan)
         stream = self.make_stream()
-        self._feed(collector, stream.feed(bytes(raw)))
+        data = bytes(raw)
+        pos = 0
+        for offset, event in link_events:
+            if not (isinstance(offset, int) and pos <= offset <= len(data)):
+                raise ReferenceImportError(
+                    f"romer-serial: {self.port}: link event {event!r} at byte {offset!r} is outside the "
+                    f"recorded bytes {pos}..{len(data)}"
+                )
+            self._feed(collector, stream.feed(data[pos:offset]))
+            pos = offset
+            if event.kind == "down":
+                self._feed(collector, stream.cut())
+        self._feed(collector, stream.feed(data[pos:]))
         self._feed(collector, stream.finish())
         collector.finish()
         if not collector.complete:
@@ -563,7 +665,13 @@ class RomerSerialReference:
                 f"romer-serial: {self.port}: the recorded data ends before the plan's last point: "
                 f"{collector.summary()}"
             )
-        return collector.result(self.port)
+        return self._result(collector, plan)
+
+    def _result(self, collector: PointCollector, plan: MeasurementPlan) -> ReferenceData:
+        """The collected points and problems, and those of a degenerate control set."""
+        result = collector.result(self.port)
+        degenerate = control_problems(result.points, plan)
+        return dataclasses.replace(result, problems=result.problems + tuple(degenerate)) if degenerate else result
 
 
 @hookimpl

@@ -395,7 +395,8 @@ class ProbeRecord:
     seq: the device's button-press counter, or None for formats without one.
     xyz: (3,) mm; probe_vector: (3,) unit vector (normalised here), or None
     when the format has none; probe_diameter_mm: mm, NaN when unknown.
-    line: the line number it came from; text: the line as received.
+    line: the line number it came from; text: the line as received;
+    offset, size: its bytes in the stream (set by :class:`LineDecoder`).
     """
 
     seq: int | None
@@ -405,6 +406,8 @@ class ProbeRecord:
     probe_diameter_mm: float
     line: int
     text: bytes
+    offset: int = -1
+    size: int = 0
 
     def same_point(self, other: "ProbeRecord") -> bool:
         """Same seq, time, coordinates, vector and diameter (a retransmission)."""
@@ -580,7 +583,7 @@ class LineDecoder:
         results: list[ProbeRecord | Rejection] = []
         for frame in frames:
             result = self.decoder.decode(frame)
-            if isinstance(result, Rejection):
+            if isinstance(result, (Rejection, ProbeRecord)):
                 result = replace(result, offset=frame.offset, size=frame.size or len(frame.data))
             if result is not None:
                 results.append(result)

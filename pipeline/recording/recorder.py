@@ -100,6 +100,9 @@ JSON_SCHEMAS: dict[str, str] = {
 
 #: Message encoding of ``/cmm/raw`` (schema-less: the bytes as read).
 RAW_ENCODING = "application/octet-stream"
+#: Channel metadata ``content`` of the ``/cmm/raw`` channel that holds the
+#: line's link events (UTF-8 JSON ``{"event": "down"|"up", "detail": ...}``).
+LINK_EVENTS = "link-events"
 
 #: Chunk compression by name. "none" is the default: lz4 costs ~9 ms and zstd
 #: ~11 ms of CPU per 4 MB image (ratio 0.68 and 0.44 on simulated 12-bit
@@ -903,6 +906,17 @@ class McapRecorder:
         self._serial_counts[source] = count + 1
         spec = ChannelSpec(TOPIC_CMM_RAW, RAW_ENCODING, None, (("source", source),))
         self._message(spec, timestamp_ns, bytes(data), count)
+
+    @hookimpl
+    def on_serial_event(self, kind: str, detail: str, timestamp_ns: int, source: str) -> None:
+        # A channel of its own on /cmm/raw (file order = the order of the link's
+        # bytes and events), so that no byte sequence on the line can pass for one.
+        source = str(source)
+        key = f"{source}\n{LINK_EVENTS}"
+        count = self._serial_counts.get(key, 0)
+        self._serial_counts[key] = count + 1
+        spec = ChannelSpec(TOPIC_CMM_RAW, RAW_ENCODING, None, (("source", source), ("content", LINK_EVENTS)))
+        self._message(spec, timestamp_ns, dump_json({"event": str(kind), "detail": str(detail)}), count)
 
     # ---- stage outputs --------------------------------------------------
 
