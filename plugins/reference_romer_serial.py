@@ -444,9 +444,9 @@ class RomerSerialReference:
             first_seq = None
         elif isinstance(first_seq, bool) or not isinstance(first_seq, int) or first_seq < 0:
             raise ValueError(f"option 'first_seq' must be an integer >= 0 or \"auto\", got {first_seq!r}")
-        if format not in FORMATS:
+        if not isinstance(format, str) or format not in FORMATS:
             raise ValueError(f"option 'format' must be one of {', '.join(FORMATS)}, got {format!r}")
-        if units not in UNITS:
+        if not isinstance(units, str) or units not in UNITS:
             raise ValueError(f"option 'units' must be one of {', '.join(UNITS)}, got {units!r}")
         self.port = port
         self.baudrate = baudrate
@@ -588,10 +588,7 @@ class RomerSerialReference:
                     lost = str(exc)
                     transport.close()
                     transport = None
-                    # the line in progress ends here: never joined to the bytes after the reconnect
                     sink(LinkEvent("down", lost))
-                    self._feed(collector, stream.cut())
-                    reported = self._report_problems(collector, reported)
                     outage = LinkOutage(time.time_ns(), lost, len(collector.points))
                     self.outages.append(outage)
                     self._report(
@@ -601,6 +598,9 @@ class RomerSerialReference:
                         f"{self.timeout_s:g} s",
                         outage.down_ns,
                     )
+                    # the line in progress ends here: never joined to the bytes after the reconnect
+                    self._feed(collector, stream.cut())
+                    reported = self._report_problems(collector, reported)
                     continue
                 if data:
                     sink(data)
