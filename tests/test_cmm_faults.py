@@ -292,3 +292,88 @@ def test_socket_reads_come_in_blocks(plan):
     assert_truth(result, probes, 0.5e-4) and result.problems == ()
     assert sink.recorded() == payload
     assert len(sink) < len(payload) / 1000  # one byte per read was 2e6 reads
+
+
+# ---- class 11: degenerate control sets, option errors ------------------------------------
+
+
+def write_csv(tmp_path, rows):
+    path = tmp_path / "points.csv"
+    path.write_text("id,x,y,z\n" + "".join(f"{label},{x},{y},{z}\n" for label, (x, y, z) in rows.items()))
+    return path
+
+
+FOUR_CONTROLS = """
+[[control]]
+id = "C1"
+[[control]]
+id = "C2"
+[[control]]
+id = "C3"
+[[control]]
+id = "C4"
+[[reference_point]]
+id = "R1"
+"""
+
+
+def test_duplicated_and_collinear_controls_are_problems(tmp_path, plan):
+    truth = {label: (10.0 * k, -3.0 * k * k, 7.0 + k) for k, label in enumerate(LABELS)}
+    clean = CsvReference(path=str(write_csv(tmp_path, truth))).acquire(plan, lambda data: None)
+    assert clean.problems == ()
+    duplicated = dict(truth, C2=truth["C1"])
+    result = CsvReference(path=str(write_csv(tmp_path, duplicated))).acquire(plan, lambda data: None)
+    assert result.problems[0] == (
+        f"{tmp_path / 'points.csv'}: controls C1 and C2 have the same CMM coordinates (0.0000 mm apart): "
+        f"one target probed twice? The registration cannot tell them apart"
+    )
+    assert len(result.points) == len(LABELS)  # reported, not dropped: the points are what the file says
+    collinear = dict(truth, C3=(20.0, -6.0, 9.0))  # on the line through C1 and C2
+    result = CsvReference(path=str(write_csv(tmp_path, collinear))).acquire(plan, lambda data: None)
+    assert len(result.problems) == 1 and "the controls C1, C2, C3 are collinear" in result.problems[0]
+
+
+def test_coplanar_controls_are_a_problem_over_the_serial_line(tmp_path):
+    from crossfield.plan import parse_plan
+
+    four = parse_plan(FOUR_CONTROLS, "four.toml")
+    rng = np.random.default_rng(3)
+    flat = np.array([[0, 0, 50.0], [100, 0, 50.0], [0, 80, 50.0], [120, 90, 50.0], [10, 10, 10.0]])
+    probes = probes_from_points(four.probing_order(), flat, rng, sigma_mm=0.0)
+    reader, result, sink = over_pty(SimulatedArm(probes), four)
+    assert result.problems == (
+        "the 4 controls C1, C2, C3, C4 are coplanar (RMS 0.0000 mm from their plane, <= 3 x sigma 0.01 mm): "
+        "a mirrored registration fits them as well and cannot be detected",
+    )
+    assert replay(reader, sink.recorded(), four).problems == result.problems
+    spatial = flat.copy()
+    spatial[3, 2] = 20.0  # 30 mm out of the plane: a 3-D control set
+    probes = probes_from_points(four.probing_order(), spatial, rng, sigma_mm=0.0)
+    assert over_pty(SimulatedArm(probes), four)[1].problems == ()
+
+
+def test_a_far_outlier_is_refused_as_out_of_the_volume_not_as_collinear(tmp_path, plan):
+    probes = make_probes(16)
+    outlier = encode_point(2, 12.0, (1e12, 5.0, 5.0), (0, 0, 1), 6.0)
+    arm = SimulatedArm(probes, faults={1: lambda s: outlier})
+    reader, result, sink = over_pty(arm, plan)
+    assert result.problems[0] == (
+        f"line 2: X = 1e+12 mm is outside the measuring volume (|X| <= 5000 mm, option measuring_volume_mm): "
+        f"'{outlier[:-2].decode()}'"
+    )
+    assert "C2" not in [p.label for p in result.points]
+    assert not any("collinear" in p for p in result.problems)
+
+
+@pytest.mark.parametrize("name, base", [("romer-serial", {"port": "x"}), ("csv", {"path": "p"}),
+                                        ("spatialanalyzer", {"path": "p"}), ("pcdmis-xyz", {"path": "p"})])
+def test_every_bad_option_value_is_refused_naming_its_key(name, base):
+    impl = get_implementation(make_plugin_manager(), "reference", name)
+    free_text = {"port", "path", "group"}  # any string is a valid name
+    for key in impl.options():
+        for bad in ("eight", -1, True, float("nan"), [1], 1e400, {"a": 1}):
+            if key in free_text and isinstance(bad, str):
+                continue
+            with pytest.raises(ConfigError) as info:
+                impl.create({**base, key: bad})
+            assert f"option {key!r}" in str(info.value), (key, bad, str(info.value))

@@ -52,13 +52,15 @@ def coordinate_problem(xyz: Sequence[float], volume_mm: float, names: str = "XYZ
     return None
 
 
-def size_problem(value: float, name: str, volume_mm: float, *, allow_zero: bool = False) -> str | None:
+def size_problem(value: float, name: str, limit_mm: float, *, allow_zero: bool = False) -> str | None:
     """Why a probe radius or diameter ``value`` (mm) is impossible, or None:
-    not finite, negative (or zero unless ``allow_zero``), or larger than the volume."""
+    not finite, negative (or zero unless ``allow_zero``), or above
+    ``limit_mm`` (a ball cannot be larger than the measuring volume: the
+    volume's half-width for a radius, its width for a diameter)."""
     if not math.isfinite(value):
         return f"{name} is not finite ({value})"
     if value < 0 or (value == 0 and not allow_zero):
         return f"{name} must be {'>= 0' if allow_zero else '> 0'} mm, got {value}"
-    if value > 2 * volume_mm:
+    if value > limit_mm:
         return f"{name} = {value:.6g} mm is larger than the measuring volume (option {VOLUME_OPTION})"
     return None

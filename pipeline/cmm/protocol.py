@@ -62,6 +62,7 @@ _NUMBER = re.compile(r"-?[0-9]+(\.[0-9]+)?\Z")
 _SEQ = re.compile(r"[0-9]{1,9}\Z")
 _HEX4 = re.compile(r"[0-9A-Fa-f]{4}\Z")
 _WHITESPACE = b" \t\r\n"
+_DOLLARS = re.compile(rb"\$+")
 
 
 def crc16(data: bytes) -> int:
@@ -319,11 +320,16 @@ class LineFramer:
                 self._line += 1
                 self._state = self._OUTSIDE
                 pos = stop + 1
-            else:  # a "$" starts a sentence
+            else:  # a "$" starts a sentence; in a run of "$", each but the last is bare
+                run_end = _DOLLARS.match(data, stop).end()  # type: ignore[union-attr]
+                if run_end - stop > 1:
+                    if not self._dollars:
+                        self._dollars_start = (self._line, self._base + stop)
+                    self._dollars += run_end - stop - 1
                 self._state = self._SENTENCE
                 self._buf = bytearray(b"$")
-                self._start = (self._line, self._base + stop)
-                pos = stop + 1
+                self._start = (self._line, self._base + run_end - 1)
+                pos = run_end
         self._base += end
         return frames
 
@@ -543,7 +549,7 @@ class CfpDecoder:
             return reject(f"probe vector ({i}, {j}, {k}) is not a unit vector (norm {norm:.6f})", "implausible")
         if not diameter > 0:
             return reject(f"probe diameter must be > 0 mm, got {diameter}", "implausible")
-        problem = size_problem(diameter, "probe diameter", self.volume_mm)
+        problem = size_problem(diameter, "probe diameter", 2 * self.volume_mm)
         if problem:
             return reject(problem, "implausible")
         return ProbeRecord(
