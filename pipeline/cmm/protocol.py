@@ -38,7 +38,7 @@ from __future__ import annotations
 import binascii
 import math
 import re
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Protocol, Sequence
 
 from crossfield.cmm.plausible import DEFAULT_VOLUME_MM, check_volume, coordinate_problem, size_problem
@@ -589,8 +589,17 @@ class LineDecoder:
         results: list[ProbeRecord | Rejection] = []
         for frame in frames:
             result = self.decoder.decode(frame)
-            if isinstance(result, (Rejection, ProbeRecord)):
-                result = replace(result, offset=frame.offset, size=frame.size or len(frame.data))
+            size = frame.size or len(frame.data)
+            # (built field by field: dataclasses.replace costs as much as the decoding)
+            if isinstance(result, ProbeRecord):
+                r = result
+                result = ProbeRecord(
+                    r.seq, r.device_time_s, r.xyz, r.probe_vector, r.probe_diameter_mm, r.line, r.text,
+                    frame.offset, size,
+                )
+            elif isinstance(result, Rejection):
+                r = result
+                result = Rejection(r.line, r.reason, r.text, r.kind, frame.offset, size, r.count)
             if result is not None:
                 results.append(result)
         return results
