@@ -15,10 +15,18 @@ labelled in arrival order.
 
 Production behaviour: a held probe button (a burst of repeats of one
 press) gives one point; points resent after a reconnect are recognised and
-dropped; a lost link is reopened until the idle timeout.
+dropped; a lost link is reopened until the idle timeout; implausible
+values (non-finite, outside ``measuring_volume_mm``) are rejected naming
+the line; between two accepted points at most :data:`LISTED_PROBLEMS`
+problems are listed, the rest summarised by kind (a noise flood costs
+bounded output); degenerate control sets are reported.
 
-Link events are not in the bytes (``decode(raw)`` cannot see them), so the
-plugin reports them as they happen through its ``log`` attribute (set by
+Each disconnect and reconnect is handed to the sink as a
+:class:`crossfield.stages.LinkEvent` between the chunks of bytes (the
+recorder keeps it on ``/cmm/raw`` in order with them), and the line in
+progress is cut there: never joined to the first line after the
+reconnect; ``decode(raw, plan, link_events=...)`` splits the same way on
+replay. The plugin also reports them as they happen through its ``log`` attribute (set by
 the session runner to ``pm.hook.on_log``; the recorder writes them to
 ``/log``): each disconnect (``link down at <time>: <reason>``), each
 reconnect (``link up again after X s ...``), the idle timeout, and each

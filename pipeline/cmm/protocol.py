@@ -27,10 +27,12 @@ Layers, each replaceable on its own:
    ``rfc2217://``, ``loop://``).
 2. **framer** (:class:`LineFramer`): bytes -> :class:`Frame` s. Finds
    sentences from ``$`` to the line end, resynchronises after noise and
-   after partial lines, and numbers lines as a text viewer would
+   after partial lines, ends the line in progress where the link broke
+   (:meth:`LineFramer.cut`), and numbers lines as a text viewer would
    (line = 1 + number of ``\\n`` before the frame).
 3. **decoder** (:class:`CfpDecoder`): one frame -> :class:`ProbeRecord` or
-   :class:`Rejection` (a reason naming the line and its content).
+   :class:`Rejection` (a reason naming the line and its content); values
+   outside the measuring volume are rejected (:mod:`crossfield.cmm.plausible`).
 """
 
 from __future__ import annotations
