@@ -34,10 +34,12 @@ def plan():
     return make_plan("faults.toml")
 
 
-def over_pty(arm, plan, **options):
+def over_pty(arm, plan, log=None, **options):
     sink = Sink()
     with arm.serve_pty() as port:
         reader = RomerSerialReference(port=port, **{"timeout_s": 3.0, **options})
+        if log is not None:
+            reader.log = lambda level, message, timestamp_ns: log.append((level, message))
         result = reader.acquire(plan, sink)
     return reader, result, sink
 
@@ -247,7 +249,11 @@ def test_noise_flood_problems_are_aggregated_with_counts_and_byte_ranges(plan):
     dollars = [b"$x" + g for g in garbage[:1000]]
     noise = b"".join(dollars + garbage[1000:])
     arm = SimulatedArm(probes, faults={5: lambda s: noise + s})
-    reader, result, sink = over_pty(arm, plan)
+    log: list = []
+    reader, result, sink = over_pty(arm, plan, log=log)
+    # the live log says each problem once, as it is found: as bounded as the problems
+    assert [m for level, m in log if level == "warning"] == [f"romer-serial {reader.port}: {p}" for p in result.problems]
+    assert len(log) == len(result.problems) + 2  # + "reading cfp from ..." and the final summary
     assert_truth(result, probes, 0.5e-4)
     raw = sink.recorded()
     start, end = raw.index(noise), raw.index(noise) + len(noise)
