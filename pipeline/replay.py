@@ -268,7 +268,8 @@ class RecordingSource:
         for m in rec.messages("/cmm/raw", decode=False, file_order=True):
             source = str(m.channel_metadata.get("source", ""))
             if m.channel_metadata.get("content") == LINK_EVENTS:
-                chunks.append((link_event(m.data, f"{rec.path}: /cmm/raw link event {m.sequence}"), m.log_time_ns, source))
+                event = link_event(m.data, f"{rec.path}: /cmm/raw link event {m.sequence}")
+                chunks.append((event, m.log_time_ns, source))
             else:
                 chunks.append((m.data, m.log_time_ns, source))
         return chunks
@@ -287,7 +288,7 @@ def link_event(data: bytes, where: str) -> LinkEvent:
     except (ValueError, UnicodeDecodeError):
         doc = None
     if not (isinstance(doc, dict) and doc.get("event") in ("down", "up") and isinstance(doc.get("detail"), str)):
-        raise RecordingError(f"{where}: not a link event ({{\"event\": \"down\"|\"up\", \"detail\": ...}})")
+        raise RecordingError(f'{where}: not a link event ({{"event": "down"|"up", "detail": ...}})')
     return LinkEvent(doc["event"], doc["detail"])
 
 
@@ -303,7 +304,9 @@ def _recorded_reference(source: RecordingSource, stages: Stages, config: Config,
         last = None
         for data, t, name in chunks:
             if isinstance(data, LinkEvent):
-                hook.on_serial_event(kind=data.kind, detail=data.detail, timestamp_ns=t, source=name or impl.name)
+                hook.on_serial_event(
+                    kind=data.kind, detail=data.detail, timestamp_ns=t, source=name or impl.name
+                )
                 events.append((size, data))
                 continue
             hook.on_serial_bytes(data=data, timestamp_ns=t, source=name or impl.name)

@@ -27,6 +27,7 @@ from crossfield.types import (
     StereoFrame,
 )
 
+
 @dataclass(frozen=True)
 class LinkEvent:
     """A line source's link went down or came back, between two chunks of

@@ -293,7 +293,9 @@ class PointCollector:
             run, self._run = self._run, None
             self._emit(str(run), "repeat", run.count, run.first_line)
 
-    def _emit(self, text: str, kind: str, count: int = 1, line: int = 0, offset: int = -1, size: int = 0) -> None:
+    def _emit(
+        self, text: str, kind: str, count: int = 1, line: int = 0, offset: int = -1, size: int = 0
+    ) -> None:
         """One problem: listed while fewer than LISTED_PROBLEMS were since the
         last accepted point, else counted in the pending flood summary."""
         if self._listed < LISTED_PROBLEMS:
@@ -679,7 +681,9 @@ class RomerSerialReference:
         """The collected points and problems, and those of a degenerate control set."""
         result = collector.result(self.port)
         degenerate = control_problems(result.points, plan)
-        return dataclasses.replace(result, problems=result.problems + tuple(degenerate)) if degenerate else result
+        if not degenerate:
+            return result
+        return dataclasses.replace(result, problems=result.problems + tuple(degenerate))
 
 
 @hookimpl

@@ -15,7 +15,6 @@ import time
 import numpy as np
 import pytest
 from cmm_plan import LABELS, Sink, make_plan, make_probes, replay
-
 from crossfield.cmm.formats import IppDmeDecoder, PcDmisDecoder
 from crossfield.cmm.plausible import DEFAULT_VOLUME_MM
 from crossfield.cmm.protocol import SENTENCE, CfpDecoder, Frame, ProbeRecord, Rejection, crc16, encode_point
@@ -112,11 +111,10 @@ def test_recorded_session_keeps_the_link_events_and_replay_splits_as_live(tmp_pa
     middle of a line: /cmm/raw holds the link events on their own channel in order with
     the bytes, and the replayed reference equals the live one."""
     import crossfield.simulator.arm as arm_module
-    from session_tools import record_session
-
     from crossfield.recording.reader import open_recording
     from crossfield.registry import make_plugin_manager as pm
     from crossfield.replay import replay_session
+    from session_tools import record_session
 
     class CutArm(arm_module.SimulatedArm):
         def __init__(self, probes, **kwargs):
@@ -124,6 +122,7 @@ def test_recorded_session_keeps_the_link_events_and_replay_splits_as_live(tmp_pa
 
     monkeypatch.setattr(arm_module, "SimulatedArm", CutArm)
     live = record_session(tmp_path, "live", frames=1)
+    assert live.reference.points and len(live.frames) == 1
     path = tmp_path / "live" / "session.mcap"
     with open_recording(path) as rec:
         raw = [(m.channel_metadata.get("content"), m.data) for m in rec.messages("/cmm/raw", file_order=True)]
@@ -264,7 +263,7 @@ def test_noise_flood_problems_are_aggregated_with_counts_and_byte_ranges(plan):
     assert lines, summary
     assert all(p.startswith(f"line {first_line + k}: line longer than 200 bytes, ignored: '$x")
                for k, p in enumerate(result.problems[:-1]))
-    counted = dict((kind, int(n)) for n, kind in (item.split(" ", 1) for item in lines[6].split(", ")))
+    counted = {kind: int(n) for n, kind in (item.split(" ", 1) for item in lines[6].split(", "))}
     total = 2000
     assert sum(counted.values()) + LISTED_PROBLEMS == total == int(lines[5]) + LISTED_PROBLEMS
     assert counted == {"noise": 1000, "overlong": 1000 - LISTED_PROBLEMS}
@@ -348,8 +347,10 @@ def test_coplanar_controls_are_a_problem_over_the_serial_line(tmp_path):
     probes = probes_from_points(four.probing_order(), flat, rng, sigma_mm=0.0)
     reader, result, sink = over_pty(SimulatedArm(probes), four)
     assert result.problems == (
-        "the 4 controls C1, C2, C3, C4 are coplanar (RMS 0.0000 mm from their plane, <= 3 x sigma 0.01 mm): "
-        "a mirrored registration fits them as well and cannot be detected",
+        (
+            "the 4 controls C1, C2, C3, C4 are coplanar (RMS 0.0000 mm from their plane, <= 3 x sigma 0.01 mm): "
+            "a mirrored registration fits them as well and cannot be detected"
+        ),
     )
     assert replay(reader, sink.recorded(), four).problems == result.problems
     spatial = flat.copy()
@@ -362,7 +363,7 @@ def test_a_far_outlier_is_refused_as_out_of_the_volume_not_as_collinear(tmp_path
     probes = make_probes(16)
     outlier = encode_point(2, 12.0, (1e12, 5.0, 5.0), (0, 0, 1), 6.0)
     arm = SimulatedArm(probes, faults={1: lambda s: outlier})
-    reader, result, sink = over_pty(arm, plan)
+    _, result, _ = over_pty(arm, plan)
     assert result.problems[0] == (
         f"line 2: X = 1e+12 mm is outside the measuring volume (|X| <= 5000 mm, option measuring_volume_mm): "
         f"'{outlier[:-2].decode()}'"

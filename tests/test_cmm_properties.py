@@ -11,10 +11,13 @@ from collections import Counter
 
 import numpy as np
 from cmm_plan import LABELS, make_plan
-from hypothesis import HealthCheck, assume, given, settings
-from hypothesis import strategies as st
-
-from crossfield.cmm.formats import IppDmeDecoder, PcDmisDecoder, PlainLineFramer, encode_ippdme_event, encode_pcdmis
+from crossfield.cmm.formats import (
+    IppDmeDecoder,
+    PcDmisDecoder,
+    PlainLineFramer,
+    encode_ippdme_event,
+    encode_pcdmis,
+)
 from crossfield.cmm.plausible import DEFAULT_VOLUME_MM
 from crossfield.cmm.protocol import (
     CUT,
@@ -36,6 +39,8 @@ from crossfield.plugins.reference_pcdmis_xyz import PcDmisXyzReference
 from crossfield.plugins.reference_romer_serial import LISTED_PROBLEMS, RomerSerialReference
 from crossfield.plugins.reference_spatialanalyzer import SpatialAnalyzerReference
 from crossfield.stages import LinkEvent
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
 
 PLAN = make_plan("properties.toml")
 PROPERTY = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])

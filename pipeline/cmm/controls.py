@@ -27,7 +27,6 @@ import itertools
 from collections.abc import Sequence
 
 import numpy as np
-
 from crossfield.plan import MeasurementPlan
 from crossfield.rigid import COLLINEAR_RATIO
 from crossfield.types import ProbedPoint
