@@ -320,3 +320,39 @@ def test_csv_imports_every_row_once_with_exact_values(xyzs, extra, crlf):
     result = CsvReference(path="p.csv").decode(text.encode(), PLAN)
     assert [p.label for p in result.points] == LABELS
     assert [tuple(p.xyz) for p in result.points] == [tuple(x) for x in xyzs]  # repr round-trips exactly
+
+
+@PROPERTY
+@given(
+    xyzs=st.lists(st.tuples(*[st.integers(-4_000_000, 4_000_000).map(lambda v: v / 1000)] * 3),
+                  min_size=len(LABELS), max_size=len(LABELS)),
+    comments=st.lists(st.sampled_from(["", "  ", "// a comment", "//"]), min_size=len(LABELS), max_size=len(LABELS)),
+    named=st.booleans(),
+    sep=st.sampled_from([",", " ", ",  ", "\t"]),
+)
+def test_spatialanalyzer_imports_every_point_once_with_exact_values(xyzs, comments, named, sep):
+    rows = ["// AXES = CARTESIAN: X,  Y,  Z (mm)"]
+    for label, xyz, comment in zip(LABELS, xyzs, comments):
+        fields = ([label] if named else []) + [f"{v:.3f}" for v in xyz]
+        rows += [comment, sep.join(fields)]
+    result = SpatialAnalyzerReference(path="sa.txt").decode("\n".join(rows).encode(), PLAN)
+    assert [p.label for p in result.points] == LABELS
+    assert [tuple(p.xyz) for p in result.points] == [tuple(x) for x in xyzs]
+
+
+@PROPERTY
+@given(
+    xyzs=st.lists(st.tuples(*[st.integers(-4_000_000, 4_000_000).map(lambda v: v / 1000)] * 3),
+                  min_size=len(LABELS), max_size=len(LABELS)),
+    comments=st.lists(st.sampled_from(["", "# c", "// c", " "]), min_size=len(LABELS), max_size=len(LABELS)),
+    with_normal=st.booleans(),
+)
+def test_pcdmis_xyz_imports_every_point_once_with_exact_values(xyzs, comments, with_normal):
+    rows = ["XYZIJK METRIC"]
+    for xyz, comment in zip(xyzs, comments):
+        rows += [comment, ",".join([f"{v:.3f}" for v in xyz] + (["0", "0", "1"] if with_normal else []))]
+    result = PcDmisXyzReference(path="p.xyz").decode("\r\n".join(rows).encode(), PLAN)
+    assert [p.label for p in result.points] == LABELS  # unnamed: in probing order
+    assert [tuple(p.xyz) for p in result.points] == [tuple(x) for x in xyzs]
+    if with_normal:
+        assert all(tuple(p.probe_vector) == (-0.0, -0.0, -1.0) for p in result.points)
