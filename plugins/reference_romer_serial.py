@@ -198,7 +198,7 @@ class PointCollector:
     def add(self, item: ProbeRecord | Rejection) -> None:
         if isinstance(item, Rejection):
             self._flush_run()
-            self._emit(str(item), item.kind, item.count, item.line, item.offset, item.size)
+            self._emit(item.__str__, item.kind, item.count, item.line, item.offset, item.size)
             if not self._records and item.text.startswith(b"$"):
                 self._sentence_rejected_before_first = True
             return
@@ -291,15 +291,16 @@ class PointCollector:
     def _flush_run(self) -> None:
         if self._run is not None:
             run, self._run = self._run, None
-            self._emit(str(run), "repeat", run.count, run.first_line)
+            self._emit(run.__str__, "repeat", run.count, run.first_line)
 
     def _emit(
-        self, text: str, kind: str, count: int = 1, line: int = 0, offset: int = -1, size: int = 0
+        self, text: Callable[[], str], kind: str, count: int = 1, line: int = 0, offset: int = -1, size: int = 0
     ) -> None:
-        """One problem: listed while fewer than LISTED_PROBLEMS were since the
-        last accepted point, else counted in the pending flood summary."""
+        """One problem: listed (``text()``) while fewer than LISTED_PROBLEMS were
+        since the last accepted point, else counted in the pending flood summary
+        (its text is never made: a flood costs no formatting)."""
         if self._listed < LISTED_PROBLEMS:
-            self.problems.append(text)
+            self.problems.append(text())
             self._listed += 1
             return
         if self._flood is None:
@@ -348,12 +349,12 @@ class PointCollector:
         """A problem with a decoded point; ``listed``: always listed (a gap or
         reordering, reported just before the point is kept)."""
         self._flush_run()
-        text = str(Rejection(item.line, reason, item.text))
+        rejection = Rejection(item.line, reason, item.text)
         if listed:
             self._flush_flood()
-            self.problems.append(text)
+            self.problems.append(str(rejection))
         else:
-            self._emit(text, "ignored point", 1, item.line, item.offset, item.size)
+            self._emit(rejection.__str__, "ignored point", 1, item.line, item.offset, item.size)
 
     def _point(self, label: str, record: ProbeRecord) -> ProbedPoint:
         return ProbedPoint(

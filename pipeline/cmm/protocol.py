@@ -73,14 +73,14 @@ def crc16(data: bytes) -> int:
 
 
 _ESCAPES = {0x09: "\\t", 0x0A: "\\n", 0x0D: "\\r", 0x27: "\\'", 0x5C: "\\\\"}
+#: How each byte value is shown: printable ASCII as is, the others escaped.
+_SHOWN = tuple(_ESCAPES.get(b, chr(b) if 0x20 <= b < 0x7F else f"\\x{b:02x}") for b in range(256))
 
 
 def show(data: bytes, limit: int = 100) -> str:
     """``data`` quoted for a message: printable ASCII as is, other bytes
     escaped (``\\r``, ``\\xff``), cut after ``limit`` bytes with ``...``."""
-    text = "".join(
-        _ESCAPES.get(b, chr(b) if 0x20 <= b < 0x7F else f"\\x{b:02x}") for b in data[:limit]
-    )
+    text = "".join(map(_SHOWN.__getitem__, data[:limit]))
     return f"'{text}...'" if len(data) > limit else f"'{text}'"
 
 
