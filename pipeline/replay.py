@@ -22,6 +22,7 @@ up to its last complete chunk; the summary's ``incomplete`` says where it ends.
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import json
 import time
 from collections.abc import Iterable, Iterator, Mapping, Sequence
@@ -320,6 +321,12 @@ def _recorded_reference(source: RecordingSource, stages: Stages, config: Config,
                 f"recorded bytes; choose another with --reference"
             )
         if events:
+            if "link_events" not in inspect.signature(reader.decode).parameters:
+                raise PluginError(
+                    f"the recording holds {len(events)} link event(s) of the CMM line (disconnects), and "
+                    f"reference plugin {impl.name!r} cannot take them (decode(raw, plan, link_events=...)): "
+                    f"its lines would be split differently than live; replay with the recorded plugin"
+                )
             reference = reader.decode(b"".join(parts), plan, link_events=events)
         else:
             reference = reader.decode(b"".join(parts), plan)

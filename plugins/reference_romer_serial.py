@@ -566,6 +566,7 @@ class RomerSerialReference:
         lost = ""
         reported = 0  # problems already passed to log
         last_progress = time.monotonic()
+        received_since_point = 0  # bytes read since the last new point
         try:
             while not collector.complete:
                 idle = time.monotonic() - last_progress > self.timeout_s
@@ -620,8 +621,13 @@ class RomerSerialReference:
                     reported = self._report_problems(collector, reported)
                     if len(collector.points) > before:
                         last_progress = time.monotonic()
-                elif idle:
+                        received_since_point = 0
+                        continue
+                    received_since_point += len(data)
+                if idle:  # bytes that bring no point (a noise flood) do not hold the import open
                     ended = f"no new point for {self.timeout_s:g} s"
+                    if received_since_point:
+                        ended += f" ({received_since_point} bytes arrived meanwhile, none a new point)"
                     break
         finally:
             if transport is not None:

@@ -18,7 +18,7 @@ from cmm_plan import LABELS, Sink, make_plan, make_probes, replay
 from crossfield.cmm.formats import IppDmeDecoder, PcDmisDecoder
 from crossfield.cmm.plausible import DEFAULT_VOLUME_MM
 from crossfield.cmm.protocol import SENTENCE, CfpDecoder, Frame, ProbeRecord, Rejection, crc16, encode_point
-from crossfield.errors import ConfigError, ReferenceImportError
+from crossfield.errors import ConfigError, PluginError, ReferenceImportError
 from crossfield.plugins.reference_csv import CsvReference
 from crossfield.plugins.reference_pcdmis_xyz import PcDmisXyzReference
 from crossfield.plugins.reference_romer_serial import LISTED_PROBLEMS, RomerSerialReference
@@ -142,6 +142,10 @@ def test_recorded_session_keeps_the_link_events_and_replay_splits_as_live(tmp_pa
     a, b = json.loads(reference), json.loads(again)
     a.pop("source"), b.pop("source")
     assert a == b
+    # a reference plugin that cannot take the link events is refused, not fed joined lines
+    with pytest.raises(PluginError, match=r"holds 2 link event\(s\) .* reference plugin 'csv' cannot take them"):
+        replay_session(path, pm(), plugins={"reference": "csv"}, options=["reference.path=p.csv"],
+                       output_dir=tmp_path / "other")
 
 
 # ---- class 4: implausible values --------------------------------------------------------
@@ -384,3 +388,24 @@ def test_every_bad_option_value_is_refused_naming_its_key(name, base):
             with pytest.raises(ConfigError) as info:
                 impl.create({**base, key: bad})
             assert f"option {key!r}" in str(info.value), (key, bad, str(info.value))
+
+
+def test_a_noise_flood_does_not_hold_the_import_open(plan):
+    """Bytes keep arriving (a stray line every 20 ms) but no new point: the idle timeout
+    still ends the import, naming the bytes that came meanwhile."""
+    probes = make_probes(17)
+    noisy = probes[:3] + [probes[3]] * 200  # after 3 points: 200 lines of noise, 4 s in all
+    arm = SimulatedArm(noisy, line_delay_s=0.02, faults={k: (lambda s: b"noise\r\n") for k in range(3, 203)})
+    sink = Sink()
+    start = time.monotonic()
+    with arm.serve_pty() as port:
+        reader = RomerSerialReference(port=port, timeout_s=0.4)
+        with pytest.raises(ReferenceImportError) as info:
+            reader.acquire(plan, sink)
+    elapsed = time.monotonic() - start
+    message = str(info.value)
+    match = re.search(r"no new point for 0.4 s \((\d+) bytes arrived meanwhile, none a new point\): 3 of 9", message)
+    assert match, message
+    assert int(match[1]) == len(sink.recorded()) - len(b"".join(arm.sentence(k) for k in range(3)))
+    assert elapsed < 2.5  # the arm would have sent noise for 4 s
+    assert "more problem(s), not listed one by one" in message or "ignored 5 bytes of noise" in message
