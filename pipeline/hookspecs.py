@@ -131,6 +131,13 @@ def on_serial_bytes(data: bytes, timestamp_ns: int, source: str) -> None:
 
 
 @hookspec
+def on_serial_event(kind: str, detail: str, timestamp_ns: int, source: str) -> None:
+    """The CMM line went down (``kind = "down"``, ``detail`` = the reason) or
+    came back (``"up"``), between two ``on_serial_bytes`` calls (raw input:
+    recorded in order with the bytes, replayed to split lines the same way)."""
+
+
+@hookspec
 def on_reference(reference: ReferenceData) -> None:
     """The CMM reference points were imported and labelled."""
 

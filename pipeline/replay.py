@@ -33,7 +33,7 @@ import pluggy
 from crossfield.config import Config, with_overrides
 from crossfield.errors import ConfigError, RecordingError
 from crossfield.recording import layout as L
-from crossfield.recording.codec import decode_image, ground_truth_from_doc  # noqa: F401 - public here too
+from crossfield.recording.codec import decode_image, decode_link_event, ground_truth_from_doc  # noqa: F401 - public here too
 from crossfield.recording.facts import SessionFacts, load_session_facts, require_session  # noqa: F401
 from crossfield.recording.integrity import file_sha256, utc
 from crossfield.runner import run_session, safe_session_name
@@ -116,12 +116,18 @@ class RecordingSource:
         self.incomplete = "; ".join(notes) or None
 
     def serial_chunks(self) -> list[SerialChunk]:
-        """Every recorded read from the CMM line (bytes, read time ns, source), in read order."""
+        """Every recorded read from the CMM line, and its link events:
+        (bytes or LinkEvent, time ns, source), in the order they happened."""
         rec = self.recorded.recording
-        return [
-            SerialChunk(m.data, m.log_time_ns, str(m.channel_metadata.get(L.CHANNEL_SOURCE, "")))
-            for m in rec.messages(L.TOPIC_CMM_RAW, decode=False, file_order=True)
-        ]
+        chunks: list[SerialChunk] = []
+        for m in rec.messages(L.TOPIC_CMM_RAW, decode=False, file_order=True):
+            source = str(m.channel_metadata.get(L.CHANNEL_SOURCE, ""))
+            if m.channel_metadata.get(L.CHANNEL_CONTENT) == L.LINK_EVENTS:
+                event = decode_link_event(m.data, f"{rec.path}: {L.TOPIC_CMM_RAW} link event {m.sequence}")
+                chunks.append(SerialChunk(event, m.log_time_ns, source))
+            else:
+                chunks.append(SerialChunk(m.data, m.log_time_ns, source))
+        return chunks
 
     def describe(self) -> dict[str, Any]:
         return dict(self.recorded.acquisition)

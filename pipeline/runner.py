@@ -19,6 +19,7 @@ as it exists. The session's :class:`SessionInfo` is built in
 from __future__ import annotations
 
 import contextlib
+import inspect
 import dataclasses
 import re
 import time
@@ -33,7 +34,7 @@ import pluggy
 from crossfield.aggregate import SessionAccumulator
 from crossfield.config import Config
 from crossfield.correspondence import match_control_points
-from crossfield.errors import ConfigError, CrossfieldError
+from crossfield.errors import ConfigError, CrossfieldError, PluginError
 from crossfield.plan import MeasurementPlan, load_plan
 from crossfield.provenance import package_versions
 from crossfield.registry import Implementation, get_implementation
@@ -47,6 +48,7 @@ from crossfield.stages import (
     ReferenceSource,
     Registrar,
     Reporter,
+    LinkEvent,
     ReportsIncidents,
     SerialChunk,
     ServesSimulatedArm,
@@ -452,8 +454,11 @@ def _live_reference(
     def import_reference(hook: Any) -> tuple[ReferenceData, int | None]:
         last: list[int] = []
 
-        def sink(data: bytes) -> None:
+        def sink(data: bytes | LinkEvent) -> None:
             t = time.time_ns()
+            if isinstance(data, LinkEvent):
+                hook.on_serial_event(kind=data.kind, detail=data.detail, timestamp_ns=t, source=source)
+                return
             last[:] = [t]
             hook.on_serial_bytes(data=data, timestamp_ns=t, source=source)
 
@@ -474,10 +479,31 @@ def _recorded_reference(
     decode them as the live import did (``reader.decode``)."""
 
     def import_reference(hook: Any) -> tuple[ReferenceData, int | None]:
+        parts: list[bytes] = []
+        events: list[tuple[int, LinkEvent]] = []  # (offset in the joined bytes, event)
+        size = 0
+        last = None
         for chunk in chunks:
-            hook.on_serial_bytes(data=chunk.data, timestamp_ns=chunk.timestamp_ns, source=chunk.source or name)
-        reference = reader.decode(b"".join(c.data for c in chunks), plan)
-        return reference, (chunks[-1].timestamp_ns if chunks else None)
+            source = chunk.source or name
+            if isinstance(chunk.data, LinkEvent):
+                hook.on_serial_event(
+                    kind=chunk.data.kind, detail=chunk.data.detail, timestamp_ns=chunk.timestamp_ns, source=source
+                )
+                events.append((size, chunk.data))
+                continue
+            hook.on_serial_bytes(data=chunk.data, timestamp_ns=chunk.timestamp_ns, source=source)
+            parts.append(chunk.data)
+            size += len(chunk.data)
+            last = chunk.timestamp_ns
+        if not events:
+            return reader.decode(b"".join(parts), plan), last
+        if "link_events" not in inspect.signature(reader.decode).parameters:
+            raise PluginError(
+                f"the recording holds {len(events)} link event(s) of the CMM line (disconnects), and "
+                f"reference plugin {name!r} cannot take them (decode(raw, plan, link_events=...)): "
+                f"its lines would be split differently than live; replay with the recorded plugin"
+            )
+        return reader.decode(b"".join(parts), plan, link_events=events), last
 
     return import_reference
 

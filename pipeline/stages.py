@@ -23,6 +23,7 @@ from __future__ import annotations
 import inspect
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import AbstractContextManager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple, Protocol, runtime_checkable
 
@@ -52,6 +53,7 @@ __all__ = [
     "Acquisition",
     "BytesSink",
     "CentroidExtractor",
+    "LinkEvent",
     "LogCallback",
     "Measurer",
     "RecordedAcquisition",
@@ -77,15 +79,33 @@ STAGES: tuple[str, ...] = (
     "report",
 )
 
-#: Called with each chunk of raw bytes as it is read, before parsing.
-BytesSink = Callable[[bytes], None]
+
+@dataclass(frozen=True)
+class LinkEvent:
+    """A line source's link went down or came back, between two chunks of
+    its bytes. kind: ``"down"`` (detail: the transport's reason) or ``"up"``
+    (detail: ""). Handed to the :data:`BytesSink` in order with the bytes,
+    recorded with them (``/cmm/raw``, channel ``content = link-events``),
+    and given back to ``decode(raw, plan, link_events=...)`` on replay, so
+    that a line cut by a disconnect is split there as it was live."""
+
+    kind: str
+    detail: str = ""
+
+
+#: Called with each chunk of raw bytes as it is read, before parsing; a
+#: source with a link (serial line, TCP) also calls it with a
+#: :class:`LinkEvent` when the link goes down or comes back, in order with
+#: the bytes.
+BytesSink = Callable[["bytes | LinkEvent"], None]
 
 
 class SerialChunk(NamedTuple):
-    """One read from the CMM line as recorded on ``/cmm/raw``: the bytes, the
-    read time (ns since the Unix epoch) and the reference implementation's name."""
+    """One read from the CMM line as recorded on ``/cmm/raw``: the bytes (or a
+    :class:`LinkEvent` of the line, in order with them), the read time (ns
+    since the Unix epoch) and the reference implementation's name."""
 
-    data: bytes
+    data: "bytes | LinkEvent"
     timestamp_ns: int
     source: str
 
@@ -141,7 +161,9 @@ class ReferenceSource(Protocol):
         before parsing it; label points by the plan's probing order."""
 
     def decode(self, raw: bytes, plan: MeasurementPlan) -> ReferenceData:
-        """Decode recorded raw bytes exactly as :meth:`acquire` would (replay)."""
+        """Decode recorded raw bytes exactly as :meth:`acquire` would (replay).
+        A source that hands :class:`LinkEvent` s to its sink also takes
+        ``link_events``: ``(offset in raw, LinkEvent)`` pairs in order."""
 
 
 @runtime_checkable

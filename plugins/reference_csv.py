@@ -20,7 +20,17 @@ from crossfield.hookspecs import hookimpl
 from crossfield.plan import MeasurementPlan
 from crossfield.types import ReferenceData
 
-from crossfield.cmm.point_files import FilePoint, PointFileReference, by_name, finite, parse_float, quoted, text_lines
+from crossfield.cmm.plausible import DEFAULT_VOLUME_MM
+from crossfield.cmm.point_files import (
+    FilePoint,
+    PointFileReference,
+    by_name,
+    finite,
+    in_volume,
+    parse_float,
+    quoted,
+    text_lines,
+)
 
 HEADERS = (("id", "x", "y", "z"), ("id", "x", "y", "z", "sigma"))
 
@@ -29,14 +39,15 @@ class CsvReference(PointFileReference):
     """CMM points from a CSV file ``id,x,y,z[,sigma]`` (mm).
 
     path: the CSV file. sigma_mm: standard uncertainty per coordinate (mm)
-    for rows without a sigma column.
+    for rows without a sigma column. measuring_volume_mm: a row with
+    |x|, |y| or |z| above it (mm) is an error naming its line.
     Malformed rows and duplicate ids are errors naming the file and line;
     ids that are not in the plan and plan labels without a row are reported
     as problems, and the other points are kept.
     """
 
-    def __init__(self, *, path: str, sigma_mm: float = 0.01):
-        super().__init__(path=path, sigma_mm=sigma_mm)
+    def __init__(self, *, path: str, sigma_mm: float = 0.01, measuring_volume_mm: float = DEFAULT_VOLUME_MM):
+        super().__init__(path=path, sigma_mm=sigma_mm, measuring_volume_mm=measuring_volume_mm)
 
     def decode(self, raw: bytes, plan: MeasurementPlan) -> ReferenceData:
         """Parse the file's bytes (as recorded) into labelled points."""
@@ -73,7 +84,8 @@ class CsvReference(PointFileReference):
             sigma = values[3] if len(values) == 4 else None
             if sigma is not None and not sigma > 0:
                 raise ReferenceImportError(f"{at}: sigma must be > 0 mm, got {sigma}")
-            points.append(FilePoint(number, ident, (values[0], values[1], values[2]), sigma))
+            xyz = in_volume(values[:3], at, self.measuring_volume_mm, line)
+            points.append(FilePoint(number, ident, xyz, sigma))
         return points
 
 

@@ -42,6 +42,7 @@ from crossfield.hookspecs import hookimpl
 from crossfield.plan import MeasurementPlan
 from crossfield.types import ReferenceData
 
+from crossfield.cmm.plausible import DEFAULT_VOLUME_MM
 from crossfield.cmm.point_files import (
     LENGTH_UNITS,
     FilePoint,
@@ -51,6 +52,7 @@ from crossfield.cmm.point_files import (
     by_probing_order,
     check_units,
     finite,
+    in_volume,
     parse_float,
     quoted,
     resolve_units,
@@ -86,11 +88,20 @@ class PcDmisXyzReference(PointFileReference):
     line: ``METRIC`` = mm, else inch; an error if the file has no such
     line), ``"mm"`` or ``"inch"`` (must agree with the first line if there
     is one). sigma_mm: standard uncertainty per coordinate (mm) given to
-    every point.
+    every point. measuring_volume_mm: a point with |X|, |Y| or |Z| above it
+    (mm, after the unit conversion) is an error naming its line; so is a
+    negative diameter column.
     """
 
-    def __init__(self, *, path: str, units: str = "auto", sigma_mm: float = 0.01):
-        super().__init__(path=path, sigma_mm=sigma_mm)
+    def __init__(
+        self,
+        *,
+        path: str,
+        units: str = "auto",
+        sigma_mm: float = 0.01,
+        measuring_volume_mm: float = DEFAULT_VOLUME_MM,
+    ):
+        super().__init__(path=path, sigma_mm=sigma_mm, measuring_volume_mm=measuring_volume_mm)
         self.units = check_units(units)
 
     def decode(self, raw: bytes, plan: MeasurementPlan) -> ReferenceData:
@@ -140,8 +151,12 @@ class PcDmisXyzReference(PointFileReference):
                 f"{at}: expected 3 to 8 numbers (X,Y,Z[,I,J,K]...){' after the name' if name else ''}, "
                 f"got {len(fields)}: {quoted(line)}"
             )
-        values = [finite(field, at, title) for field, title in zip(fields, FIELDS[len(fields)])]
-        xyz = (values[0] * scale, values[1] * scale, values[2] * scale)
+        titles = FIELDS[len(fields)]
+        values = [finite(field, at, title) for field, title in zip(fields, titles)]
+        xyz = in_volume([v * scale for v in values[:3]], at, self.measuring_volume_mm, line)
+        for value, title in zip(values, titles):
+            if title.endswith("(diameter)") and value < 0:
+                raise ReferenceImportError(f"{at}: field {title} must be >= 0, got {value:g}: {quoted(line)}")
         vector = approach_direction(values[3:6], at) if len(values) >= 6 else None
         return FilePoint(number, name, xyz, probe_vector=vector)
 

@@ -15,13 +15,20 @@ labelled in arrival order.
 
 Production behaviour: a held probe button (a burst of repeats of one
 press) gives one point; points resent after a reconnect are recognised and
-dropped; a lost link is reopened until the idle timeout.
+dropped; a lost link is reopened until the idle timeout; implausible
+values (non-finite, outside ``measuring_volume_mm``) are rejected naming
+the line; between two accepted points at most :data:`LISTED_PROBLEMS`
+problems are listed, the rest summarised by kind (a noise flood costs
+bounded output); degenerate control sets are reported.
 
-Link events are not in the bytes (``decode(raw)`` cannot see them), so the
-plugin reports them as they happen through its ``log`` callback (connected
-by the session runner to ``pm.hook.on_log`` through :meth:`connect_log`, the
-:class:`crossfield.stages.ReportsIncidents` side channel; the recorder writes
-them to ``/log``): each disconnect (``link down at <time>: <reason>``), each
+Each disconnect and reconnect is handed to the sink as a
+:class:`crossfield.stages.LinkEvent` between the chunks of bytes (the
+recorder keeps it on ``/cmm/raw`` in order with them), and the line in
+progress is cut there: never joined to the first line after the
+reconnect; ``decode(raw, plan, link_events=...)`` splits the same way on
+replay. The plugin also reports them as they happen through its ``log`` callback (connected
+by the session runner to ``pm.hook.on_log`` through :meth:`connect_log`, the :class:`crossfield.stages.ReportsIncidents` side channel; the recorder writes them to
+``/log``): each disconnect (``link down at <time>: <reason>``), each
 reconnect (``link up again after X s ...``), the idle timeout, and each
 rejected line. Without ``log`` they go to the Python logger
 ``crossfield.reference.romer-serial``; outages are also kept in
@@ -30,10 +37,11 @@ rejected line. Without ``log`` they go to the Python logger
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
@@ -47,13 +55,16 @@ from crossfield.plan import MeasurementPlan
 from crossfield.cmm.protocol import (
     Decoder,
     LineDecoder,
+    READ_BYTES,
     LinkLost,
     ProbeRecord,
     Rejection,
     SerialTransport,
     Transport,
 )
-from crossfield.stages import BytesSink, ReferenceSource
+from crossfield.cmm.controls import control_problems
+from crossfield.cmm.plausible import DEFAULT_VOLUME_MM, check_volume
+from crossfield.stages import BytesSink, LinkEvent, ReferenceSource
 from crossfield.types import ProbedPoint, ReferenceData
 
 
@@ -98,6 +109,39 @@ class _Run:
         return f"{where}: {self.count} resent point(s) already received ({shown}), ignored"
 
 
+#: Problems listed one by one between two accepted points; further ones are
+#: counted by kind in one summary line (a noise flood costs bounded output).
+LISTED_PROBLEMS = 5
+
+
+class _Flood:
+    """Problems beyond :data:`LISTED_PROBLEMS` since the last accepted point:
+    counts by kind, their lines and byte range."""
+
+    def __init__(self) -> None:
+        self.counts: dict[str, int] = {}
+        self.first_line = self.last_line = 0
+        self.first_byte = self.end_byte = -1
+
+    def add(self, kind: str, count: int, line: int, offset: int, size: int) -> None:
+        if not self.counts:
+            self.first_line = line
+        self.counts[kind] = self.counts.get(kind, 0) + count
+        self.last_line = max(self.last_line, line)
+        if offset >= 0:
+            if self.first_byte < 0:
+                self.first_byte = offset
+            self.end_byte = max(self.end_byte, offset + max(size, 1))
+
+    def __str__(self) -> str:
+        total = sum(self.counts.values())
+        where = _lines(self.first_line, self.last_line)
+        if self.first_byte >= 0:
+            where += f", bytes {self.first_byte}-{self.end_byte - 1}"
+        kinds = ", ".join(f"{n} {kind}" for kind, n in sorted(self.counts.items(), key=lambda kv: -kv[1]))
+        return f"{where}: {total} more problem(s), not listed one by one: {kinds}"
+
+
 class PointCollector:
     """Labels decoded records by the plan's probing order; keeps the problems.
 
@@ -114,6 +158,11 @@ class PointCollector:
     order): a point identical to a received one is *resent*; a point within
     ``burst_radius_mm`` of the last accepted one is *held*. Either way the
     first point is kept.
+
+    Between two accepted points at most :data:`LISTED_PROBLEMS` problems
+    are listed one by one; the others are counted by kind in one summary
+    (lines, byte range, counts), so the problems of a noise flood are
+    bounded by the plan's size, not by the input's.
     """
 
     def __init__(
@@ -137,6 +186,8 @@ class PointCollector:
         self._highest = -1  # highest label index received
         self._sentence_rejected_before_first = False
         self._run: _Run | None = None
+        self._listed = 0  # problems listed since the last accepted point
+        self._flood: _Flood | None = None
 
     @property
     def complete(self) -> bool:
@@ -147,7 +198,7 @@ class PointCollector:
     def add(self, item: ProbeRecord | Rejection) -> None:
         if isinstance(item, Rejection):
             self._flush_run()
-            self.problems.append(str(item))
+            self._emit(item.__str__, item.kind, item.count, item.line, item.offset, item.size)
             if not self._records and item.text.startswith(b"$"):
                 self._sentence_rejected_before_first = True
             return
@@ -197,10 +248,11 @@ class PointCollector:
                 item,
                 f"sequence gap: {len(lost)} point(s) missing before seq {item.seq}: "
                 f"{_label_list(self.labels, lost, self.first_seq)}",
+                listed=True,
             )
         elif index < self._highest:
             after = self.first_seq + self._highest
-            self._problem(item, f"seq {item.seq} arrived out of order (after seq {after})")
+            self._problem(item, f"seq {item.seq} arrived out of order (after seq {after})", listed=True)
         self._accept(index, item)
 
     def _add_unnumbered(self, item: ProbeRecord) -> None:
@@ -219,6 +271,8 @@ class PointCollector:
 
     def _accept(self, index: int, item: ProbeRecord) -> None:
         self._flush_run()
+        self._flush_flood()
+        self._listed = 0
         self._records[index] = item
         self._by_content.setdefault((item.xyz, item.probe_vector), index)
         self._last = (index, item)
@@ -236,8 +290,27 @@ class PointCollector:
 
     def _flush_run(self) -> None:
         if self._run is not None:
-            self.problems.append(str(self._run))
-            self._run = None
+            run, self._run = self._run, None
+            self._emit(run.__str__, "repeat", run.count, run.first_line)
+
+    def _emit(
+        self, text: Callable[[], str], kind: str, count: int = 1, line: int = 0, offset: int = -1, size: int = 0
+    ) -> None:
+        """One problem: listed (``text()``) while fewer than LISTED_PROBLEMS were
+        since the last accepted point, else counted in the pending flood summary
+        (its text is never made: a flood costs no formatting)."""
+        if self._listed < LISTED_PROBLEMS:
+            self.problems.append(text())
+            self._listed += 1
+            return
+        if self._flood is None:
+            self._flood = _Flood()
+        self._flood.add(kind, count, line, offset, size)
+
+    def _flush_flood(self) -> None:
+        if self._flood is not None:
+            self.problems.append(str(self._flood))
+            self._flood = None
 
     @property
     def _seq_base(self) -> int | None:
@@ -248,8 +321,9 @@ class PointCollector:
         return [k for k in range(len(self.labels)) if k not in self._records]
 
     def finish(self) -> None:
-        """Report a pending run and the holes left in the probing order."""
+        """Report a pending run and flood, and the holes left in the probing order."""
         self._flush_run()
+        self._flush_flood()
         holes = [k for k in self.missing() if k < self._highest]
         if holes:
             self.problems.append(
@@ -271,9 +345,16 @@ class PointCollector:
                 text += f"; and {len(self.problems) - 10} more"
         return text
 
-    def _problem(self, item: ProbeRecord, reason: str) -> None:
+    def _problem(self, item: ProbeRecord, reason: str, listed: bool = False) -> None:
+        """A problem with a decoded point; ``listed``: always listed (a gap or
+        reordering, reported just before the point is kept)."""
         self._flush_run()
-        self.problems.append(str(Rejection(item.line, reason, item.text)))
+        rejection = Rejection(item.line, reason, item.text)
+        if listed:
+            self._flush_flood()
+            self.problems.append(str(rejection))
+        else:
+            self._emit(rejection.__str__, "ignored point", 1, item.line, item.offset, item.size)
 
     def _point(self, label: str, record: ProbeRecord) -> ProbedPoint:
         return ProbedPoint(
@@ -342,6 +423,8 @@ class RomerSerialReference:
     units: ``"mm"`` or ``"inch"`` (``pcdmis`` only; converted to mm).
     burst_radius_mm: repeats of one press within this distance are a held
     button and give one point (mm).
+    measuring_volume_mm: half-width of the measuring volume (mm): a point
+    with |X|, |Y| or |Z| above it (or not finite) is rejected, naming its line.
 
     ``log`` (attribute, not an option; default None; set by
     :meth:`connect_log`): a callable receiving ``level``, ``message`` and
@@ -363,6 +446,7 @@ class RomerSerialReference:
         format: str = "cfp",
         units: str = "mm",
         burst_radius_mm: float = 0.5,
+        measuring_volume_mm: float = DEFAULT_VOLUME_MM,
     ):
         if not isinstance(port, str) or not port:
             raise ValueError(f"option 'port' must be a device path or pyserial URL, got {port!r}")
@@ -372,9 +456,9 @@ class RomerSerialReference:
             first_seq = None
         elif isinstance(first_seq, bool) or not isinstance(first_seq, int) or first_seq < 0:
             raise ValueError(f"option 'first_seq' must be an integer >= 0 or \"auto\", got {first_seq!r}")
-        if format not in FORMATS:
+        if not isinstance(format, str) or format not in FORMATS:
             raise ValueError(f"option 'format' must be one of {', '.join(FORMATS)}, got {format!r}")
-        if units not in UNITS:
+        if not isinstance(units, str) or units not in UNITS:
             raise ValueError(f"option 'units' must be one of {', '.join(UNITS)}, got {units!r}")
         self.port = port
         self.baudrate = baudrate
@@ -384,6 +468,7 @@ class RomerSerialReference:
         self.format: LineFormat = FORMATS[format]
         self.units = units
         self.burst_radius_mm = _positive(burst_radius_mm, "burst_radius_mm", "mm")
+        self.measuring_volume_mm = check_volume(measuring_volume_mm)
         try:
             self.make_decoder()
         except ValueError as exc:
@@ -424,7 +509,7 @@ class RomerSerialReference:
         return LineDecoder(self.make_decoder(), self.format.framer())
 
     def make_decoder(self) -> Decoder:
-        return self.format.decoder(self.units)
+        return self.format.decoder(self.units, self.measuring_volume_mm)
 
     # -- ReferenceSource ----------------------------------------------------
 
@@ -487,6 +572,7 @@ class RomerSerialReference:
         lost = ""
         reported = 0  # problems already passed to log
         last_progress = time.monotonic()
+        received_since_point = 0  # bytes read since the last new point
         try:
             while not collector.complete:
                 idle = time.monotonic() - last_progress > self.timeout_s
@@ -503,6 +589,7 @@ class RomerSerialReference:
                     except (OSError, ValueError, LinkLost):
                         transport = None
                         continue
+                    sink(LinkEvent("up"))
                     outage = self.outages[-1]
                     outage.up_ns = time.time_ns()
                     self._report(
@@ -514,11 +601,12 @@ class RomerSerialReference:
                     )
                     continue
                 try:
-                    data = transport.read(4096)
+                    data = transport.read(READ_BYTES)
                 except LinkLost as exc:
                     lost = str(exc)
                     transport.close()
                     transport = None
+                    sink(LinkEvent("down", lost))
                     outage = LinkOutage(time.time_ns(), lost, len(collector.points))
                     self.outages.append(outage)
                     self._report(
@@ -528,6 +616,9 @@ class RomerSerialReference:
                         f"{self.timeout_s:g} s",
                         outage.down_ns,
                     )
+                    # the line in progress ends here: never joined to the bytes after the reconnect
+                    self._feed(collector, stream.cut())
+                    reported = self._report_problems(collector, reported)
                     continue
                 if data:
                     sink(data)
@@ -536,8 +627,13 @@ class RomerSerialReference:
                     reported = self._report_problems(collector, reported)
                     if len(collector.points) > before:
                         last_progress = time.monotonic()
-                elif idle:
+                        received_since_point = 0
+                        continue
+                    received_since_point += len(data)
+                if idle:  # bytes that bring no point (a noise flood) do not hold the import open
                     ended = f"no new point for {self.timeout_s:g} s"
+                    if received_since_point:
+                        ended += f" ({received_since_point} bytes arrived meanwhile, none a new point)"
                     break
         finally:
             if transport is not None:
@@ -548,21 +644,43 @@ class RomerSerialReference:
         if not collector.complete:
             self._report("error", f"{ended}: {collector.summary()}")
             raise ReferenceImportError(f"romer-serial: {self.port}: {ended}: {collector.summary()}")
+        result = self._result(collector, plan)
+        for problem in result.problems[len(collector.problems) :]:
+            self._report("warning", problem)
         summary = (
             f"{len(collector.points)} of {len(collector.labels)} points imported, "
-            f"{len(collector.problems)} problem(s)"
+            f"{len(result.problems)} problem(s)"
         )
         if self.outages:
             down = sum(o.duration_s or 0.0 for o in self.outages)
             summary += f"; the link was down {len(self.outages)} time(s), {down:.2f} s in all"
         self._report("info", summary)
-        return collector.result(self.port)
+        return result
 
-    def decode(self, raw: bytes, plan: MeasurementPlan) -> ReferenceData:
-        """Decode recorded bytes exactly as :meth:`acquire` did (replay)."""
+    def decode(
+        self, raw: bytes, plan: MeasurementPlan, link_events: Sequence[tuple[int, LinkEvent]] = ()
+    ) -> ReferenceData:
+        """Decode recorded bytes exactly as :meth:`acquire` did (replay).
+
+        link_events: ``(offset, LinkEvent)`` pairs in order, offset = bytes
+        of ``raw`` before the event (replay reads them from the recording):
+        at each ``down`` the line in progress is cut, as it was live.
+        """
         collector = self._collector(plan)
         stream = self.make_stream()
-        self._feed(collector, stream.feed(bytes(raw)))
+        data = bytes(raw)
+        pos = 0
+        for offset, event in link_events:
+            if not (isinstance(offset, int) and pos <= offset <= len(data)):
+                raise ReferenceImportError(
+                    f"romer-serial: {self.port}: link event {event!r} at byte {offset!r} is outside the "
+                    f"recorded bytes {pos}..{len(data)}"
+                )
+            self._feed(collector, stream.feed(data[pos:offset]))
+            pos = offset
+            if event.kind == "down":
+                self._feed(collector, stream.cut())
+        self._feed(collector, stream.feed(data[pos:]))
         self._feed(collector, stream.finish())
         collector.finish()
         if not collector.complete:
@@ -570,7 +688,15 @@ class RomerSerialReference:
                 f"romer-serial: {self.port}: the recorded data ends before the plan's last point: "
                 f"{collector.summary()}"
             )
-        return collector.result(self.port)
+        return self._result(collector, plan)
+
+    def _result(self, collector: PointCollector, plan: MeasurementPlan) -> ReferenceData:
+        """The collected points and problems, and those of a degenerate control set."""
+        result = collector.result(self.port)
+        degenerate = control_problems(result.points, plan)
+        if not degenerate:
+            return result
+        return dataclasses.replace(result, problems=result.problems + tuple(degenerate))
 
 
 @hookimpl

@@ -42,6 +42,7 @@ from crossfield.hookspecs import hookimpl
 from crossfield.plan import MeasurementPlan
 from crossfield.types import ReferenceData
 
+from crossfield.cmm.plausible import DEFAULT_VOLUME_MM
 from crossfield.cmm.point_files import (
     LENGTH_UNITS,
     FilePoint,
@@ -50,6 +51,7 @@ from crossfield.cmm.point_files import (
     by_probing_order,
     check_units,
     finite,
+    in_volume,
     quoted,
     resolve_units,
     text_lines,
@@ -97,10 +99,20 @@ class SpatialAnalyzerReference(PointFileReference):
     ``"inch"`` (for files without axis comment; must agree with the file
     if it has one). group: keep only the points of this group (``""``: all).
     sigma_mm: standard uncertainty per coordinate (mm) given to every point.
+    measuring_volume_mm: a point with |X|, |Y| or |Z| above it (mm, after
+    the unit conversion) is an error naming its line.
     """
 
-    def __init__(self, *, path: str, units: str = "auto", group: str = "", sigma_mm: float = 0.01):
-        super().__init__(path=path, sigma_mm=sigma_mm)
+    def __init__(
+        self,
+        *,
+        path: str,
+        units: str = "auto",
+        group: str = "",
+        sigma_mm: float = 0.01,
+        measuring_volume_mm: float = DEFAULT_VOLUME_MM,
+    ):
+        super().__init__(path=path, sigma_mm=sigma_mm, measuring_volume_mm=measuring_volume_mm)
         self.units = check_units(units)
         if not isinstance(group, str):
             raise TypeError(f"option 'group' must be a group name (\"\": all groups), got {group!r}")
@@ -190,8 +202,13 @@ class SpatialAnalyzerReference(PointFileReference):
                 label = fields[name]
                 if not label:
                     raise ReferenceImportError(f"{at}: empty point name")
-            xyz = tuple(finite(fields[x + k], at, axis) * scale for k, axis in enumerate("XYZ"))
-            points.append(FilePoint(number, label, xyz))  # type: ignore[arg-type]
+            xyz = in_volume(
+                [finite(fields[x + k], at, axis) * scale for k, axis in enumerate("XYZ")],
+                at,
+                self.measuring_volume_mm,
+                line,
+            )
+            points.append(FilePoint(number, label, xyz))
         return points
 
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from cmm_plan import LABELS, PLAN_TOML, make_plan, make_probes
+from cmm_plan import LABELS, PLAN_TOML, Sink, make_plan, make_probes, replay
 
 from crossfield.cmm.formats import (
     IppDmeDecoder,
@@ -58,13 +58,13 @@ def assert_same_reference(a, b):
 
 
 def over_pty(arm, plan, wait_for_arm=True, **options):
-    chunks: list[bytes] = []
+    sink = Sink()
     with arm.serve_pty() as port:
         reader = RomerSerialReference(port=port, **{"timeout_s": 3.0, **options})
-        result = reader.acquire(plan, chunks.append)
+        result = reader.acquire(plan, sink)
         if wait_for_arm:
             assert arm.wait_done(5.0)
-    return reader, result, b"".join(chunks)
+    return reader, result, sink.recorded()
 
 
 # ---- PC-DMIS generic lines ------------------------------------------------------------
@@ -87,7 +87,7 @@ def test_pcdmis_encoding():
 def test_pcdmis_decoder_accepts(line, expected):
     record = PcDmisDecoder().decode(Frame(SENTENCE, 4, 0, line))
     assert isinstance(record, ProbeRecord) and record.xyz == expected and record.seq is None
-    inch = PcDmisDecoder("inch").decode(Frame(SENTENCE, 4, 0, line))
+    inch = PcDmisDecoder("inch", volume_mm=10_000).decode(Frame(SENTENCE, 4, 0, line))  # 300 in = 7.6 m
     assert np.allclose(inch.xyz, np.array(expected) * 25.4, rtol=1e-15)
 
 
@@ -137,7 +137,7 @@ def test_pcdmis_over_pty(plan, probes, fmt, units, atol):
     assert_points(result, probes, atol)
     assert all(p.device_sequence == -1 and np.isnan(p.probe_diameter_mm) for p in result.points)
     assert raw == bytes(arm.written) == arm.expected_bytes()
-    assert_same_reference(reader.decode(raw, plan), result)
+    assert_same_reference(replay(reader, raw, plan), result)
 
 
 def test_pcdmis_damaged_line_is_reported_and_the_reprobe_takes_its_place(plan, probes):
@@ -165,7 +165,7 @@ def test_held_button_gives_one_point_cfp(plan, probes):
     # the import stopped at the plan's last point: the repeats of L3.5 are only
     # reported if they arrived in the same read
     assert all("L3.5" in p for p in result.problems[1:])
-    assert_same_reference(reader.decode(raw, plan), result)
+    assert_same_reference(replay(reader, raw, plan), result)
 
 
 def test_held_button_gives_one_point_pcdmis(plan, probes):
@@ -202,7 +202,7 @@ def test_unplug_and_replug_loses_and_duplicates_nothing(plan, probes, fmt, atol)
     # arm's resend recovers them): every line read is one the arm wrote
     written_lines = set(bytes(arm.written).splitlines())
     assert set(raw.splitlines()) <= written_lines
-    assert_same_reference(reader.decode(raw, plan), result)
+    assert_same_reference(replay(reader, raw, plan), result)
 
 
 def test_unplug_fills_a_hole_left_by_a_damaged_line(plan, probes):
@@ -270,11 +270,11 @@ def test_ippdme_decoder(line, result):
 
 
 def ippdme_session(server, plan, **options):
-    chunks: list[bytes] = []
+    sink = Sink()
     with server.serve() as url:
         reader = RomerSerialReference(port=url, format="ippdme", **{"timeout_s": 3.0, **options})
-        result = reader.acquire(plan, chunks.append)
-    return reader, result, b"".join(chunks)
+        result = reader.acquire(plan, sink)
+    return reader, result, sink.recorded()
 
 
 def test_ippdme_over_tcp(plan, probes):
@@ -288,7 +288,7 @@ def test_ippdme_over_tcp(plan, probes):
     assert server.commands[:3] == ["00001 StartSession()", "00002 EnableUser()",
                                    "00003 OnPtMeasReport(X(), Y(), Z(), IJK(), R())"]
     assert bytes(server.written).startswith(raw) and raw.startswith(b"00001 &\r\n00001 %\r\n")
-    assert_same_reference(reader.decode(raw, plan), result)
+    assert_same_reference(replay(reader, raw, plan), result)
 
 
 def test_ippdme_reconnects_after_a_drop(plan, probes):
@@ -298,7 +298,7 @@ def test_ippdme_reconnects_after_a_drop(plan, probes):
     assert [c for c in server.commands if c.endswith("StartSession()")] == ["00001 StartSession()"] * 3
     assert_points(result, probes, 0.5e-4)
     assert result.problems == ()
-    assert_same_reference(reader.decode(raw, plan), result)
+    assert_same_reference(replay(reader, raw, plan), result)
 
 
 def test_ippdme_server_error_is_a_problem(plan, probes):
@@ -329,7 +329,7 @@ def test_format_options_are_checked():
 
 def test_romer_sim_command_serves_a_real_reader(tmp_path, plan):
     points = tmp_path / "points.csv"
-    truth = {label: [10.0 * k, -5.0 * k, 2.5 * k + 0.1234] for k, label in enumerate(LABELS)}
+    truth = {label: [10.0 * k, -5.0 * k * k, 2.5 * k + 0.1234] for k, label in enumerate(LABELS)}
     points.write_text("id,x,y,z\n" + "".join(f"{k},{x},{y},{z}\n" for k, (x, y, z) in truth.items()))
     process = subprocess.Popen(
         [sys.executable, "-c", ROMER_SIM, "--csv", str(points), "--sigma", "0", "--exit-when-done",

@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 import pytest
-from cmm_plan import LABELS, make_plan, make_probes
+from cmm_plan import LABELS, Sink, make_plan, make_probes, replay
 
 from crossfield.errors import ReferenceImportError
 from crossfield.simulator.arm import SimulatedArm, bad_checksum
@@ -52,8 +52,8 @@ def run(arm, plan, **options):
             result = reader.acquire(plan, lambda data: events.append(("bytes", data)))
         except ReferenceImportError as exc:
             result = exc
-    raw = b"".join(e[1] for e in events if e[0] == "bytes")
-    return reader, result, raw, events
+    sink = Sink(e[1] for e in events if e[0] == "bytes")
+    return reader, result, sink.recorded(), events
 
 
 def logged(events, level=None, containing=""):
@@ -69,8 +69,8 @@ def test_unplug_and_replug_are_logged_with_their_times(plan, probes):
     assert [p.label for p in result.points] == LABELS
     for point, probe in zip(result.points, probes):
         assert np.allclose(point.xyz, probe.xyz, atol=0.5e-4, rtol=0)
-    replay = reader.decode(raw, plan)
-    assert [p.label for p in replay.points] == LABELS and replay.problems == result.problems
+    replayed = replay(reader, raw, plan)
+    assert [p.label for p in replayed.points] == LABELS and replayed.problems == result.problems
 
     downs = logged(events, "warning", "link down at ")
     ups = logged(events, "info", "link up again after ")

@@ -352,12 +352,12 @@ def test_file_imports_are_registered_with_their_options(tmp_path):
     pm = make_plugin_manager()
     sa = get_implementation(pm, "reference", "spatialanalyzer")
     options = sa.options()
-    assert set(options) == {"path", "units", "group", "sigma_mm"}
+    assert set(options) == {"path", "units", "group", "sigma_mm", "measuring_volume_mm"}
     assert (options["units"], options["group"], options["sigma_mm"]) == ("auto", "", 0.01)
     reader = sa.create({"path": "points.txt", "units": "inch", "group": "Arm"})
     assert (reader.path, reader.units, reader.group) == ("points.txt", "inch", "Arm")
     xyz = get_implementation(pm, "reference", "pcdmis-xyz")
-    assert set(xyz.options()) == {"path", "units", "sigma_mm"}
+    assert set(xyz.options()) == {"path", "units", "sigma_mm", "measuring_volume_mm"}
     with pytest.raises(ConfigError, match="option 'units' must be one of auto, mm, inch, got 'cm'"):
         xyz.create({"path": "p.xyz", "units": "cm"})
     with pytest.raises(ConfigError, match="needs option 'path'"):

@@ -39,6 +39,7 @@ from crossfield.simulator.arm import (
 )
 from crossfield.plugins.reference_csv import CsvReference
 from crossfield.plugins.reference_romer_serial import RomerSerialReference
+from cmm_plan import Sink
 
 PLAN_TOML = """
 [plan]
@@ -80,13 +81,13 @@ def probes():
 
 def acquire_over_pty(arm: SimulatedArm, plan, wait_for_arm: bool = True, **options):
     """Run romer-serial against ``arm`` on a real pty; return (reader, result, raw bytes)."""
-    chunks: list[bytes] = []
+    sink = Sink()
     with arm.serve_pty() as port:
         reader = RomerSerialReference(port=port, **{"timeout_s": 3.0, **options})
-        result = reader.acquire(plan, chunks.append)
+        result = reader.acquire(plan, sink)
         if wait_for_arm:
             assert arm.wait_done(5.0), "the simulated arm did not finish writing"
-    return reader, result, b"".join(chunks)
+    return reader, result, sink.recorded()
 
 
 def assert_same_reference(a, b):
@@ -334,15 +335,17 @@ def test_timeout_names_how_many_points_arrived(plan, probes):
 
 def test_lost_link_is_reported(plan, probes):
     arm = SimulatedArm(probes[:3], hang_up_when_done=True)
-    chunks: list[bytes] = []
+    sink = Sink()
     with arm.serve_pty() as port:
         reader = RomerSerialReference(port=port, timeout_s=0.5)
         with pytest.raises(ReferenceImportError) as info:
-            reader.acquire(plan, chunks.append)
+            reader.acquire(plan, sink)
     assert str(info.value).startswith(f"romer-serial: {port}: lost the connection (")
     assert "and it did not come back within 0.5 s: 3 of 10 points arrived" in str(info.value)
     assert "3 of 10 points arrived" in str(info.value)
-    assert b"".join(chunks) == arm.expected_bytes()
+    assert sink.recorded() == arm.expected_bytes()
+    assert sink.recorded().link_events == [(len(arm.expected_bytes()), sink[-1])]
+    assert sink[-1].kind == "down" and sink[-1].detail.startswith(port)
 
 
 def test_unopenable_port_is_named(plan):
@@ -402,7 +405,8 @@ def test_registered_with_options():
     pm = make_plugin_manager(builtins=False, extra=[reference_romer_serial, reference_csv])
     serial_impl = get_implementation(pm, "reference", "romer-serial")
     assert set(serial_impl.options()) == {
-        "port", "baudrate", "timeout_s", "sigma_mm", "first_seq", "format", "units", "burst_radius_mm"
+        "port", "baudrate", "timeout_s", "sigma_mm", "first_seq", "format", "units", "burst_radius_mm",
+        "measuring_volume_mm",
     }
     reader = serial_impl.create({"port": "/dev/ttyUSB0", "baudrate": 115200})
     assert (reader.port, reader.baudrate, reader.sigma_mm) == ("/dev/ttyUSB0", 115200, 0.01)
@@ -411,7 +415,7 @@ def test_registered_with_options():
     with pytest.raises(ConfigError, match="option 'timeout_s' must be a positive number"):
         serial_impl.create({"port": "x", "timeout_s": 0})
     csv_impl = get_implementation(pm, "reference", "csv")
-    assert set(csv_impl.options()) == {"path", "sigma_mm"}
+    assert set(csv_impl.options()) == {"path", "sigma_mm", "measuring_volume_mm"}
 
 
 # ---- csv ---------------------------------------------------------------------

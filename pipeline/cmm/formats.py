@@ -23,7 +23,9 @@ import re
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
+from crossfield.cmm.plausible import DEFAULT_VOLUME_MM, check_volume, coordinate_problem, size_problem
 from crossfield.cmm.protocol import (
+    CUT,
     MAX_LINE_BYTES,
     OVERLONG,
     PARTIAL,
@@ -34,6 +36,7 @@ from crossfield.cmm.protocol import (
     LineFramer,
     ProbeRecord,
     Rejection,
+    frame_rejection,
 )
 
 __all__ = [
@@ -54,13 +57,18 @@ __all__ = [
 MM_PER_INCH = 25.4
 UNITS = {"mm": 1.0, "inch": MM_PER_INCH}
 
+_BLANK_LINES = re.compile(rb"(?:[ \t\r]*\n)+")
+
 
 class PlainLineFramer:
     """Bytes -> one frame per non-blank line (``\\r`` and surrounding blanks
     stripped), for formats without a start character. Lines longer than
     ``max_line_bytes`` are reported once as ``overlong``; a last line without
-    line end is ``partial``. Independent of chunking; line numbers as in
-    :class:`crossfield.cmm.protocol.LineFramer`.
+    line end is ``partial``; :meth:`cut` ends the current line where the
+    link broke (``cut``: never joined to the bytes after the reconnect).
+    Independent of chunking; line numbers as in
+    :class:`crossfield.cmm.protocol.LineFramer`. A frame's ``offset`` is its
+    line's first byte and ``size`` the line's length without the ``\\n``.
     """
 
     def __init__(self, max_line_bytes: int = MAX_LINE_BYTES):
@@ -68,41 +76,61 @@ class PlainLineFramer:
         self._line = 1
         self._base = 0
         self._buf = bytearray()
+        self._size = 0  # bytes of the current line so far
         self._start = 0
         self._overlong = False
 
     def feed(self, data: bytes) -> list[Frame]:
         frames: list[Frame] = []
         pos = 0
-        while pos < len(data):
+        end = len(data)
+        while pos < end:
+            if not self._size:
+                # a run of blank lines costs one regex match, not one loop per line
+                blank = _BLANK_LINES.match(data, pos)
+                if blank is not None and blank.end() > pos:
+                    self._line += data.count(b"\n", pos, blank.end())
+                    pos = blank.end()
+                    continue
             newline = data.find(b"\n", pos)
-            stop = len(data) if newline == -1 else newline
-            if not self._buf and not self._overlong:
+            stop = end if newline == -1 else newline
+            if not self._size:
                 self._start = self._base + pos
+            self._size += stop - pos
             if not self._overlong:
                 self._buf += data[pos:stop]
                 if len(self._buf) > self.max_line_bytes:
                     head = bytes(self._buf[: self.max_line_bytes])
-                    frames.append(Frame(OVERLONG, self._line, self._start, head))
+                    frames.append(Frame(OVERLONG, self._line, self._start, head, self.max_line_bytes + 1))
                     self._buf = bytearray()
                     self._overlong = True
             if newline == -1:
                 break
-            text = bytes(self._buf).strip()
-            if text and not self._overlong:
-                frames.append(Frame(SENTENCE, self._line, self._start, text))
-            self._buf = bytearray()
-            self._overlong = False
+            self._end_line(frames, SENTENCE)
             self._line += 1
             pos = newline + 1
-        self._base += len(data)
+        self._base += end
+        return frames
+
+    def cut(self) -> list[Frame]:
+        """The link broke here: the line in progress is a ``cut`` frame."""
+        frames: list[Frame] = []
+        self._end_line(frames, CUT)
         return frames
 
     def finish(self) -> list[Frame]:
-        text = bytes(self._buf).strip()
-        frames = [Frame(PARTIAL, self._line, self._start, text)] if text and not self._overlong else []
+        frames: list[Frame] = []
+        self._end_line(frames, PARTIAL)
         self.__init__(self.max_line_bytes)
         return frames
+
+    def _end_line(self, frames: list[Frame], kind: str) -> None:
+        text = bytes(self._buf).strip()
+        if text and not self._overlong:
+            frames.append(Frame(kind, self._line, self._start, text, self._size))
+        self._buf = bytearray()
+        self._size = 0
+        self._overlong = False
 
 
 # ---- PC-DMIS "Generic CMM" lines ----------------------------------------------
@@ -131,20 +159,24 @@ class PcDmisDecoder:
     """``X..,Y..,Z..[,I..,J..,K..]`` or ``x,y,z`` lines (whole line must match).
 
     units: ``"mm"`` or ``"inch"`` (coordinates are converted to mm).
+    volume_mm: half-width of the measuring volume (mm); points outside it
+    (or not finite) are rejected.
     Without a checksum a damaged line can still look valid (e.g. a lost
     line end joining ``100`` and ``3.000,...`` into ``1003.000,...``): prefer
-    CFP where the device allows it.
+    CFP where the device allows it. (A line cut by a disconnect is not
+    joined to the next: the framer reports it as ``cut``.)
     """
 
-    def __init__(self, units: str = "mm"):
+    def __init__(self, units: str = "mm", volume_mm: float = DEFAULT_VOLUME_MM):
         if units not in UNITS:
             raise ValueError(f"units must be one of {', '.join(UNITS)}, got {units!r}")
         self.units = units
         self.scale = UNITS[units]
+        self.volume_mm = check_volume(volume_mm)
 
     def decode(self, frame: Frame) -> ProbeRecord | Rejection | None:
         if frame.kind != SENTENCE:
-            return CfpDecoder().decode(frame)
+            return frame_rejection(frame)
         try:
             text = frame.data.decode("ascii")
         except UnicodeDecodeError:
@@ -156,13 +188,16 @@ class PcDmisDecoder:
             )
         groups = match.groups()
         xyz = tuple(float(v) * self.scale for v in groups[:3])
+        problem = coordinate_problem(xyz, self.volume_mm)
+        if problem:
+            return Rejection(frame.line, problem, frame.data, "implausible")
         vector = None
         if len(groups) == 6 and groups[3] is not None:
             ijk = [float(v) for v in groups[3:]]
             norm = math.sqrt(sum(v * v for v in ijk))
-            if abs(norm - 1.0) > 1e-3:
+            if not abs(norm - 1.0) <= 1e-3:
                 reason = f"I,J,K ({', '.join(groups[3:])}) is not a unit vector"
-                return Rejection(frame.line, reason, frame.data)
+                return Rejection(frame.line, reason, frame.data, "implausible")
             vector = tuple(v / norm for v in ijk)
         return ProbeRecord(
             seq=None,
@@ -227,12 +262,17 @@ class IppDmeDecoder:
     (``KeyPress``, clearance ``GoTo``) and data answers to other commands
     give nothing; ``! Error(...)`` gives a rejection naming the error;
     ``E0000 # PtMeas(...)`` gives a point. X, Y, Z are the ball centre in mm;
-    the approach direction is minus IJK; the diameter is 2 R.
+    the approach direction is minus IJK; the diameter is 2 R. Non-finite
+    values (``1e999``), points outside the measuring volume (``volume_mm``,
+    mm) and negative radii are rejected.
     """
+
+    def __init__(self, volume_mm: float = DEFAULT_VOLUME_MM):
+        self.volume_mm = check_volume(volume_mm)
 
     def decode(self, frame: Frame) -> ProbeRecord | Rejection | None:
         if frame.kind != SENTENCE:
-            return CfpDecoder().decode(frame)
+            return frame_rejection(frame)
         try:
             text = frame.data.decode("ascii")
         except UnicodeDecodeError:
@@ -242,7 +282,7 @@ class IppDmeDecoder:
             return Rejection(frame.line, "not an I++ DME response (want '<tag> &|%|#|! ...')", frame.data)
         tag, kind, data = match.group("tag"), match.group("kind"), match.group("data").strip()
         if kind == "!":
-            return Rejection(frame.line, f"server error for command {tag}", frame.data)
+            return Rejection(frame.line, f"server error for command {tag}", frame.data, "server error")
         if kind != "#" or tag != "E0000" or not data.startswith("PtMeas("):
             return None
         if not data.endswith(")"):
@@ -268,16 +308,26 @@ class IppDmeDecoder:
             return Rejection(frame.line, f"malformed PtMeas event: {exc}", frame.data)
         if any(c is None for c in coords):
             return Rejection(frame.line, "PtMeas event without X, Y and Z", frame.data)
+        xyz = tuple(c[0] for c in coords)  # type: ignore[index]
+        problem = coordinate_problem(xyz, self.volume_mm)
+        if problem:
+            return Rejection(frame.line, problem, frame.data, "implausible")
         vector = None
         if ijk is not None:
+            if not all(math.isfinite(v) for v in ijk):
+                return Rejection(frame.line, "IJK is not finite", frame.data, "implausible")
             norm = math.sqrt(sum(v * v for v in ijk))
             if not norm > 0:
-                return Rejection(frame.line, "IJK is a zero vector", frame.data)
+                return Rejection(frame.line, "IJK is a zero vector", frame.data, "implausible")
             vector = tuple(-v / norm for v in ijk)
+        if radius is not None:
+            problem = size_problem(radius[0], "probe radius R", self.volume_mm, allow_zero=True)
+            if problem:
+                return Rejection(frame.line, problem, frame.data, "implausible")
         return ProbeRecord(
             seq=None,
             device_time_s=float("nan"),
-            xyz=tuple(c[0] for c in coords),  # type: ignore[arg-type, index]
+            xyz=xyz,  # type: ignore[arg-type]
             probe_vector=vector,  # type: ignore[arg-type]
             probe_diameter_mm=2.0 * radius[0] if radius else float("nan"),
             line=frame.line,
@@ -290,30 +340,30 @@ class IppDmeDecoder:
 
 @dataclass(frozen=True)
 class LineFormat:
-    """A framer + decoder pair. session: bytes the client writes after each
+    """A framer + decoder pair (decoder: ``(units, volume_mm)`` -> Decoder). session: bytes the client writes after each
     (re)connect; end: bytes it writes before closing. has_seq: its points
     carry sequence numbers."""
 
     name: str
     framer: Callable[[], LineFramer | PlainLineFramer]
-    decoder: Callable[[str], Decoder]
+    decoder: Callable[[str, float], Decoder]  # (units, volume_mm) -> decoder
     has_seq: bool
     session: bytes = b""
     end: bytes = b""
 
 
-def _cfp_decoder(units: str) -> Decoder:
+def _cfp_decoder(units: str, volume_mm: float = DEFAULT_VOLUME_MM) -> Decoder:
     if units != "mm":
         raise ValueError(f"format 'cfp' is defined in mm; units must be 'mm', got {units!r}")
-    return CfpDecoder()
+    return CfpDecoder(volume_mm)
 
 
-def _ippdme_decoder(units: str) -> Decoder:
+def _ippdme_decoder(units: str, volume_mm: float = DEFAULT_VOLUME_MM) -> Decoder:
     if units != "mm":
         raise ValueError(
             f"format 'ippdme' reads mm (the protocol's default); units must be 'mm', got {units!r}"
         )
-    return IppDmeDecoder()
+    return IppDmeDecoder(volume_mm)
 
 
 FORMATS: dict[str, LineFormat] = {

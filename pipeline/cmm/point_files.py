@@ -17,6 +17,7 @@ the plan, and plan labels without a point, are *problems*
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +26,8 @@ import numpy as np
 
 from crossfield.errors import ReferenceImportError
 from crossfield.plan import MeasurementPlan
+from crossfield.cmm.controls import control_problems
+from crossfield.cmm.plausible import DEFAULT_VOLUME_MM, check_volume, coordinate_problem
 from crossfield.cmm.protocol import show
 from crossfield.stages import BytesSink
 from crossfield.types import ProbedPoint, ReferenceData
@@ -44,6 +47,7 @@ __all__ = [
     "check_sigma",
     "check_units",
     "finite",
+    "in_volume",
     "parse_float",
     "quoted",
     "read_point_file",
@@ -142,12 +146,18 @@ def quoted(line: str) -> str:
     return show(line.encode("utf-8", "backslashreplace"))
 
 
+#: A number as point files write it: optional sign, digits with an optional
+#: decimal point, optional exponent. Not Python's float() syntax, which also
+#: takes ``8_98.4`` (= 898.4), ``nan``, ``inf`` and surrounding blanks.
+_DECIMAL = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+
+
 def parse_float(text: str) -> float | None:
-    """``text`` as a finite float (any Python float syntax), else None."""
-    try:
-        value = float(text)
-    except ValueError:
+    """``text`` as a finite float if it is a plain decimal number
+    (``-12.5``, ``1.25e3``), else None."""
+    if not _DECIMAL.fullmatch(text):
         return None
+    value = float(text)
     return value if math.isfinite(value) else None
 
 
@@ -157,6 +167,16 @@ def finite(text: str, at: str, name: str) -> float:
     if value is None:
         raise ReferenceImportError(f"{at}: field {name} is not a finite number: {text!r}")
     return value
+
+
+def in_volume(xyz: Sequence[float], at: str, volume_mm: float, line: str) -> tuple[float, float, float]:
+    """``xyz`` (3,) mm if it is finite and inside the measuring volume, else
+    an error naming ``at`` (:mod:`crossfield.cmm.plausible`)."""
+    problem = coordinate_problem(xyz, volume_mm)
+    if problem:
+        raise ReferenceImportError(f"{at}: {problem}: {quoted(line)}")
+    x, y, z = (float(v) for v in xyz)
+    return (x, y, z)
 
 
 def unit_name(spelling: str, at: str) -> str:
@@ -279,6 +299,7 @@ def by_name(
     missing = [label for label in labels if label not in seen]
     if missing:
         problems.append(f"{where}: no point for {len(missing)} label(s): {', '.join(missing)}")
+    problems += control_problems(kept, plan, where)
     return ReferenceData(points=tuple(kept), problems=tuple(problems), source=where)
 
 
@@ -311,6 +332,7 @@ def by_probing_order(
             f"order): no point for {len(missing)} label(s): {', '.join(missing)}; if a point is missing "
             f"before the end of the file, every later label is wrong"
         )
+    problems += control_problems(kept, plan, where)
     return ReferenceData(points=tuple(kept), problems=tuple(problems), source=where)
 
 
@@ -320,11 +342,13 @@ def by_probing_order(
 class PointFileReference:
     """Base of the file imports: ``acquire`` reads the file, hands its bytes
     to the sink, then :meth:`decode` s them; subclasses implement
-    :meth:`decode`. ``path`` and ``sigma_mm`` as in the plugins' options."""
+    :meth:`decode`. ``path``, ``sigma_mm`` and ``measuring_volume_mm``
+    (half-width of the measuring volume, mm) as in the plugins' options."""
 
-    def __init__(self, *, path: str, sigma_mm: float = 0.01):
+    def __init__(self, *, path: str, sigma_mm: float = 0.01, measuring_volume_mm: float = DEFAULT_VOLUME_MM):
         self.path = check_path(path)
         self.sigma_mm = check_sigma(sigma_mm)
+        self.measuring_volume_mm = check_volume(measuring_volume_mm)
 
     def acquire(self, plan: MeasurementPlan, sink: BytesSink) -> ReferenceData:
         """Read the file, hand its bytes to ``sink``, then parse them."""

@@ -27,10 +27,12 @@ Layers, each replaceable on its own:
    ``rfc2217://``, ``loop://``).
 2. **framer** (:class:`LineFramer`): bytes -> :class:`Frame` s. Finds
    sentences from ``$`` to the line end, resynchronises after noise and
-   after partial lines, and numbers lines as a text viewer would
+   after partial lines, ends the line in progress where the link broke
+   (:meth:`LineFramer.cut`), and numbers lines as a text viewer would
    (line = 1 + number of ``\\n`` before the frame).
 3. **decoder** (:class:`CfpDecoder`): one frame -> :class:`ProbeRecord` or
-   :class:`Rejection` (a reason naming the line and its content).
+   :class:`Rejection` (a reason naming the line and its content); values
+   outside the measuring volume are rejected (:mod:`crossfield.cmm.plausible`).
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ import re
 from dataclasses import dataclass
 from typing import Protocol, Sequence
 
+from crossfield.cmm.plausible import DEFAULT_VOLUME_MM, check_volume, coordinate_problem, size_problem
 __all__ = [
     "MAX_LINE_BYTES",
     "NOISE",
@@ -48,10 +51,13 @@ __all__ = [
     "PARTIAL",
     "POINT_FIELDS",
     "POINT_SENTENCE",
+    "READ_BYTES",
     "SENTENCE",
     "UNIT_VECTOR_TOLERANCE",
     "CfpDecoder",
+    "crc16",
     "Decoder",
+    "encode_point",
     "Frame",
     "LineDecoder",
     "LineFramer",
@@ -59,10 +65,8 @@ __all__ = [
     "ProbeRecord",
     "Rejection",
     "SerialTransport",
-    "Transport",
-    "crc16",
-    "encode_point",
     "show",
+    "Transport",
 ]
 
 # --------------------------------------------------------------------------
@@ -77,11 +81,14 @@ POINT_FIELDS = ("seq", "device_time_s", "X", "Y", "Z", "I", "J", "K", "probe_dia
 MAX_LINE_BYTES = 200
 #: How far |(I, J, K)| may be from 1 before the line is rejected.
 UNIT_VECTOR_TOLERANCE = 1e-3
+#: Most bytes one transport read returns (a flood arrives in blocks this size).
+READ_BYTES = 65536
 
 _NUMBER = re.compile(r"-?[0-9]+(\.[0-9]+)?\Z")
 _SEQ = re.compile(r"[0-9]{1,9}\Z")
 _HEX4 = re.compile(r"[0-9A-Fa-f]{4}\Z")
 _WHITESPACE = b" \t\r\n"
+_DOLLARS = re.compile(rb"\$+")
 
 
 def crc16(data: bytes) -> int:
@@ -90,14 +97,14 @@ def crc16(data: bytes) -> int:
 
 
 _ESCAPES = {0x09: "\\t", 0x0A: "\\n", 0x0D: "\\r", 0x27: "\\'", 0x5C: "\\\\"}
+#: How each byte value is shown: printable ASCII as is, the others escaped.
+_SHOWN = tuple(_ESCAPES.get(b, chr(b) if 0x20 <= b < 0x7F else f"\\x{b:02x}") for b in range(256))
 
 
 def show(data: bytes, limit: int = 100) -> str:
     """``data`` quoted for a message: printable ASCII as is, other bytes
     escaped (``\\r``, ``\\xff``), cut after ``limit`` bytes with ``...``."""
-    text = "".join(
-        _ESCAPES.get(b, chr(b) if 0x20 <= b < 0x7F else f"\\x{b:02x}") for b in data[:limit]
-    )
+    text = "".join(map(_SHOWN.__getitem__, data[:limit]))
     return f"'{text}...'" if len(data) > limit else f"'{text}'"
 
 
@@ -157,7 +164,7 @@ class Transport(Protocol):
 
     name: str
 
-    def read(self, max_bytes: int = 4096) -> bytes: ...
+    def read(self, max_bytes: int = READ_BYTES) -> bytes: ...
 
     def write(self, data: bytes) -> None: ...
 
@@ -179,25 +186,44 @@ class SerialTransport:
         self.name = url
         self._lost: str | None = None  # a disconnect seen after some bytes were read
         self._serial_exception = serial.SerialException
+        self._poll_s = poll_s
         self._serial = serial.serial_for_url(url, baudrate=baudrate, timeout=poll_s, write_timeout=poll_s)
+        # pyserial's socket:// (and any other port class without a byte count) answers
+        # in_waiting with 0/1; the POSIX and Windows serial ports, loop:// and rfc2217:// count
+        self._counts_waiting = not type(self._serial).__module__.endswith("protocol_socket")
 
-    def read(self, max_bytes: int = 4096) -> bytes:
+    def read(self, max_bytes: int = READ_BYTES) -> bytes:
+        """Up to ``max_bytes`` bytes: blocks up to ``poll_s`` for the first,
+        then takes whatever else has arrived, in as few calls as the port
+        allows (a UART/pty says how many bytes wait; a socket does not, so it
+        is read once more without waiting)."""
         if self._lost is not None:
             raise LinkLost(self._lost)
         data = b""
         try:
             data = self._serial.read(1)
-            while data and len(data) < max_bytes:
-                # in_waiting is the byte count for a UART/pty, 1 for "some" on socket://
-                waiting = self._serial.in_waiting
-                if not waiting:
-                    break
-                data += self._serial.read(min(waiting, max_bytes - len(data)))
+            if data and max_bytes > 1:
+                if self._counts_waiting:
+                    waiting = self._serial.in_waiting
+                    if waiting:
+                        data += self._serial.read(min(waiting, max_bytes - 1))
+                else:
+                    data += self._read_available(max_bytes - 1)
         except (self._serial_exception, OSError) as exc:
             self._lost = f"{self.name}: {exc}"
             if not data:
                 raise LinkLost(self._lost) from None
         return bytes(data)  # the disconnect, if any, is raised by the next read
+
+    def _read_available(self, max_bytes: int) -> bytes:
+        """What has arrived, without waiting (pyserial's socket:// reports
+        only 1 for "some" in ``in_waiting``: read with timeout 0 instead,
+        which returns after one ``recv`` of up to ``max_bytes``)."""
+        self._serial.timeout = 0
+        try:
+            return self._serial.read(max_bytes)
+        finally:
+            self._serial.timeout = self._poll_s
 
     def write(self, data: bytes) -> None:
         try:
@@ -217,6 +243,7 @@ SENTENCE = "sentence"  # from "$" to the line end, "\r" stripped
 NOISE = "noise"  # non-blank bytes outside any sentence
 PARTIAL = "partial"  # a sentence cut short by a new "$" or by the end of data
 OVERLONG = "overlong"  # a sentence longer than MAX_LINE_BYTES (content = its start)
+CUT = "cut"  # a line cut short by a disconnect of the link (LineFramer.cut)
 
 
 @dataclass(frozen=True)
@@ -225,14 +252,22 @@ class Frame:
 
     line: 1-based line number in the byte stream where the frame starts
     (1 + the number of ``\\n`` bytes before it). offset: byte offset of its
-    first byte. data: its bytes (without the line end). kind: one of
-    ``sentence``, ``noise``, ``partial``, ``overlong``.
+    first byte. data: its bytes (without the line end; for noise at most
+    the first ``max_line_bytes``). kind: one of ``sentence``, ``noise``,
+    ``partial``, ``overlong``, ``cut``. size: how many stream bytes from
+    ``offset`` the frame stands for (its line end excluded; for an overlong
+    line the first ``max_line_bytes + 1``, the rest up to the next ``$`` or
+    line end is skipped with it; 0 when not known). count: how
+    many partial sentences it stands for (a run of bare ``$`` bytes is one
+    frame ``data=b"$"``, ``count = size`` = the run's length).
     """
 
     kind: str
     line: int
     offset: int
     data: bytes
+    size: int = 0
+    count: int = 1
 
 
 class LineFramer:
@@ -242,10 +277,14 @@ class LineFramer:
     A sentence starts at ``$`` and ends at ``\\n`` (a ``\\r`` before it is
     dropped). A ``$`` inside a sentence means the previous one was cut short
     (arm reset, noise): it is reported as ``partial`` and a new sentence
-    starts, which is how the framer resynchronises. Bytes outside sentences
-    are ``noise`` unless they are blank (spaces, tabs, ``\\r``, ``\\n``).
-    A sentence longer than ``max_line_bytes`` is reported once as
-    ``overlong`` and skipped up to the next ``$`` or line end.
+    starts, which is how the framer resynchronises (a run of bare ``$``
+    bytes is one ``partial`` frame with a count, so a flood costs one frame).
+    Bytes outside sentences are ``noise`` unless they are blank (spaces,
+    tabs, ``\\r``, ``\\n``). A sentence longer than ``max_line_bytes`` is
+    reported once as ``overlong`` and skipped up to the next ``$`` or line
+    end. :meth:`cut` ends the current line where the link broke (a
+    disconnect): what was pending is reported (``cut``, or ``noise``) and is
+    never joined to the bytes after the reconnect.
     """
 
     _OUTSIDE, _SENTENCE, _DISCARD = range(3)
@@ -255,53 +294,89 @@ class LineFramer:
         self._state = self._OUTSIDE
         self._line = 1  # line number of the next byte
         self._base = 0  # stream offset of the current chunk's first byte
-        self._buf = bytearray()  # current sentence or noise
+        self._buf = bytearray()  # current sentence, or the first bytes of the current noise
+        self._size = 0  # stream bytes of the current noise
+        self._nonblank = False  # the current noise has a non-blank byte
+        self._last_cr = False  # the current noise ends with "\r"
         self._start = (1, 0)  # (line, offset) where _buf began
+        self._dollars = 0  # bare "$" bytes pending (each cut short by the next "$")
+        self._dollars_start = (1, 0)
 
     def feed(self, data: bytes) -> list[Frame]:
         """Frames completed by ``data`` (bytes of any length)."""
         frames: list[Frame] = []
         pos, end = 0, len(data)
+        dollar = data.find(b"$")
+        newline = data.find(b"\n")
         while pos < end:
-            dollar = data.find(b"$", pos)
-            newline = data.find(b"\n", pos)
+            # (each search runs once per "$" / "\n", not once per frame)
+            if dollar != -1 and dollar < pos:
+                dollar = data.find(b"$", pos)
+            if newline != -1 and newline < pos:
+                newline = data.find(b"\n", pos)
             stop = min(i for i in (dollar, newline, end) if i != -1)
             if self._state == self._OUTSIDE:
                 if stop > pos:
-                    if not self._buf:
+                    if not self._size:
                         self._start = (self._line, self._base + pos)
-                    self._buf += data[pos:stop]
-                if stop == newline and self._buf.endswith(b"\r"):
-                    del self._buf[-1]  # part of the line end, as for sentences
+                    self._add_noise(data, pos, stop)
                 if stop != end:
-                    self._emit_noise(frames)
+                    self._emit_noise(frames, newline=stop == newline)
             elif self._state == self._SENTENCE:
                 self._buf += data[pos:stop]
                 if len(self._buf) > self.max_line_bytes:
-                    self._emit(frames, OVERLONG, self._buf[: self.max_line_bytes])
+                    self._flush_dollars(frames)
+                    self._emit(frames, OVERLONG, self._buf[: self.max_line_bytes], self.max_line_bytes + 1)
                     self._state = self._DISCARD
                 elif stop == dollar:
-                    self._emit(frames, PARTIAL, self._buf)
+                    if len(self._buf) == 1:  # a bare "$"
+                        if not self._dollars:
+                            self._dollars_start = self._start
+                        self._dollars += 1
+                    else:
+                        self._flush_dollars(frames)
+                        self._emit(frames, PARTIAL, self._buf)
                 elif stop == newline:
-                    self._emit(frames, SENTENCE, self._buf[:-1] if self._buf.endswith(b"\r") else self._buf)
+                    self._flush_dollars(frames)
+                    text = self._buf[:-1] if self._buf.endswith(b"\r") else self._buf
+                    self._emit(frames, SENTENCE, text, len(self._buf))
             if stop == end:
                 break
             if stop == newline:
                 self._line += 1
                 self._state = self._OUTSIDE
                 pos = stop + 1
-            else:  # a "$" starts a sentence
+            else:  # a "$" starts a sentence; in a run of "$", each but the last is bare
+                run_end = _DOLLARS.match(data, stop).end()  # type: ignore[union-attr]
+                if run_end - stop > 1:
+                    if not self._dollars:
+                        self._dollars_start = (self._line, self._base + stop)
+                    self._dollars += run_end - stop - 1
                 self._state = self._SENTENCE
                 self._buf = bytearray(b"$")
-                self._start = (self._line, self._base + stop)
-                pos = stop + 1
+                self._start = (self._line, self._base + run_end - 1)
+                pos = run_end
         self._base += end
+        return frames
+
+    def cut(self) -> list[Frame]:
+        """The link broke here (disconnect): frames left of the current
+        line (a sentence in progress is ``cut``). The next byte starts a new
+        frame; line numbers and offsets go on counting the same stream."""
+        frames: list[Frame] = []
+        self._flush_dollars(frames)
+        if self._state == self._SENTENCE:
+            self._emit(frames, CUT, self._buf)
+        elif self._state == self._OUTSIDE:
+            self._emit_noise(frames)
+        self._state = self._OUTSIDE
         return frames
 
     def finish(self) -> list[Frame]:
         """Frames left at the end of the stream (a sentence without line end
         is ``partial``); the framer is then reset to a new stream's line 1."""
         frames: list[Frame] = []
+        self._flush_dollars(frames)
         if self._state == self._SENTENCE:
             self._emit(frames, PARTIAL, self._buf)
         elif self._state == self._OUTSIDE:
@@ -309,14 +384,35 @@ class LineFramer:
         self.__init__(self.max_line_bytes)
         return frames
 
-    def _emit(self, frames: list[Frame], kind: str, data: bytes | bytearray) -> None:
-        frames.append(Frame(kind, self._start[0], self._start[1], bytes(data)))
+    def _emit(self, frames: list[Frame], kind: str, data: bytes | bytearray, size: int | None = None) -> None:
+        frames.append(Frame(kind, self._start[0], self._start[1], bytes(data), len(data) if size is None else size))
         self._buf = bytearray()
 
-    def _emit_noise(self, frames: list[Frame]) -> None:
-        if self._buf.strip(_WHITESPACE):
-            self._emit(frames, NOISE, self._buf)
+    def _flush_dollars(self, frames: list[Frame]) -> None:
+        if self._dollars:
+            line, offset = self._dollars_start
+            frames.append(Frame(PARTIAL, line, offset, b"$", self._dollars, self._dollars))
+            self._dollars = 0
+
+    def _add_noise(self, data: bytes, pos: int, stop: int) -> None:
+        room = self.max_line_bytes - len(self._buf)
+        if room > 0:
+            self._buf += data[pos : min(stop, pos + room)]
+        self._size += stop - pos
+        self._last_cr = data[stop - 1] == 0x0D
+        if not self._nonblank and data[pos:stop].strip(_WHITESPACE):
+            self._nonblank = True
+
+    def _emit_noise(self, frames: list[Frame], newline: bool = False) -> None:
+        if self._nonblank:
+            size, data = self._size, self._buf
+            if newline and self._last_cr:  # the "\r" is part of the line end, as for sentences
+                size -= 1
+                data = data[:size]
+            frames.append(Frame(NOISE, self._start[0], self._start[1], bytes(data), size))
         self._buf = bytearray()
+        self._size = 0
+        self._nonblank = False
 
 
 # --------------------------------------------------------------------------
@@ -331,7 +427,8 @@ class ProbeRecord:
     seq: the device's button-press counter, or None for formats without one.
     xyz: (3,) mm; probe_vector: (3,) unit vector (normalised here), or None
     when the format has none; probe_diameter_mm: mm, NaN when unknown.
-    line: the line number it came from; text: the line as received.
+    line: the line number it came from; text: the line as received;
+    offset, size: its bytes in the stream (set by :class:`LineDecoder`).
     """
 
     seq: int | None
@@ -341,6 +438,8 @@ class ProbeRecord:
     probe_diameter_mm: float
     line: int
     text: bytes
+    offset: int = -1
+    size: int = 0
 
     def same_point(self, other: "ProbeRecord") -> bool:
         """Same seq, time, coordinates, vector and diameter (a retransmission)."""
@@ -353,13 +452,28 @@ class ProbeRecord:
         )
 
 
+#: Kinds of :class:`Rejection` (what a flood summary counts).
+REJECTION_KINDS = (
+    NOISE, PARTIAL, OVERLONG, CUT, "checksum", "malformed", "implausible", "server error", "ignored point"
+)
+
+
 @dataclass(frozen=True)
 class Rejection:
-    """A frame that gave no point: ``str()`` is ``"line 7: <reason>: '<content>'"``."""
+    """A frame that gave no point: ``str()`` is ``"line 7: <reason>: '<content>'"``.
+
+    kind: one of :data:`REJECTION_KINDS`. offset, size: the stream bytes it
+    stands for (set by :class:`LineDecoder`; -1, 0 when unknown). count: how
+    many frames it stands for (a run of bare ``$``).
+    """
 
     line: int
     reason: str
     text: bytes
+    kind: str = "malformed"
+    offset: int = -1
+    size: int = 0
+    count: int = 1
 
     def __str__(self) -> str:
         return f"line {self.line}: {self.reason}: {show(self.text)}"
@@ -377,44 +491,64 @@ def _number(text: str, name: str) -> float:
     return float(text)
 
 
+def frame_rejection(frame: Frame) -> Rejection | None:
+    """The rejection of a frame that is not a complete line (noise, partial,
+    overlong, cut), the same for every line format; None for a sentence."""
+    if frame.kind == NOISE:
+        return Rejection(frame.line, f"ignored {frame.size or len(frame.data)} bytes of noise", frame.data, NOISE)
+    if frame.kind == PARTIAL:
+        if frame.count > 1:
+            reason = f"{frame.count} partial sentences (bare '$' bytes), ignored"
+            return Rejection(frame.line, reason, frame.data, PARTIAL, count=frame.count)
+        return Rejection(frame.line, "partial sentence (cut short), ignored", frame.data, PARTIAL)
+    if frame.kind == OVERLONG:
+        return Rejection(frame.line, f"line longer than {MAX_LINE_BYTES} bytes, ignored", frame.data, OVERLONG)
+    if frame.kind == CUT:
+        return Rejection(frame.line, "line cut short by a disconnect, ignored", frame.data, CUT)
+    return None
+
+
 class CfpDecoder:
     """Decodes CFP sentences (grammar in the module docstring).
 
+    volume_mm: half-width of the measuring volume (mm): a point with some
+    |X|, |Y|, |Z| above it is rejected (:mod:`crossfield.cmm.plausible`).
+
     Rejection reasons: ``noise``, ``partial sentence``, ``line too long``,
-    ``no checksum``, ``malformed checksum``, ``bad checksum: got X, computed Y``,
-    ``not ASCII``, ``unknown sentence type``, wrong field count, a field
-    that is not a number, a negative time, a probe vector that is not a unit
-    vector, a diameter that is not positive.
+    ``cut short by a disconnect``, ``no checksum``, ``malformed checksum``,
+    ``bad checksum: got X, computed Y``, ``not ASCII``, ``unknown sentence
+    type``, wrong field count, a field that is not a number, a negative
+    time, a probe vector that is not a unit vector, a diameter that is not
+    positive, a coordinate outside the measuring volume.
     """
 
+    def __init__(self, volume_mm: float = DEFAULT_VOLUME_MM):
+        self.volume_mm = check_volume(volume_mm)
+
     def decode(self, frame: Frame) -> ProbeRecord | Rejection | None:
-        if frame.kind == NOISE:
-            return Rejection(frame.line, f"ignored {len(frame.data)} bytes of noise", frame.data)
-        if frame.kind == PARTIAL:
-            return Rejection(frame.line, "partial sentence (cut short), ignored", frame.data)
-        if frame.kind == OVERLONG:
-            return Rejection(frame.line, f"line longer than {MAX_LINE_BYTES} bytes, ignored", frame.data)
+        if frame.kind != SENTENCE:
+            return frame_rejection(frame)
         return self.decode_sentence(frame.data, frame.line)
 
     def decode_sentence(self, text: bytes, line: int) -> ProbeRecord | Rejection:
         """Decode one sentence ``$...*CRC`` (no line end)."""
 
-        def reject(reason: str) -> Rejection:
-            return Rejection(line, reason, text)
+        def reject(reason: str, kind: str = "malformed") -> Rejection:
+            return Rejection(line, reason, text, kind)
 
         star = text.rfind(b"*")
         if not text.startswith(b"$") or star == -1:
-            return reject("no checksum ('*' missing)")
+            return reject("no checksum ('*' missing)", "checksum")
         body, given = text[1:star], text[star + 1 :]
         try:
             given_text = given.decode("ascii")
         except UnicodeDecodeError:
             given_text = ""
         if not _HEX4.match(given_text):
-            return reject(f"malformed checksum {show(given)} (want 4 hex digits)")
+            return reject(f"malformed checksum {show(given)} (want 4 hex digits)", "checksum")
         computed = crc16(body)
         if int(given_text, 16) != computed:
-            return reject(f"bad checksum: got {given_text.upper()}, computed {computed:04X}")
+            return reject(f"bad checksum: got {given_text.upper()}, computed {computed:04X}", "checksum")
         try:
             fields = body.decode("ascii").split(",")
         except UnicodeDecodeError:
@@ -432,12 +566,18 @@ class CfpDecoder:
             return reject(str(exc))
         device_time_s, x, y, z, i, j, k, diameter = numbers
         if device_time_s < 0:
-            return reject(f"device time must be >= 0 s, got {device_time_s}")
+            return reject(f"device time must be >= 0 s, got {device_time_s}", "implausible")
+        problem = coordinate_problem((x, y, z), self.volume_mm)
+        if problem:
+            return reject(problem, "implausible")
         norm = math.sqrt(i * i + j * j + k * k)
         if abs(norm - 1.0) > UNIT_VECTOR_TOLERANCE:
-            return reject(f"probe vector ({i}, {j}, {k}) is not a unit vector (norm {norm:.6f})")
+            return reject(f"probe vector ({i}, {j}, {k}) is not a unit vector (norm {norm:.6f})", "implausible")
         if not diameter > 0:
-            return reject(f"probe diameter must be > 0 mm, got {diameter}")
+            return reject(f"probe diameter must be > 0 mm, got {diameter}", "implausible")
+        problem = size_problem(diameter, "probe diameter", 2 * self.volume_mm)
+        if problem:
+            return reject(problem, "implausible")
         return ProbeRecord(
             seq=int(values[0]),
             device_time_s=device_time_s,
@@ -452,8 +592,9 @@ class CfpDecoder:
 class LineDecoder:
     """Framer + decoder over a byte stream: ``feed(bytes)`` -> results.
 
-    Results are :class:`ProbeRecord` and :class:`Rejection` in stream order;
-    frames that the decoder maps to None are dropped.
+    Results are :class:`ProbeRecord` and :class:`Rejection` in stream order
+    (each rejection carries its frame's byte range); frames that the decoder
+    maps to None are dropped. :meth:`cut` marks a disconnect of the link.
     """
 
     def __init__(self, decoder: Decoder | None = None, framer: LineFramer | None = None):
@@ -463,13 +604,28 @@ class LineDecoder:
     def feed(self, data: bytes) -> list[ProbeRecord | Rejection]:
         return self._decode(self.framer.feed(data))
 
+    def cut(self) -> list[ProbeRecord | Rejection]:
+        """The link broke (disconnect) after the bytes fed so far."""
+        return self._decode(self.framer.cut())
+
     def finish(self) -> list[ProbeRecord | Rejection]:
         return self._decode(self.framer.finish())
 
     def _decode(self, frames: list[Frame]) -> list[ProbeRecord | Rejection]:
-        results = []
+        results: list[ProbeRecord | Rejection] = []
         for frame in frames:
             result = self.decoder.decode(frame)
+            size = frame.size or len(frame.data)
+            # (built field by field: dataclasses.replace costs as much as the decoding)
+            if isinstance(result, ProbeRecord):
+                r = result
+                result = ProbeRecord(
+                    r.seq, r.device_time_s, r.xyz, r.probe_vector, r.probe_diameter_mm, r.line, r.text,
+                    frame.offset, size,
+                )
+            elif isinstance(result, Rejection):
+                r = result
+                result = Rejection(r.line, r.reason, r.text, r.kind, frame.offset, size, r.count)
             if result is not None:
                 results.append(result)
         return results

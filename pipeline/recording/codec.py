@@ -43,6 +43,7 @@ from scipy.spatial.transform import Rotation
 from crossfield.errors import RecordingError
 from crossfield.jsonable import ints, plain, real, reals
 from crossfield.recording.layout import FRAME_CAMERA, FRAME_GLOBAL, JSON_SCHEMAS, META_JSON
+from crossfield.stages import LinkEvent
 from crossfield.types import (
     CameraIntrinsics,
     CameraPoints,
@@ -640,3 +641,15 @@ def ground_truth_from_doc(doc: Mapping[str, Any]) -> GroundTruth:
         R_global_camera=np.array(doc["R_global_camera"], dtype=np.float64),
         t_global_camera=np.array(doc["t_global_camera_mm"], dtype=np.float64),
     )
+
+
+def decode_link_event(data: bytes, where: str) -> LinkEvent:
+    """A recorded link event of the CMM line (``{"event": "down"|"up", "detail": str}``,
+    UTF-8 JSON on the ``/cmm/raw`` link-events channel), or a RecordingError naming ``where``."""
+    try:
+        doc = json.loads(data)
+    except (ValueError, UnicodeDecodeError):
+        doc = None
+    if not (isinstance(doc, dict) and doc.get("event") in ("down", "up") and isinstance(doc.get("detail"), str)):
+        raise RecordingError(f'{where}: not a link event ({{"event": "down"|"up", "detail": ...}})')
+    return LinkEvent(doc["event"], doc["detail"])

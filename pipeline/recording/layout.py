@@ -91,6 +91,12 @@ RAW_ENCODING = "application/octet-stream"
 CHANNEL_BIT_DEPTH = "bit_depth"
 #: Channel metadata key of ``/cmm/raw``: the port / source the bytes came from.
 CHANNEL_SOURCE = "source"
+#: Channel metadata key of ``/cmm/raw``: what the channel holds; :data:`LINK_EVENTS`
+#: marks the channel of the line's link events (absent: the bytes as read).
+CHANNEL_CONTENT = "content"
+#: ``content`` of the ``/cmm/raw`` channel that holds the line's link events
+#: (UTF-8 JSON ``{"event": "down"|"up", "detail": ...}``), in file order with the bytes.
+LINK_EVENTS = "link-events"
 
 # ---- JSON schemas -----------------------------------------------------------
 

@@ -67,6 +67,10 @@ class SessionRecorder:
         self.writer.serial_bytes(data, timestamp_ns, source)
 
     @hookimpl
+    def on_serial_event(self, kind: str, detail: str, timestamp_ns: int, source: str) -> None:
+        self.writer.serial_event(kind, detail, timestamp_ns, source)
+
+    @hookimpl
     def on_reference(self, reference: Any) -> None:
         self.writer.reference(reference)
 

@@ -121,6 +121,14 @@ def raw_channel(source: str) -> ChannelSpec:
     return ChannelSpec(L.TOPIC_CMM_RAW, L.RAW_ENCODING, None, ((L.CHANNEL_SOURCE, str(source)),))
 
 
+def link_event_channel(source: str) -> ChannelSpec:
+    """The ``/cmm/raw`` channel of one source's link events (its own channel, so
+    that no byte sequence on the line can pass for an event)."""
+    return ChannelSpec(
+        L.TOPIC_CMM_RAW, L.RAW_ENCODING, None, ((L.CHANNEL_SOURCE, str(source)), (L.CHANNEL_CONTENT, L.LINK_EVENTS))
+    )
+
+
 INTEGRITY_CHANNEL = json_channel(L.TOPIC_INTEGRITY, L.SCHEMA_INTEGRITY)
 
 
@@ -558,6 +566,14 @@ class SessionWriter:
         count = self._serial_counts.get(source, 0)
         self._serial_counts[source] = count + 1
         self._message(raw_channel(source), timestamp_ns, bytes(data), count)
+
+    def serial_event(self, kind: str, detail: str, timestamp_ns: int, source: str) -> None:
+        """A link event of the CMM line (down/up), in file order with its bytes."""
+        key = f"{source}\n{L.LINK_EVENTS}"
+        count = self._serial_counts.get(key, 0)
+        self._serial_counts[key] = count + 1
+        doc = {"event": str(kind), "detail": str(detail)}
+        self._message(link_event_channel(str(source)), timestamp_ns, dump_json(doc), count)
 
     # ---- stage outputs --------------------------------------------------
 

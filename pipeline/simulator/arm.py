@@ -139,7 +139,10 @@ class SimulatedArm:
     written before the first line. bursts: probe index -> number of repeats
     sent while the button is held (jitter ``burst_jitter_mm`` per axis,
     device time + 0.05 s each). unplug_after: probe index -> seconds the
-    cable stays out after that probe. resend_on_connect: on every
+    cable stays out after that probe. cut_after: probe index -> n: before
+    that unplug, the first n bytes of the next probe's line go out (the
+    reader gets them), so the cable is pulled in the middle of a line.
+    resend_on_connect: on every
     (re)connection resend the clean lines of the probes already sent.
     hang_up_when_done: close the pty once everything is written (the arm is
     switched off: the reader sees the link drop and no return).
@@ -163,6 +166,7 @@ class SimulatedArm:
         bursts: Mapping[int, int] | None = None,
         burst_jitter_mm: float = 0.01,
         unplug_after: Mapping[int, float] | None = None,
+        cut_after: Mapping[int, int] | None = None,
         resend_on_connect: bool = True,
         settle_s: float = 0.02,
         hang_up_when_done: bool = False,
@@ -184,6 +188,9 @@ class SimulatedArm:
         self.bursts = dict(bursts or {})
         self.burst_jitter_mm = float(burst_jitter_mm)
         self.unplug_after = dict(unplug_after or {})
+        self.cut_after = dict(cut_after or {})
+        if set(self.cut_after) - set(self.unplug_after):
+            raise ValueError("cut_after needs an unplug_after at the same probe index")
         self.resend_on_connect = resend_on_connect
         self.settle_s = float(settle_s)
         self.hang_up_when_done = hang_up_when_done
@@ -317,6 +324,12 @@ class SimulatedArm:
                     return
                 self._sent.append(index)
                 if index in self.unplug_after:
+                    keep = self.cut_after.get(index, 0)
+                    if keep and index + 1 < len(self.probes):
+                        # the start of the next line, then the cable goes (once the reader has it)
+                        if not self._write(self.sentence(index + 1)[:keep]):
+                            return
+                        time.sleep(0.1)
                     self._hang_up()
                     if self._stop.wait(self.unplug_after[index]):
                         return

@@ -12,7 +12,10 @@ event ``E0000 # PtMeas(X(..), Y(..), Z(..), IJK(..), R(..))``.
 Faults: ``drop_after={index, ...}`` closes the connection (gracefully:
 what was sent is still delivered) after that probe's event; the client
 reconnects and starts a new session, and the server continues with the
-next probe. ``bursts={index: n}`` repeats a probe ``n`` times with small
+next probe. ``cut_after={index: n}`` drops the connection the same way
+after that probe's event and the first ``n`` bytes of the next one (a
+line cut by the disconnect; the next probe is reported whole after the
+reconnect). ``bursts={index: n}`` repeats a probe ``n`` times with small
 jitter (a held button).
 """
 
@@ -38,7 +41,8 @@ class SimulatedIppDmeServer:
     (3,) mm, ``probe_vector`` (3,), ``probe_diameter_mm``) as manual points.
 
     line_delay_s: pause between two probes (s). drop_after: probe indices
-    after which the connection is closed. bursts: probe index -> repeats.
+    after which the connection is closed. cut_after: probe index -> bytes
+    of the next event sent before the connection is closed. bursts: probe index -> repeats.
     ``written`` holds every byte sent; ``commands`` every command line
     received; ``connections`` the number of accepted connections.
     """
@@ -51,6 +55,7 @@ class SimulatedIppDmeServer:
         port: int = 0,
         line_delay_s: float = 0.0,
         drop_after: Iterable[int] = (),
+        cut_after: Mapping[int, int] | None = None,
         bursts: Mapping[int, int] | None = None,
         burst_jitter_mm: float = 0.01,
     ):
@@ -58,6 +63,7 @@ class SimulatedIppDmeServer:
         self.host, self.port = host, port
         self.line_delay_s = float(line_delay_s)
         self.drop_after = set(drop_after)
+        self.cut_after = dict(cut_after or {})
         self.bursts = dict(bursts or {})
         self.burst_jitter_mm = float(burst_jitter_mm)
         self.written = bytearray()
@@ -175,6 +181,10 @@ class SimulatedIppDmeServer:
                 last_event = time.monotonic()
                 if self._next == len(self.probes):
                     self._done.set()
+                if index in self.cut_after and self._next < len(self.probes):
+                    self._send(connection, self.event(self._next)[: self.cut_after[index]])
+                    self._drop(connection)
+                    return
                 if index in self.drop_after:
                     self._drop(connection)
                     return
