@@ -525,3 +525,55 @@ def test_a_consistent_forgery_is_caught_by_the_signature_and_the_expected_head(s
         assert not by_key.passed and not by_key.seal["passed"]
         expected = "not signed" if key is None else "not a valid signature"
         assert expected in " ".join(by_key.seal["problems"])
+
+
+def test_a_damaged_result_is_named_and_the_audit_goes_on(recorded, tmp_path, capsys):
+    """One changed digit in a JSON result, bytes edited in place (the chunk's CRC
+    no longer matches): the audit names the message, its chunk and offset, lists
+    the changed field from the reproduction, and ends with FAIL (rc 1), not an error."""
+    target = message(recorded, "/measurement", 1)
+    blob = bytearray(recorded.read_bytes())
+    at = blob.find(target.data)
+    assert at > 0
+    key = b'"measured_mm":'
+    k = blob.find(key, at) + len(key) + 1  # the second digit of the first measured value
+    value = json.loads(target.data)["characteristics"][0]["measured_mm"]
+    blob[k] = ord("9") if blob[k] != ord("9") else ord("8")
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(bytes(blob))
+    assert main(["audit", str(damaged), "--json"]) == 1
+    doc = json.loads(capsys.readouterr().out)
+    problems = doc["integrity"]["problems"]
+    assert {p["kind"] for p in problems} == {"crc", "changed"}
+    changed = [p for p in problems if p["kind"] == "changed"]
+    assert [(p["topic"], p["sequence"], p["log_time_ns"]) for p in changed] == [
+        ("/measurement", 1, target.log_time_ns)
+    ]
+    crc = [p for p in problems if p["kind"] == "crc"][0]
+    assert changed[0]["offset"] == crc["offset"] and crc["offset"] < at < crc["offset"] + 2_000_000
+    assert "/measurement sequence 1" in crc["detail"] or "more" in crc["detail"]
+    differences = doc["reproduction"]["differences"]
+    assert [(d["topic"], d["sequence"], d["path"], d["replayed"]) for d in differences] == [
+        ("/measurement", 1, "characteristics[0].measured_mm", value)
+    ]
+    assert differences[0]["recorded"] != value
+    assert main(["audit", str(damaged)]) == 1
+    out = capsys.readouterr().out
+    assert "changed: /measurement sequence 1 at" in out and "(byte " in out and "Audit: FAIL" in out
+
+
+def test_a_session_longer_than_the_report_rows_passes_its_own_audit(tmp_path, monkeypatch):
+    """report.json lists the first FRAME_ROWS_KEPT (200) pairs and says why the rest
+    are not listed; that note depends on an output setting (session.record), not on a
+    result, so the audit's replay (which writes no file) must not count it as a
+    difference. The row limit is lowered to 2 to test it with 4 pairs."""
+    from crossfield import aggregate
+
+    defaults = dict(aggregate.SessionAccumulator.__init__.__kwdefaults__)
+    monkeypatch.setattr(aggregate.SessionAccumulator.__init__, "__kwdefaults__", {**defaults, "rows_kept": 2})
+    summary = record_session(tmp_path, "long", frames=4)
+    assert summary.frames_omitted == 2
+    report = json.loads((summary.info.out_dir / "report.json").read_text())
+    assert report["frames_note"] and len(report["frames"]) == 2
+    result = audit(summary.info.out_dir / "session.mcap", make_plugin_manager())
+    assert result.reproduction["differences"] == [] and result.passed

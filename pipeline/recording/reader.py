@@ -86,10 +86,17 @@ class RecordedAttachment:
 
 
 class Recording:
-    """An open session MCAP file (read-only). Use :func:`open_recording`."""
+    """An open session MCAP file (read-only). Use :func:`open_recording`.
 
-    def __init__(self, path: str | Path):
+    validate_crcs: check every chunk's CRC-32 while reading (a mismatch is a
+    :class:`RecordingError`). The audit reads with False: it checks the CRCs
+    itself (:mod:`crossfield.recording.integrity`), names the damaged
+    messages and goes on comparing what the file holds.
+    """
+
+    def __init__(self, path: str | Path, *, validate_crcs: bool = True):
         self.path = Path(path)
+        self.validate_crcs = validate_crcs
         self._decoders = DecoderFactory()
         self._decoder_cache: dict[tuple[int, int], Any] = {}
         self.damage: str | None = None
@@ -146,17 +153,16 @@ class Recording:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    @staticmethod
-    def _seeking(f: Any) -> SeekingReader:
+    def _seeking(self, f: Any) -> SeekingReader:
         f.seek(0)
-        return SeekingReader(f, validate_crcs=True)
+        return SeekingReader(f, validate_crcs=self.validate_crcs)
 
     # ---- sequential scan (damaged files) --------------------------------
 
     def _scan(self) -> Iterator[Any]:
         """Every record in file order, stopping quietly at damage."""
         with self._open() as f:
-            reader = StreamReader(f, validate_crcs=True)
+            reader = StreamReader(f, validate_crcs=self.validate_crcs)
             try:
                 yield from reader.records
             except _DAMAGE as exc:
@@ -338,6 +344,6 @@ class Recording:
         return found
 
 
-def open_recording(path: str | Path) -> Recording:
+def open_recording(path: str | Path, *, validate_crcs: bool = True) -> Recording:
     """Open a session MCAP for reading; :class:`RecordingError` if it is none."""
-    return Recording(path)
+    return Recording(path, validate_crcs=validate_crcs)
