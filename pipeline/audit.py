@@ -531,18 +531,30 @@ def audit(
     else:
         repro = {"passed": False, "skipped": "not run (--no-replay)", "differences": []}
     digest = file_sha256(path)
+    ended = prov.get("result") is not None
     report = AuditReport(
         path=str(path),
         file_sha256=digest,
-        complete=rec.complete and integrity.complete,
+        complete=rec.complete and integrity.complete and ended,
         integrity=integrity,
         provenance=prov,
         reproduction=repro,
         seal=seal_check(path, integrity, digest, expect_head=expect_head, public_key=public_key),
     )
     if not report.complete:
-        report.notes.append(f"INCOMPLETE recording: {integrity.ends}")
+        report.notes.append(f"INCOMPLETE recording: {incomplete_reason(report)}")
     return report
+
+
+def incomplete_reason(report: AuditReport) -> str:
+    """Why the audited session is incomplete: the file was cut short, or the
+    session did not end normally (interrupted: no ``crossfield.result`` record)."""
+    if not report.integrity.complete:
+        return report.integrity.ends
+    return (
+        f"the session did not end normally: no {L.META_RESULT!r} record (interrupted, e.g. by Ctrl-C, "
+        f"before its results were written)"
+    )
 
 
 def _section(title: str, ok: bool, text: str = "") -> str:
@@ -567,7 +579,7 @@ def format_report(report: AuditReport, *, limit: int = 40) -> str:
         for key, c in (changed.get("options") or {}).items():
             lines.append(f"    changed {key}: {c.get('from')!r} -> {c.get('to')!r}")
     if not report.complete:
-        lines.append(f"  INCOMPLETE: {report.integrity.ends}")
+        lines.append(f"  INCOMPLETE: {incomplete_reason(report)}")
     lines.append("")
 
     integ = report.integrity

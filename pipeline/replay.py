@@ -109,6 +109,12 @@ class RecordingSource:
                 f"the recording {rec.path} is incomplete ({rec.damage}); {self.frames_read} stereo pair(s) "
                 f"replayed, {ends}"
             )
+        elif self.recorded.result is None:
+            notes.append(
+                f"the session recorded in {rec.path} did not end normally (no {L.META_RESULT!r} record: "
+                f"it was interrupted, e.g. by Ctrl-C, before its results were written); "
+                f"{self.frames_read} stereo pair(s) replayed"
+            )
         for seq, entry in sorted(pending.items()):
             have = [c for c in CAMERAS if c in entry]
             notes.append(f"stereo pair {seq} has only its {' and '.join(have)} image, not replayed")

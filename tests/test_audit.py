@@ -577,3 +577,50 @@ def test_a_session_longer_than_the_report_rows_passes_its_own_audit(tmp_path, mo
     assert report["frames_note"] and len(report["frames"]) == 2
     result = audit(summary.info.out_dir / "session.mcap", make_plugin_manager())
     assert result.reproduction["differences"] == [] and result.passed
+
+
+@pytest.fixture(scope="module")
+def interrupted(tmp_path_factory):
+    """A `crossfield run` stopped with Ctrl-C (SIGINT) once some pairs are on disk:
+    the recorder finishes the file at exit, but the session never ended."""
+    out = tmp_path_factory.mktemp("interrupted")
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    proc = subprocess.Popen(
+        crossfield_command()
+        + ["run", "--scenario", "table3", "--frames", "200", "-o", str(out), "--name", "s", "--no-rerun", "-q"],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
+    path = out / "s" / "session.mcap"
+    deadline = time.monotonic() + 120
+    try:
+        while time.monotonic() < deadline and (not path.exists() or path.stat().st_size < 40e6):
+            assert proc.poll() is None, proc.stderr.read().decode()
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130 and b"interrupted" in err
+    return path
+
+
+def test_an_interrupted_session_is_incomplete_in_replay_and_audit(interrupted, tmp_path, capsys):
+    with open_recording(interrupted) as rec:
+        assert rec.complete  # finished at exit: footer and summary are there
+        assert "crossfield.result" not in rec.metadata()
+    code = main(["replay", str(interrupted), "-o", str(tmp_path / "r.mcap"), "-q", "--no-rerun"])
+    out = capsys.readouterr().out
+    assert code == 1 and "did not end normally" in out and "Result: PASS" not in out
+    with open_recording(tmp_path / "r.mcap") as rec:
+        result = rec.metadata_doc("crossfield.result")
+    assert not result["passed"] and "did not end normally" in result["incomplete"]
+    code = main(["audit", str(interrupted), "--json"])
+    doc = json.loads(capsys.readouterr().out)
+    assert code == 1 and not doc["passed"] and not doc["complete"]
+    assert any("did not end normally" in n for n in doc["notes"])
+    assert main(["audit", str(interrupted)]) == 1
+    text = capsys.readouterr().out
+    assert "INCOMPLETE: the session did not end normally" in text and "Audit: FAIL" in text
