@@ -28,8 +28,9 @@ from typing import Any, Self
 
 from mcap.exceptions import McapError
 from mcap.reader import SeekingReader
-from mcap.records import Attachment, Channel, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
+from mcap.data_stream import ReadDataStream
+from mcap.records import Attachment, Channel, Chunk, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap_protobuf.decoder import DecoderFactory
 
 from crossfield.errors import RecordingError
@@ -241,11 +242,16 @@ class Recording:
         """Messages of ``topics`` (all when None) in log-time order, or in the
         order they were written when ``file_order`` (replay: the processing order).
 
+        In file order the file is streamed one chunk at a time, so memory does
+        not grow with the recording's length (replay and audit read this way).
         On a damaged recording: the messages before the damage, in file order.
         """
         if isinstance(topics, str):
             topics = [topics]
         wanted = None if topics is None else set(topics)
+        if self._summary is not None and file_order and self._summary.chunk_indexes:
+            yield from self._chunk_by_chunk(wanted, decode)
+            return
         if self._summary is not None:
             with self._open() as f:
                 reader = self._seeking(f)
@@ -270,6 +276,31 @@ class Recording:
                 if channel is None or (wanted is not None and channel.topic not in wanted):
                     continue
                 yield self._recorded(schemas.get(channel.schema_id), channel, record, decode)
+
+    def _chunk_by_chunk(self, wanted: set[str] | None, decode: bool) -> Iterator[RecordedMessage]:
+        """Messages in file order, reading one chunk at a time (the mcap library's
+        own file-order iteration reads every chunk before it yields a message)."""
+        summary = self._summary
+        channels = summary.channels
+        wanted_ids = None if wanted is None else {i for i, c in channels.items() if c.topic in wanted}
+        with self._open() as f:
+            try:
+                for index in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
+                    if wanted_ids is not None and index.message_index_offsets:
+                        if not wanted_ids & set(index.message_index_offsets):
+                            continue  # no wanted message in this chunk: not read
+                    f.seek(index.chunk_start_offset + 1 + 8)
+                    chunk = Chunk.read(ReadDataStream(f))
+                    for record in breakup_chunk(chunk, validate_crc=self.validate_crcs):
+                        if not isinstance(record, Message):
+                            continue
+                        channel = channels.get(record.channel_id)
+                        if channel is None or (wanted_ids is not None and record.channel_id not in wanted_ids):
+                            continue
+                        schema = summary.schemas.get(channel.schema_id) if channel.schema_id else None
+                        yield self._recorded(schema, channel, record, decode)
+            except _DAMAGE as exc:
+                raise RecordingError(f"{self.path}: damaged recording: {exc}") from None
 
     def _recorded(
         self, schema: Schema | None, channel: Channel, message: Message, decode: bool
