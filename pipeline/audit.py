@@ -584,11 +584,14 @@ def format_report(report: AuditReport, *, limit: int = 40) -> str:
 
     integ = report.integrity
     if integ.passed:
-        text = f"{integ.messages} messages, {integ.records} records, chain head {integ.chain_sha256}"
+        text = (
+            f"{integ.messages} messages and {integ.entries - integ.messages} other records chained "
+            f"in {integ.records} {L.TOPIC_INTEGRITY} records, chain head {integ.chain_sha256}"
+        )
     elif report.intact:
         text = (
-            f"intact up to where the file ends: {integ.covered} of {integ.messages} messages covered by "
-            f"{integ.records} records; incomplete"
+            f"intact up to where the file ends: {integ.covered} of {integ.entries} records covered by "
+            f"{integ.records} {L.TOPIC_INTEGRITY} records; incomplete"
         )
     else:
         text = f"{len([p for p in integ.problems if p.kind not in _TRUNCATION])} finding(s)"
