@@ -624,3 +624,38 @@ def test_an_interrupted_session_is_incomplete_in_replay_and_audit(interrupted, t
     assert main(["audit", str(interrupted)]) == 1
     text = capsys.readouterr().out
     assert "INCOMPLETE: the session did not end normally" in text and "Audit: FAIL" in text
+
+
+def test_a_chunk_whose_record_length_is_damaged_is_named_and_reading_goes_on(recorded, tmp_path):
+    """A damaged record length makes the rest of the file unparseable for a plain
+    reader; the audit names the unreadable bytes and the message lost in them,
+    resumes at the next intact chunk and checks everything after it."""
+    from mcap.reader import SeekingReader
+
+    with open(recorded, "rb") as f:
+        chunks = sorted(SeekingReader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+    target = chunks[len(chunks) // 2]
+    blob = bytearray(recorded.read_bytes())
+    start = target.chunk_start_offset
+    assert blob[start] == 0x06  # a chunk record: opcode, then its u64 length
+    blob[start + 1 : start + 9] = (1 << 40).to_bytes(8, "little")
+    damaged = tmp_path / "length.mcap"
+    damaged.write_bytes(bytes(blob))
+    with open(recorded, "rb") as f:
+        f.seek(start + 9)
+        from mcap.data_stream import ReadDataStream
+        from mcap.records import Chunk
+        from mcap.stream_reader import breakup_chunk
+
+        lost = [r for r in breakup_chunk(Chunk.read(ReadDataStream(f))) if type(r).__name__ == "Message"]
+    assert lost
+    result = verify(damaged)
+    assert result.complete  # the footer was still read: the audit went on to the end
+    unreadable = [p for p in result.problems if p.kind == "unreadable"]
+    assert len(unreadable) == 1 and unreadable[0].offset == start
+    assert f"bytes {start}.." in unreadable[0].detail and "reading goes on at the next intact chunk" in unreadable[0].detail
+    removed = [(p.sequence, p.log_time_ns) for p in result.problems if p.kind == "removed"]
+    assert removed == [(m.sequence, m.log_time) for m in lost]
+    assert {p.kind for p in result.problems} == {"unreadable", "removed"}
+    report = audit(damaged, make_plugin_manager())
+    assert not report.passed and report.complete

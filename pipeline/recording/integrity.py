@@ -460,59 +460,113 @@ def _scan_file(path: Path) -> _Scan:
         if entry is not None:
             scan.entries.append(FileEntry(*entry, None, offset))
 
+    size = path.stat().st_size
+    damage = (McapError, struct.error, EOFError, ValueError, UnicodeDecodeError, MemoryError)
     with open(path, "rb") as f:
-        reader = StreamReader(f, emit_chunks=True, validate_crcs=False)
         offset = 8
-        try:
-            for record in reader.records:
-                if isinstance(record, Chunk):
-                    scan.chunks += 1
-                    crc = zlib.crc32(_chunk_bytes(record, get_chunk_data_stream))
-                    records = None
-                    try:
-                        records = breakup_chunk(record, validate_crc=False)
-                    except Exception as exc:  # noqa: BLE001 - a damaged chunk is a finding
-                        scan.problems.append(
-                            Problem(
-                                "unreadable",
-                                f"chunk at byte {offset}: its records cannot be read ({exc})",
-                                offset=offset,
-                            )
-                        )
-                    bad_crc = record.uncompressed_crc != 0 and crc != record.uncompressed_crc
-                    if records is not None:
-                        first = len(scan.entries)
-                        for r in records:
-                            take(r, offset)
-                        if bad_crc:
-                            inside = [e for e in scan.entries[first:] if e.is_message]
-                            what = ", ".join(name_message(*m.key) for m in inside[:4])
-                            more = f" and {len(inside) - 4} more" if len(inside) > 4 else ""
+        at_start = True
+        while True:
+            reader = StreamReader(f, skip_magic=not at_start, emit_chunks=True, validate_crcs=False)
+            at_start = False
+            try:
+                for record in reader.records:
+                    if isinstance(record, Chunk):
+                        scan.chunks += 1
+                        crc = zlib.crc32(_chunk_bytes(record, get_chunk_data_stream))
+                        records = None
+                        try:
+                            records = breakup_chunk(record, validate_crc=False)
+                        except Exception as exc:  # noqa: BLE001 - a damaged chunk is a finding
                             scan.problems.append(
                                 Problem(
-                                    "crc",
-                                    f"chunk at byte {offset} has a bad CRC-32 "
-                                    f"(stored {record.uncompressed_crc:08x}, "
-                                    f"computed {crc:08x}); it holds {what or 'no message'}{more}",
+                                    "unreadable",
+                                    f"chunk at byte {offset}: its records cannot be read ({exc})",
                                     offset=offset,
                                 )
                             )
-                    elif bad_crc:
-                        scan.problems.append(
-                            Problem("crc", f"chunk at byte {offset} has a bad CRC-32", offset=offset)
-                        )
-                else:
-                    take(record, offset)
-                    if isinstance(record, DataEnd):
-                        in_summary = True
-                    elif isinstance(record, Footer):
-                        scan.complete = True
-                offset = f.tell()
-        except (McapError, struct.error, EOFError, ValueError, UnicodeDecodeError, MemoryError) as exc:
-            size = path.stat().st_size
-            reason = type(exc).__name__ + (f": {exc}" if str(exc) else "")
-            scan.ends = f"the file ends in damage or is cut short at byte {offset} of {size} ({reason})"
+                        bad_crc = record.uncompressed_crc != 0 and crc != record.uncompressed_crc
+                        if records is not None:
+                            first = len(scan.entries)
+                            for r in records:
+                                take(r, offset)
+                            if bad_crc:
+                                inside = [e for e in scan.entries[first:] if e.is_message]
+                                what = ", ".join(name_message(*m.key) for m in inside[:4])
+                                more = f" and {len(inside) - 4} more" if len(inside) > 4 else ""
+                                scan.problems.append(
+                                    Problem(
+                                        "crc",
+                                        f"chunk at byte {offset} has a bad CRC-32 "
+                                        f"(stored {record.uncompressed_crc:08x}, "
+                                        f"computed {crc:08x}); it holds {what or 'no message'}{more}",
+                                        offset=offset,
+                                    )
+                                )
+                        elif bad_crc:
+                            scan.problems.append(
+                                Problem("crc", f"chunk at byte {offset} has a bad CRC-32", offset=offset)
+                            )
+                    else:
+                        take(record, offset)
+                        if isinstance(record, DataEnd):
+                            in_summary = True
+                        elif isinstance(record, Footer):
+                            scan.complete = True
+                    offset = f.tell()
+                break
+            except damage as exc:
+                reason = type(exc).__name__ + (f": {exc}" if str(exc) else "")
+                resume = None if in_summary else _next_chunk(f, offset, size, get_chunk_data_stream)
+                if resume is None:
+                    scan.ends = f"the file ends in damage or is cut short at byte {offset} of {size} ({reason})"
+                    break
+                # Go on after the damage: the next intact chunk (its CRC-32 matches).
+                scan.problems.append(
+                    Problem(
+                        "unreadable",
+                        f"bytes {offset}..{resume} cannot be read as MCAP records ({reason}); "
+                        f"reading goes on at the next intact chunk, byte {resume}",
+                        offset=offset,
+                    )
+                )
+                f.seek(resume)
+                offset = resume
     return scan
+
+
+def _next_chunk(f: Any, after: int, size: int, get_chunk_data_stream: Any, *, block: int = 1 << 22) -> int | None:
+    """Byte offset of the next intact chunk record after ``after`` (opcode 0x06, a
+    length inside the file and a matching CRC-32), or None."""
+    from mcap.data_stream import ReadDataStream
+    from mcap.records import Chunk
+
+    position = after + 1
+    while position < size:
+        f.seek(position)
+        data = f.read(block + 9)
+        if not data:
+            return None
+        at = data.find(b"\x06")
+        while 0 <= at < min(len(data), block):
+            start = position + at
+            header = data[at : at + 9]
+            if len(header) < 9:
+                f.seek(start)
+                header = f.read(9)
+            length = int.from_bytes(header[1:9], "little") if len(header) == 9 else -1
+            if 40 <= length <= size - start - 9:
+                f.seek(start + 9)
+                try:
+                    chunk = Chunk.read(ReadDataStream(f))
+                    if chunk.uncompressed_crc and zlib.crc32(_chunk_bytes(chunk, get_chunk_data_stream)) == (
+                        chunk.uncompressed_crc
+                    ):
+                        return start
+                except Exception:  # noqa: BLE001 - not a chunk here: look further
+                    pass
+            at = data.find(b"\x06", at + 1)
+        position += block
+    return None
 
 
 def _chunk_bytes(chunk: Any, get_chunk_data_stream: Any) -> bytes:
