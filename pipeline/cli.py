@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 from typing import Sequence
 
 from crossfield.config import Config, load_config, with_overrides
@@ -185,17 +186,21 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     impl = get_implementation(pm, "report", reporter).create(dict(config.stages["report"].options))
     print(impl.summary_text(summary))
-    from crossfield.recording.seal import read_sidecar, sidecar_path
-
-    recording = summary.info.out_dir / "session.mcap"
-    sealed = read_sidecar(recording) if sidecar_path(recording).exists() else None
-    if sealed is not None:
-        print(f"integrity chain head {sealed['chain_head']}")
-        print(f"file SHA-256         {sealed['file_sha256']}" + ("  (signed)" if sealed.get("signature") else ""))
+    print_seal(summary.info.out_dir / "session.mcap")
     print(f"session written to {summary.info.out_dir}/")
     for path in sorted(summary.info.out_dir.iterdir()):
         print(f"  {path.name:<22} {path.stat().st_size / 1e6:9.2f} MB")
     return 0 if summary.passed else 1
+
+
+def print_seal(recording: Path) -> None:
+    """Print the recording's chain head and file SHA-256 (its seal), if it was sealed."""
+    from crossfield.recording.seal import read_sidecar, sidecar_path
+
+    sealed = read_sidecar(recording) if sidecar_path(recording).exists() else None
+    if sealed is not None:
+        print(f"integrity chain head {sealed['chain_head']}")
+        print(f"file SHA-256         {sealed['file_sha256']}" + ("  (signed)" if sealed.get("signature") else ""))
 
 
 def cmd_plugins(args: argparse.Namespace) -> int:
@@ -269,6 +274,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if summary.incomplete:
         print(f"INCOMPLETE: {summary.incomplete}")
     print(impl.summary_text(summary))
+    if not args.no_record:
+        print_seal(Path(args.output) if args.output else summary.info.out_dir / "session.mcap")
     if args.output and not args.no_record:
         print(f"replay recorded to {args.output}")
     print(f"session files in {summary.info.out_dir}/")
