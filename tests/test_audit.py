@@ -283,43 +283,38 @@ def count_images(path: Path) -> int:
         return sum(1 for _ in rec.messages("/camera/upper/image", decode=False))
 
 
-@pytest.fixture(scope="module")
-def killed(tmp_path_factory):
-    """A `crossfield run` of many pairs, SIGKILLed once some pairs are on disk."""
-    out = tmp_path_factory.mktemp("killed")
+def stopped_run(out: Path, name: str, scenario: str, stop: signal.Signals, on_disk: float) -> tuple[Path, int, bytes]:
+    """A `crossfield run` of 200 pairs, sent ``stop`` once ``on_disk`` bytes of its
+    recording are written: (recording, exit code, stderr)."""
     env = dict(os.environ, PYTHONPATH=str(REPO))
     proc = subprocess.Popen(
         crossfield_command()
-        + [
-            "run",
-            "--scenario",
-            "station",
-            "--frames",
-            "200",
-            "--seed",
-            "3",
-            "-o",
-            str(out),
-            "--name",
-            "killed",
-            "--no-rerun",
-            "-q",
-        ],
+        + ["run", "--scenario", scenario, "--frames", "200", "--seed", "3", "-o", str(out), "--name", name]
+        + ["--no-rerun", "-q"],
         env=env,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
     )
-    path = out / "killed" / "session.mcap"
+    path = out / name / "session.mcap"
     deadline = time.monotonic() + 120
     try:
-        # wait for about 8 pairs (8 MB each) on disk, mid-way through the 200
-        while time.monotonic() < deadline and (not path.exists() or path.stat().st_size < 64e6):
+        while time.monotonic() < deadline and (not path.exists() or path.stat().st_size < on_disk):
             assert proc.poll() is None, proc.stderr.read().decode()
             time.sleep(0.05)
-        os.kill(proc.pid, signal.SIGKILL)
+        proc.send_signal(stop)
+        _, err = proc.communicate(timeout=60)
     finally:
-        proc.wait(timeout=30)
-    assert proc.returncode == -signal.SIGKILL
+        if proc.poll() is None:
+            proc.kill()
+    return path, proc.returncode, err
+
+
+@pytest.fixture(scope="module")
+def killed(tmp_path_factory):
+    """A `crossfield run` of many pairs, SIGKILLed once some pairs are on disk
+    (about 8 pairs of 8 MB, mid-way through the 200)."""
+    path, code, _ = stopped_run(tmp_path_factory.mktemp("killed"), "killed", "station", signal.SIGKILL, 64e6)
+    assert code == -signal.SIGKILL
     return path
 
 
@@ -584,26 +579,8 @@ def interrupted(tmp_path_factory):
     """A `crossfield run` stopped with Ctrl-C (SIGINT) once some pairs are on disk:
     the recorder finishes the file at exit, but the session never ended."""
     out = tmp_path_factory.mktemp("interrupted")
-    env = dict(os.environ, PYTHONPATH=str(REPO))
-    proc = subprocess.Popen(
-        crossfield_command()
-        + ["run", "--scenario", "table3", "--frames", "200", "-o", str(out), "--name", "s", "--no-rerun", "-q"],
-        env=env,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-    )
-    path = out / "s" / "session.mcap"
-    deadline = time.monotonic() + 120
-    try:
-        while time.monotonic() < deadline and (not path.exists() or path.stat().st_size < 40e6):
-            assert proc.poll() is None, proc.stderr.read().decode()
-            time.sleep(0.05)
-        proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert proc.returncode == 130 and b"interrupted" in err
+    path, code, err = stopped_run(out, "s", "table3", signal.SIGINT, 40e6)
+    assert code == 130 and b"interrupted" in err
     return path
 
 
