@@ -35,8 +35,9 @@ from typing import Any
 
 import pluggy
 
-from crossfield.errors import CrossfieldError, RecordingError
+from crossfield.errors import ConfigError, CrossfieldError, RecordingError
 from crossfield.recording import layout as L
+from crossfield.recording import seal
 from crossfield.recording.codec import decode_log
 from crossfield.recording.facts import require_session
 from crossfield.recording.integrity import IntegrityResult, file_sha256, name_message, verify
@@ -51,7 +52,9 @@ RAW_TOPICS = L.RAW_TOPICS
 
 #: JSON paths (per topic) not compared by the reproduction check: they name
 #: the run (session id, folder, replay parent, time of the replay, the
-#: serial port the bytes came from), not a result.
+#: serial port the bytes came from, how it was written: ``frames_note`` says
+#: where the rows report.json omits are, which depends on ``session.record``;
+#: the audit's replay writes no file), not a result.
 IGNORED: dict[str, tuple[str, ...]] = {
     L.TOPIC_REPORT: (
         "session.id",
@@ -62,6 +65,8 @@ IGNORED: dict[str, tuple[str, ...]] = {
         "config.session.record",
         "config.session.rerun",
         "config.session.rerun_image_every",
+        "config.session.signing_key",
+        "frames_note",
         "config_source",
         "reference.source",
         "packages",
@@ -82,6 +87,7 @@ class AuditReport:
     integrity: IntegrityResult
     provenance: dict[str, Any]
     reproduction: dict[str, Any]
+    seal: dict[str, Any] = field(default_factory=lambda: {"passed": True, "level": "self-consistency"})
     notes: list[str] = field(default_factory=list)
 
     @property
@@ -96,6 +102,7 @@ class AuditReport:
             and self.integrity.passed
             and self.provenance.get("passed", False)
             and self.reproduction.get("passed", False)
+            and self.seal.get("passed", False)
         )
 
     def to_json(self) -> dict[str, Any]:
@@ -108,6 +115,7 @@ class AuditReport:
             "integrity": self.integrity.to_json(),
             "provenance": self.provenance,
             "reproduction": self.reproduction,
+            "seal": self.seal,
             "notes": self.notes,
         }
 
@@ -119,7 +127,7 @@ class AuditReport:
 
 def provenance(path: Path, pm: pluggy.PluginManager | None) -> dict[str, Any]:
     """The session's recorded facts and their consistency (hashes, versions)."""
-    rec = open_recording(path)
+    rec = open_recording(path, validate_crcs=False)
     meta = rec.metadata()
     problems: list[str] = []
     notes: list[str] = []
@@ -252,11 +260,17 @@ def _decode_log(data: bytes) -> str:
 
 def reproduction(path: Path, pm: pluggy.PluginManager, *, limit: int = 500) -> dict[str, Any]:
     """Replay with the recorded plugins and compare every result message (see module doc)."""
+    from crossfield.recording.facts import load_session_facts
     from crossfield.recording.recorder import SessionRecorder
     from crossfield.recording.writer import MemorySink
-    from crossfield.replay import load_recorded_session, replay_session
+    from crossfield.replay import replay_session
 
-    recorded = load_recorded_session(path)
+    # CRCs are not validated here: the integrity check names every damaged
+    # chunk and message; the reproduction compares what the file holds.
+    try:
+        recorded = load_session_facts(open_recording(path, validate_crcs=False))
+    except RecordingError as exc:
+        return {"passed": False, "error": f"the session cannot be replayed: {exc}", "differences": []}
     sink = MemorySink(skip_topics=RAW_TOPICS)
     capture = SessionRecorder(sink)
     with tempfile.TemporaryDirectory(prefix="crossfield-audit-") as tmp:
@@ -270,11 +284,14 @@ def reproduction(path: Path, pm: pluggy.PluginManager, *, limit: int = 500) -> d
             if not capture.closed:
                 capture.close()
     rec = recorded.recording
-    recorded_messages = [
-        (m.topic, m.log_time_ns, m.sequence, m.data)
-        for m in rec.messages(decode=False, file_order=True)
-        if m.topic not in RAW_TOPICS
-    ]
+    try:
+        recorded_messages = [
+            (m.topic, m.log_time_ns, m.sequence, m.data)
+            for m in rec.messages(decode=False, file_order=True)
+            if m.topic not in RAW_TOPICS
+        ]
+    except RecordingError as exc:
+        return {"passed": False, "error": f"the recorded results cannot be read: {exc}", "differences": []}
     # The log is compared apart: a live run may log device events (a link
     # lost and back, a timeout) that a replay of the recorded bytes cannot
     # see; every result a log line reports is also on /frames, /reference or
@@ -370,9 +387,140 @@ def reproduction(path: Path, pm: pluggy.PluginManager, *, limit: int = 500) -> d
 # --------------------------------------------------------------------------
 
 
-def audit(path: str | Path, pm: pluggy.PluginManager, *, reproduce: bool = True) -> AuditReport:
-    """Run the three checks on ``path`` (``RecordingError`` if it is not a crossfield recording)."""
+# --------------------------------------------------------------------------
+# The seal: the chain head and file SHA-256 against what was kept outside
+# --------------------------------------------------------------------------
+
+
+def parse_head(text: str) -> str:
+    """A chain head given by the user (``--expect-head``): 64 hex digits."""
+    head = str(text).strip().lower()
+    if not seal.is_digest(head):
+        raise ConfigError(f"--expect-head: {text!r} is not a SHA-256 chain head (64 hex digits)")
+    return head
+
+
+def seal_check(
+    path: Path,
+    integrity: IntegrityResult,
+    actual_sha256: str,
+    *,
+    expect_head: str | None = None,
+    public_key: str | Path | None = None,
+) -> dict[str, Any]:
+    """Check the recording's chain head and SHA-256 against the sidecar, a head
+    kept elsewhere (``expect_head``) and the station's signature (``public_key``).
+
+    ``level`` says what the audit proves (docs/replay-and-audit.md): "self-consistency"
+    (the file agrees with itself), "agreement with a head kept elsewhere",
+    "signed by the station's key".
+    """
+    problems: list[str] = []
+    notes: list[str] = []
+    head = integrity.chain_sha256
+    final = integrity.final_record_doc or {}
+    recorded_head = final.get("chain_sha256")
+    levels = ["self-consistency"]
+    try:
+        sidecar = seal.read_sidecar(path)
+    except seal.SealError as exc:
+        sidecar = None
+        problems.append(str(exc))
+    if sidecar is None:
+        notes.append(f"no seal next to the recording ({seal.sidecar_path(path).name})")
+    else:
+        if sidecar.get("file_sha256") != actual_sha256:
+            problems.append(
+                f"the file's SHA-256 {actual_sha256} differs from its seal's {sidecar.get('file_sha256')} "
+                f"({seal.sidecar_path(path).name})"
+            )
+        if sidecar.get("chain_head") != head:
+            problems.append(
+                f"the chain head {head} differs from its seal's {sidecar.get('chain_head')} "
+                f"({seal.sidecar_path(path).name})"
+            )
+    expected = None
+    if expect_head is not None:
+        expected = parse_head(expect_head)
+        if expected == head and recorded_head == head:
+            levels.append("agreement with a head kept elsewhere")
+        else:
+            problems.append(f"the chain head {head} is not the expected {expected}")
+    signature: dict[str, Any] = {"in_file": final.get("signature"), "checked": False}
+    if sidecar is not None:
+        signature["sidecar"] = sidecar.get("signature")
+    if public_key is not None:
+        key = seal.load_public_key(public_key)
+        key_hex = seal.public_key_hex(key)
+        signature.update(checked=True, public_key=key_hex)
+        in_file = final.get("signature")
+        ok_file = (
+            in_file is not None
+            and recorded_head == head
+            and seal.signature_valid(key, in_file, seal.head_statement(head))
+        )
+        signature["in_file_valid"] = ok_file
+        if in_file is None:
+            problems.append("the recording is not signed (no signature in its final /integrity record)")
+        elif not ok_file:
+            problems.append(
+                f"the signature in the recording is not a valid signature of its chain head {head} "
+                f"by the key {key_hex}"
+            )
+        if sidecar is not None and sidecar.get("signature") is not None:
+            ok_side = (
+                sidecar.get("chain_head") == head
+                and sidecar.get("file_sha256") == actual_sha256
+                and seal.signature_valid(key, sidecar["signature"], seal.seal_statement(head, actual_sha256))
+            )
+            signature["sidecar_valid"] = ok_side
+            if not ok_side:
+                problems.append(
+                    f"the seal's signature is not the key {key_hex}'s signature of this file's "
+                    f"chain head and SHA-256"
+                )
+        if ok_file and not problems:
+            levels.append("signed by the station's key")
+    elif final.get("signature") is not None:
+        notes.append(
+            f"the recording is signed by the key {final['signature'].get('public_key')}; "
+            f"give --public-key to check it against the station's key"
+        )
+    return {
+        "passed": not problems,
+        "level": levels[-1],
+        "levels": levels,
+        "chain_head": head,
+        "recorded_chain_head": recorded_head,
+        "file_sha256": actual_sha256,
+        "expected_head": expected,
+        "sidecar": sidecar,
+        "signature": signature,
+        "problems": problems,
+        "notes": notes,
+    }
+
+
+def audit(
+    path: str | Path,
+    pm: pluggy.PluginManager,
+    *,
+    reproduce: bool = True,
+    expect_head: str | None = None,
+    public_key: str | Path | None = None,
+) -> AuditReport:
+    """Run the checks on ``path`` (``RecordingError`` if it is not a crossfield recording).
+
+    expect_head: the chain head kept outside the file (printed by ``crossfield
+    run``, in report.json and the seal); public_key: the station's Ed25519
+    public key (PEM file or 64 hex digits). Both are checked before anything
+    is replayed (a bad value is a :class:`ConfigError`).
+    """
     path = Path(path)
+    if expect_head is not None:
+        parse_head(expect_head)
+    if public_key is not None:
+        seal.load_public_key(public_key)
     rec = open_recording(path)
     require_session(rec)
     integrity = verify(path)
@@ -381,17 +529,31 @@ def audit(path: str | Path, pm: pluggy.PluginManager, *, reproduce: bool = True)
         repro = reproduction(path, pm)
     else:
         repro = {"passed": False, "skipped": "not run (--no-replay)", "differences": []}
+    digest = file_sha256(path)
+    ended = prov.get("result") is not None
     report = AuditReport(
         path=str(path),
-        file_sha256=file_sha256(path),
-        complete=rec.complete and integrity.complete,
+        file_sha256=digest,
+        complete=rec.complete and integrity.complete and ended,
         integrity=integrity,
         provenance=prov,
         reproduction=repro,
+        seal=seal_check(path, integrity, digest, expect_head=expect_head, public_key=public_key),
     )
     if not report.complete:
-        report.notes.append(f"INCOMPLETE recording: {integrity.ends}")
+        report.notes.append(f"INCOMPLETE recording: {incomplete_reason(report)}")
     return report
+
+
+def incomplete_reason(report: AuditReport) -> str:
+    """Why the audited session is incomplete: the file was cut short, or the
+    session did not end normally (interrupted: no ``crossfield.result`` record)."""
+    if not report.integrity.complete:
+        return report.integrity.ends
+    return (
+        f"the session did not end normally: no {L.META_RESULT!r} record (interrupted, e.g. by Ctrl-C, "
+        f"before its results were written)"
+    )
 
 
 def _section(title: str, ok: bool, text: str = "") -> str:
@@ -416,16 +578,19 @@ def format_report(report: AuditReport, *, limit: int = 40) -> str:
         for key, c in (changed.get("options") or {}).items():
             lines.append(f"    changed {key}: {c.get('from')!r} -> {c.get('to')!r}")
     if not report.complete:
-        lines.append(f"  INCOMPLETE: {report.integrity.ends}")
+        lines.append(f"  INCOMPLETE: {incomplete_reason(report)}")
     lines.append("")
 
     integ = report.integrity
     if integ.passed:
-        text = f"{integ.messages} messages, {integ.records} records, chain head {integ.chain_sha256}"
+        text = (
+            f"{integ.messages} messages and {integ.entries - integ.messages} other records chained "
+            f"in {integ.records} {L.TOPIC_INTEGRITY} records, chain head {integ.chain_sha256}"
+        )
     elif report.intact:
         text = (
-            f"intact up to where the file ends: {integ.covered} of {integ.messages} messages covered by "
-            f"{integ.records} records; incomplete"
+            f"intact up to where the file ends: {integ.covered} of {integ.entries} records covered by "
+            f"{integ.records} {L.TOPIC_INTEGRITY} records; incomplete"
         )
     else:
         text = f"{len([p for p in integ.problems if p.kind not in _TRUNCATION])} finding(s)"
@@ -502,6 +667,18 @@ def format_report(report: AuditReport, *, limit: int = 40) -> str:
                     f"  - only in the replay (missing from the recording): "
                     f"{name_message(m['topic'], m['sequence'], m['log_time_ns'])}"
                 )
+    sealed = report.seal
+    lines.append(
+        _section(
+            "seal",
+            sealed.get("passed", False),
+            f"chain head {sealed.get('chain_head')}; proves: {sealed.get('level')}",
+        )
+    )
+    for p in sealed.get("problems", []):
+        lines.append(f"  - {p}")
+    for n in sealed.get("notes", []):
+        lines.append(f"  note: {n}")
     lines.append("")
     lines.append(
         f"Audit: {'PASS' if report.passed else 'FAIL'}"

@@ -10,6 +10,7 @@ import os
 import signal
 import sys
 from collections.abc import Iterator
+from pathlib import Path
 from typing import TYPE_CHECKING, Sequence
 
 from crossfield.config import SIMULATOR_OPTIONS, Config, session_config
@@ -121,6 +122,21 @@ def build_parser() -> argparse.ArgumentParser:
     audit.add_argument("recording", metavar="SESSION.mcap")
     audit.add_argument("--json", action="store_true", help="machine-readable output")
     audit.add_argument("--no-replay", action="store_true", help="skip the reproduction check")
+    audit.add_argument(
+        "--expect-head", metavar="HEX", help="the chain head kept outside the file (printed by `crossfield run`)"
+    )
+    audit.add_argument(
+        "--public-key", metavar="KEY", help="the station's Ed25519 public key (PEM file or 64 hex digits)"
+    )
+    keygen = command(
+        "keygen",
+        help="make an Ed25519 station key that signs recordings ([session] signing_key)",
+        description="Write a new Ed25519 private key to PATH (PEM, mode 0600) and its public key to "
+        "PATH.pub. Set [session] signing_key = PATH to sign every recording's seal; give PATH.pub to "
+        "`crossfield audit --public-key`.",
+    )
+    keygen.add_argument("path", metavar="PATH")
+    keygen.add_argument("--force", action="store_true", help="overwrite an existing key")
 
     view = command(
         "view",
@@ -199,10 +215,21 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     impl = get_implementation(pm, "report", reporter).create(dict(config.stages["report"].options))
     print(impl.summary_text(summary))
+    print_seal(summary.info.out_dir / "session.mcap")
     print(f"session written to {summary.info.out_dir}/")
     for path in sorted(summary.info.out_dir.iterdir()):
-        print(f"  {path.name:<14} {path.stat().st_size / 1e6:9.2f} MB")
+        print(f"  {path.name:<22} {path.stat().st_size / 1e6:9.2f} MB")
     return 0 if summary.passed else 1
+
+
+def print_seal(recording: Path) -> None:
+    """Print the recording's chain head and file SHA-256 (its seal), if it was sealed."""
+    from crossfield.recording.seal import read_sidecar, sidecar_path
+
+    sealed = read_sidecar(recording) if sidecar_path(recording).exists() else None
+    if sealed is not None:
+        print(f"integrity chain head {sealed['chain_head']}")
+        print(f"file SHA-256         {sealed['file_sha256']}" + ("  (signed)" if sealed.get("signature") else ""))
 
 
 def cmd_plugins(args: argparse.Namespace) -> int:
@@ -277,11 +304,13 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if summary.incomplete:
         print(f"INCOMPLETE: {summary.incomplete}")
     print(impl.summary_text(summary))
+    if not args.no_record:
+        print_seal(Path(args.output) if args.output else summary.info.out_dir / "session.mcap")
     if args.output and not args.no_record:
         print(f"replay recorded to {args.output}")
     print(f"session files in {summary.info.out_dir}/")
     for path in sorted(summary.info.out_dir.iterdir()):
-        print(f"  {path.name:<14} {path.stat().st_size / 1e6:9.2f} MB")
+        print(f"  {path.name:<22} {path.stat().st_size / 1e6:9.2f} MB")
     return 0 if summary.passed else 1
 
 
@@ -299,9 +328,24 @@ def cmd_compare(args: argparse.Namespace) -> int:
 def cmd_audit(args: argparse.Namespace) -> int:
     from crossfield.audit import audit, format_report, to_json
 
-    report = audit(args.recording, plugin_manager(), reproduce=not args.no_replay)
+    report = audit(
+        args.recording,
+        plugin_manager(),
+        reproduce=not args.no_replay,
+        expect_head=args.expect_head,
+        public_key=args.public_key,
+    )
     print(to_json(report) if args.json else format_report(report))
     return 0 if report.passed else 1
+
+
+def cmd_keygen(args: argparse.Namespace) -> int:
+    from crossfield.recording.seal import generate_key
+
+    private, public, key_hex = generate_key(args.path, overwrite=args.force)
+    print(f"private key {private} (keep it on the station; [session] signing_key = {str(private)!r})")
+    print(f"public key  {public}  {key_hex}")
+    return 0
 
 
 def cmd_view(args: argparse.Namespace) -> int:
@@ -320,7 +364,7 @@ def cmd_view(args: argparse.Namespace) -> int:
 
 
 COMMANDS = {
-    "run": cmd_run, "replay": cmd_replay, "compare": cmd_compare, "audit": cmd_audit, "plugins": cmd_plugins,
+    "run": cmd_run, "replay": cmd_replay, "compare": cmd_compare, "audit": cmd_audit, "keygen": cmd_keygen, "plugins": cmd_plugins,
     "view": cmd_view,
 }
 

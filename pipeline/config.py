@@ -49,6 +49,7 @@ SESSION_DEFAULTS: dict[str, Any] = {
     "rerun": True,
     "rerun_image_every": 5,  # session.rrd: images of every n-th pair (0 = none); docs/visualisation.md
     "match_tolerance_mm": 0.5,  # rigid-distance agreement for control-point matching
+    "signing_key": "",  # Ed25519 station key (PEM) that signs the recording's seal; docs/replay-and-audit.md
 }
 
 

@@ -45,7 +45,7 @@ from crossfield.types import CAMERAS, StereoFrame
 READABLE_FORMATS = L.READABLE_FORMATS
 
 #: Session keys that say where and how a replay is written, not what it computes.
-OUTPUT_KEYS = ("name", "output_dir", "record", "rerun", "rerun_image_every")
+OUTPUT_KEYS = ("name", "output_dir", "record", "rerun", "rerun_image_every", "signing_key")
 
 #: The facts of a recorded session (:class:`crossfield.recording.facts.SessionFacts`).
 RecordedSession = SessionFacts
@@ -109,6 +109,12 @@ class RecordingSource:
             notes.append(
                 f"the recording {rec.path} is incomplete ({rec.damage}); {self.frames_read} stereo pair(s) "
                 f"replayed, {ends}"
+            )
+        elif self.recorded.result is None:
+            notes.append(
+                f"the session recorded in {rec.path} did not end normally (no {L.META_RESULT!r} record: "
+                f"it was interrupted, e.g. by Ctrl-C, before its results were written); "
+                f"{self.frames_read} stereo pair(s) replayed"
             )
         for seq, entry in sorted(pending.items()):
             have = [c for c in CAMERAS if c in entry]

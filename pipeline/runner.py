@@ -265,7 +265,9 @@ def _session_observers(
     if config.session.get("record", True):
         from crossfield.recording.recorder import McapRecorder
 
-        observers.append(McapRecorder(mcap_path or out_dir / "session.mcap"))
+        observers.append(
+            McapRecorder(mcap_path or out_dir / "session.mcap", signing_key=config.session.get("signing_key") or None)
+        )
     if config.session.get("rerun", True):
         from crossfield.viz.rerun_log import RerunLogger
 

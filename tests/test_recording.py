@@ -1003,3 +1003,47 @@ def test_replay_and_the_viewer_load_the_same_facts_and_refuse_the_same_damage(se
     rewrite_mcap(good, bad, attachments=no_plan)
     with pytest.raises(RecordingError, match=r"attachment 'plan.toml' is missing"):
         load_session_facts(bad)
+
+
+def test_file_order_reading_streams_one_chunk_at_a_time(tmp_path):
+    """Replay and audit read in file order; the reader must hand out the first
+    messages having read only the first chunks (the mcap library's own file-order
+    iteration reads every chunk first: memory grew with the session), and give
+    exactly the messages, in the order, of a plain sequential read."""
+    from mcap.records import Channel, Message
+    from mcap.stream_reader import StreamReader
+
+    from crossfield.recording.reader import Recording
+
+    synthetic = Synthetic(tmp_path, seed=2)
+    path = tmp_path / "s.mcap"
+    synthetic.drive(make_plugin_manager(builtins=False, extra=[McapRecorder(path)]))
+    size = path.stat().st_size
+    assert size > 15e6  # 2 pairs of 4 MB images per camera: several chunks
+
+    rec = open_recording(path)
+    opened = []
+    original_open = Recording._open
+
+    def tracked_open(self):
+        f = original_open(self)
+        opened.append(f)
+        return f
+
+    rec._open = tracked_open.__get__(rec)
+    stream = rec.messages(decode=False, file_order=True)
+    first = next(stream)
+    assert opened and opened[-1].tell() < 0.3 * size, (opened[-1].tell(), size)
+    streamed = [first, *stream]
+
+    topics: dict[int, str] = {}
+    plain = []
+    with open(path, "rb") as f:
+        for r in StreamReader(f).records:
+            if isinstance(r, Channel):
+                topics.setdefault(r.id, r.topic)
+            elif isinstance(r, Message):
+                plain.append((topics[r.channel_id], r.sequence, r.log_time, bytes(r.data)))
+    assert [(m.topic, m.sequence, m.log_time_ns, m.data) for m in streamed] == plain
+    images = [m for m in rec.messages("/camera/lower/image", decode=False, file_order=True)]
+    assert [(m.sequence, m.data) for m in images] == [(s, d) for t, s, _, d in plain if t == "/camera/lower/image"]

@@ -28,8 +28,9 @@ from typing import Any, Self
 
 from mcap.exceptions import McapError
 from mcap.reader import SeekingReader
-from mcap.records import Attachment, Channel, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
+from mcap.data_stream import ReadDataStream
+from mcap.records import Attachment, Channel, Chunk, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap_protobuf.decoder import DecoderFactory
 
 from crossfield.errors import RecordingError
@@ -86,10 +87,17 @@ class RecordedAttachment:
 
 
 class Recording:
-    """An open session MCAP file (read-only). Use :func:`open_recording`."""
+    """An open session MCAP file (read-only). Use :func:`open_recording`.
 
-    def __init__(self, path: str | Path):
+    validate_crcs: check every chunk's CRC-32 while reading (a mismatch is a
+    :class:`RecordingError`). The audit reads with False: it checks the CRCs
+    itself (:mod:`crossfield.recording.integrity`), names the damaged
+    messages and goes on comparing what the file holds.
+    """
+
+    def __init__(self, path: str | Path, *, validate_crcs: bool = True):
         self.path = Path(path)
+        self.validate_crcs = validate_crcs
         self._decoders = DecoderFactory()
         self._decoder_cache: dict[tuple[int, int], Any] = {}
         self.damage: str | None = None
@@ -146,17 +154,16 @@ class Recording:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    @staticmethod
-    def _seeking(f: Any) -> SeekingReader:
+    def _seeking(self, f: Any) -> SeekingReader:
         f.seek(0)
-        return SeekingReader(f, validate_crcs=True)
+        return SeekingReader(f, validate_crcs=self.validate_crcs)
 
     # ---- sequential scan (damaged files) --------------------------------
 
     def _scan(self) -> Iterator[Any]:
         """Every record in file order, stopping quietly at damage."""
         with self._open() as f:
-            reader = StreamReader(f, validate_crcs=True)
+            reader = StreamReader(f, validate_crcs=self.validate_crcs)
             try:
                 yield from reader.records
             except _DAMAGE as exc:
@@ -235,11 +242,16 @@ class Recording:
         """Messages of ``topics`` (all when None) in log-time order, or in the
         order they were written when ``file_order`` (replay: the processing order).
 
+        In file order the file is streamed one chunk at a time, so memory does
+        not grow with the recording's length (replay and audit read this way).
         On a damaged recording: the messages before the damage, in file order.
         """
         if isinstance(topics, str):
             topics = [topics]
         wanted = None if topics is None else set(topics)
+        if self._summary is not None and file_order and self._summary.chunk_indexes:
+            yield from self._chunk_by_chunk(wanted, decode)
+            return
         if self._summary is not None:
             with self._open() as f:
                 reader = self._seeking(f)
@@ -264,6 +276,31 @@ class Recording:
                 if channel is None or (wanted is not None and channel.topic not in wanted):
                     continue
                 yield self._recorded(schemas.get(channel.schema_id), channel, record, decode)
+
+    def _chunk_by_chunk(self, wanted: set[str] | None, decode: bool) -> Iterator[RecordedMessage]:
+        """Messages in file order, reading one chunk at a time (the mcap library's
+        own file-order iteration reads every chunk before it yields a message)."""
+        summary = self._summary
+        channels = summary.channels
+        wanted_ids = None if wanted is None else {i for i, c in channels.items() if c.topic in wanted}
+        with self._open() as f:
+            try:
+                for index in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
+                    if wanted_ids is not None and index.message_index_offsets:
+                        if not wanted_ids & set(index.message_index_offsets):
+                            continue  # no wanted message in this chunk: not read
+                    f.seek(index.chunk_start_offset + 1 + 8)
+                    chunk = Chunk.read(ReadDataStream(f))
+                    for record in breakup_chunk(chunk, validate_crc=self.validate_crcs):
+                        if not isinstance(record, Message):
+                            continue
+                        channel = channels.get(record.channel_id)
+                        if channel is None or (wanted_ids is not None and record.channel_id not in wanted_ids):
+                            continue
+                        schema = summary.schemas.get(channel.schema_id) if channel.schema_id else None
+                        yield self._recorded(schema, channel, record, decode)
+            except _DAMAGE as exc:
+                raise RecordingError(f"{self.path}: damaged recording: {exc}") from None
 
     def _recorded(
         self, schema: Schema | None, channel: Channel, message: Message, decode: bool
@@ -338,6 +375,6 @@ class Recording:
         return found
 
 
-def open_recording(path: str | Path) -> Recording:
+def open_recording(path: str | Path, *, validate_crcs: bool = True) -> Recording:
     """Open a session MCAP for reading; :class:`RecordingError` if it is none."""
-    return Recording(path)
+    return Recording(path, validate_crcs=validate_crcs)

@@ -18,10 +18,14 @@ messages (:mod:`crossfield.recording.codec`) and gives them to a sink
 from __future__ import annotations
 
 import atexit
+import json
+import os
 from pathlib import Path
 from typing import Any, Self
 
+from crossfield.errors import RecordingError
 from crossfield.hookspecs import hookimpl
+from crossfield.recording.seal import Seal
 from crossfield.recording.writer import DEFAULT_CHUNK_SIZE, McapFileSink, SessionWriter, Sink
 
 
@@ -113,7 +117,10 @@ class McapRecorder(SessionRecorder):
 
     Options as :class:`crossfield.recording.writer.McapFileSink`: overwrite,
     chunk_size (bytes), writer_thread, queue_size, flush_interval_s (s),
-    compression. An error writing the file is raised as
+    compression, signing_key (a PEM Ed25519 private key file). When the file
+    is finished its seal (chain head, file SHA-256, signature) is written
+    next to it (:mod:`crossfield.recording.seal`) and into the session's
+    ``report.json`` (key ``integrity``). An error writing the file is raised as
     :class:`crossfield.errors.RecordingError` from the next hook call (and
     from :meth:`close`).
     """
@@ -128,6 +135,7 @@ class McapRecorder(SessionRecorder):
         queue_size: int = 8,
         flush_interval_s: float = 1.0,
         compression: str = "none",
+        signing_key: str | Path | None = None,
     ):
         sink = McapFileSink(
             path,
@@ -137,12 +145,49 @@ class McapRecorder(SessionRecorder):
             queue_size=queue_size,
             flush_interval_s=flush_interval_s,
             compression=compression,
+            signing_key=signing_key,
         )
         super().__init__(sink)
         self.path = sink.path
         atexit.register(self.close)
 
+    @property
+    def seal(self) -> Seal | None:
+        """The recording's seal once it is closed (None before, or if it failed)."""
+        return self.sink.seal
+
     def close(self) -> None:
-        """Finish the MCAP file (summary, indexes, footer) and close it. Idempotent."""
+        """Finish the MCAP file (summary, indexes, footer), close it and seal it. Idempotent."""
         atexit.unregister(self.close)
         super().close()
+
+    @hookimpl
+    def on_session_end(self, summary: Any) -> None:
+        super().on_session_end(summary)
+        sealed = self.seal
+        if sealed is None:
+            return
+        for path in summary.report_files:
+            if Path(path).name == REPORT_JSON:
+                add_seal_to_report(Path(path), sealed)
+
+
+#: The report file that carries the seal.
+REPORT_JSON = "report.json"
+
+
+def add_seal_to_report(path: Path, sealed: Seal) -> None:
+    """Add ``integrity`` (the seal) to the report.json at ``path``, written atomically."""
+    from crossfield.report.document import dumps
+
+    try:
+        report = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise RecordingError(f"{path}: cannot add the recording's seal: {exc}") from None
+    report["integrity"] = sealed.to_json()
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        tmp.write_text(dumps(report), encoding="utf-8")
+        os.replace(tmp, path)
+    except OSError as exc:
+        raise RecordingError(f"{path}: cannot add the recording's seal: {exc.strerror}") from None

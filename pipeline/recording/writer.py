@@ -50,6 +50,7 @@ from crossfield.errors import RecordingError
 from crossfield.provenance import crossfield_version, machine_info
 from crossfield.jsonable import plain, real, reals
 from crossfield.recording import layout as L
+from crossfield.recording import seal
 from crossfield.recording.codec import (
     FramePose,
     SchemaSpec,
@@ -74,7 +75,7 @@ from crossfield.recording.codec import (
     upper_to_lower_pose,
     utc_text,
 )
-from crossfield.recording.integrity import IntegrityChain
+from crossfield.recording.integrity import IntegrityChain, file_sha256
 from crossfield.types import CAMERAS, CameraPoints
 
 #: Chunk compression by name. "none" is the default: lz4 costs ~9 ms and zstd
@@ -222,7 +223,9 @@ class _McapFile:
         self.channels: dict[ChannelSpec, int] = {}
         self.flush_interval_s = flush_interval_s
         self.last_flush = time.monotonic()
+        # Every record is chained in the order it lands in the file (integrity.py).
         self.chain = IntegrityChain()
+        self.chain.add_header("", library)
 
     def _channel_id(self, spec: ChannelSpec) -> int:
         channel_id = self.channels.get(spec)
@@ -235,10 +238,12 @@ class _McapFile:
                         spec.schema.name, spec.schema.encoding, spec.schema.data
                     )
                     self.schemas[spec.schema] = schema_id
+                    self.chain.add_schema(schema_id, spec.schema.name, spec.schema.encoding, spec.schema.data)
             channel_id = self.writer.register_channel(
                 spec.topic, spec.message_encoding, schema_id, dict(spec.metadata)
             )
             self.channels[spec] = channel_id
+            self.chain.add_channel(channel_id, spec.topic, spec.message_encoding, schema_id, dict(spec.metadata))
         return channel_id
 
     def message(self, spec: ChannelSpec, log_time: int, data: bytes, sequence: int) -> None:
@@ -249,19 +254,28 @@ class _McapFile:
             self.flush()
 
     def metadata(self, name: str, record: dict[str, str]) -> None:
+        # Metadata and attachments are written outside chunks: finish the open
+        # chunk first, so that the file order is the order of the chain.
+        self.writer.flush()
         self.writer.add_metadata(name, record)
         self.chain.add_metadata(name, record)
 
     def attachment(self, name: str, media_type: str, data: bytes, log_time: int) -> None:
+        self.writer.flush()
         self.writer.add_attachment(int(log_time), int(log_time), name, media_type, data)
-        self.chain.add_attachment(name, media_type, data)
+        self.chain.add_attachment(name, media_type, int(log_time), int(log_time), data)
 
-    def _integrity_record(self, final: bool) -> None:
-        """Write the next /integrity record into the open chunk (:mod:`crossfield.recording.integrity`)."""
+    def _integrity_record(self, final: bool, signing_key: Any = None) -> None:
+        """Write the next /integrity record into the open chunk (:mod:`crossfield.recording.integrity`);
+        the final one signed with ``signing_key`` when given (:mod:`crossfield.recording.seal`)."""
         t = self.chain.latest_time_ns or time.time_ns()
         index = self.chain.index
-        data = self.chain.record(final)
-        self.writer.add_message(self._channel_id(INTEGRITY_CHANNEL), t, data, t, index & 0xFFFFFFFF)
+        channel_id = self._channel_id(INTEGRITY_CHANNEL)  # chained before the record that covers it
+        extra = None
+        if final and signing_key is not None:
+            extra = {"signature": seal.sign(signing_key, seal.head_statement(self.chain.head.hex()))}
+        data = self.chain.record(final, extra)
+        self.writer.add_message(channel_id, t, data, t, index & 0xFFFFFFFF)
 
     def flush(self) -> None:
         """Close the open chunk and hand everything to the OS (no fsync). The
@@ -271,10 +285,12 @@ class _McapFile:
         self.writer.flush()
         self.last_flush = time.monotonic()
 
-    def finish(self) -> None:
-        self._integrity_record(final=True)
+    def finish(self, signing_key: Any = None) -> str:
+        """Write the final record and the summary; returns the file's chain head (hex)."""
+        self._integrity_record(final=True, signing_key=signing_key)
         self.writer.finish()
         self.stream.flush()
+        return self.chain.head.hex()
 
 
 _CLOSE = object()
@@ -304,8 +320,12 @@ class McapFileSink:
         queue_size: int = 8,
         flush_interval_s: float = 1.0,
         compression: str = "none",
+        signing_key: str | Path | None = None,
     ):
         self.path = Path(path)
+        #: The seal (chain head, file SHA-256, signature, sidecar) once closed.
+        self.seal: seal.Seal | None = None
+        self._signing_key = seal.load_private_key(signing_key) if signing_key else None
         if compression not in COMPRESSIONS:
             raise ValueError(f"compression must be one of {', '.join(COMPRESSIONS)}, got {compression!r}")
         try:
@@ -381,15 +401,32 @@ class McapFileSink:
         if self._thread is not None and self._queue is not None:
             self._queue.put(_CLOSE)
             self._thread.join()
+        head = None
         try:
             if self._error is None:
-                self._file.finish()
+                head = self._file.finish(self._signing_key)
         except Exception as exc:  # noqa: BLE001 - reported below as RecordingError
             self._error = exc
         finally:
             self._stream.close()
         if self._error is not None:
             raise RecordingError(f"{self.path}: recording failed: {self._error}") from self._error
+        if head is not None:
+            self._seal(head)
+
+    def _seal(self, head: str) -> None:
+        """The chain head and the file's SHA-256 leave the file: the sidecar (signed
+        with the station key when there is one)."""
+        digest = file_sha256(self.path)
+        signature = None
+        if self._signing_key is not None:
+            signature = seal.sign(self._signing_key, seal.seal_statement(head, digest))
+        sealed = seal.Seal(self.path, head, digest, signature)
+        try:
+            sidecar = seal.write_sidecar(sealed)
+        except seal.SealError as exc:
+            raise RecordingError(f"{self.path}: the recording is finished but not sealed: {exc}") from None
+        self.seal = seal.Seal(self.path, head, digest, signature, sidecar)
 
 
 # --------------------------------------------------------------------------
