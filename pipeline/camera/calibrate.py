@@ -431,3 +431,23 @@ def calibrate_images(
     check_mirrored(detections, images, board, bit_depth, settings.min_views)
     sizes = {cam: (images[0][cam].shape[1], images[0][cam].shape[0]) for cam in CAMERAS}
     return solve_stereo(detections, sizes, board, settings, names=names, source=source)
+
+
+def settings_from_dict(data: Mapping[str, object], source: str = "<calibration>") -> CalibrationSettings:
+    """:class:`CalibrationSettings` from a ``[calibration]`` table; errors name ``source`` and the key."""
+    fields = CalibrationSettings.__dataclass_fields__
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        raise CalibrationError(f"{source}: [calibration] unknown key {unknown[0]!r} (keys: {', '.join(fields)})")
+    values = {}
+    for key, value in data.items():
+        default = fields[key].default
+        if isinstance(default, str) != isinstance(value, str) or isinstance(value, bool):
+            raise CalibrationError(f"{source}: [calibration] {key} must be a {type(default).__name__}, got {value!r}")
+        if isinstance(default, int) and not isinstance(default, bool) and not isinstance(value, int):
+            raise CalibrationError(f"{source}: [calibration] {key} must be an integer, got {value!r}")
+        values[key] = float(value) if isinstance(default, float) else value
+    try:
+        return CalibrationSettings(**values)
+    except CalibrationError as exc:
+        raise CalibrationError(f"{source}: [calibration] {exc}") from None
