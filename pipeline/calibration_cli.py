@@ -88,11 +88,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
     board, settings = _board_and_settings(args.board, args.distortion)
     if args.scenario:
-        from crossfield.simulator.board_views import render_calibration_views
+        from crossfield.simulator.board_views import cached_calibration_views
 
         try:
-            views = render_calibration_views(args.scenario, n_views=args.views, seed=args.seed, board=board,
-                                             outlier_views=tuple(args.outlier_views))
+            views = cached_calibration_views(args.scenario, args.views, args.seed, board, tuple(args.outlier_views))
         except ValueError as exc:
             raise ConfigError(f"--scenario: {exc}") from None
         images, bit_depth = views.images, views.bit_depth

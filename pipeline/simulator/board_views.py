@@ -1,8 +1,8 @@
 """Simulated calibration views: a printed board seen by the station's stereo pair.
 
 Each pixel's value is the exact image of the printed pattern: every
-sub-sample of the pixel (``supersample``^2 of them) is cast back through the
-lens (distortion inverted, :func:`crossfield.simulator.optics.pixel_rays`)
+sub-sample of the pixel (``supersample``^2 of them, each in its own row and
+column of the pixel, :func:`sample_offsets`) is cast back through the lens (distortion inverted, :func:`crossfield.simulator.optics.pixel_rays`)
 and intersected with the board plane, where the printed pattern (a raster
 of ``texel_mm`` texels whose edges fall exactly on the squares' edges) is
 looked up. The pixel's coverage is then lit (a vignetted illumination),
@@ -32,37 +32,37 @@ from crossfield.simulator.render import SensorModel, add_noise, background_image
 from crossfield.simulator.scenarios import SCENARIOS, VIEW_CENTRE, station_calibration
 from crossfield.types import CAMERAS, CameraIntrinsics, StereoCalibration
 
-#: Reflectance of the surroundings, the black print and the white paper (0..1).
-BACKGROUND_REFLECTANCE = 0.08
-BLACK_REFLECTANCE = 0.06
+#: Reflectance of the surroundings and of the black print, in 1/255 of the white paper's.
+BACKGROUND_LEVEL = 20
+BLACK_LEVEL = 15
 #: DN of white paper at the image centre.
 WHITE_DN = 2900.0
 
 
 @dataclass(frozen=True)
 class BoardTexture:
-    """The printed board as a raster: reflectance (rows, cols) float32.
+    """The printed board as a raster: reflectance levels (rows, cols) uint8, 255 = white paper.
 
     origin_mm: board-frame (x, y) of texel [0, 0]'s top-left corner (mm);
     texel_mm: texel side (mm). The raster includes a white margin and one
     texel of surroundings all round (what a lookup outside the sheet gets).
     """
 
-    reflectance: np.ndarray
+    levels: np.ndarray
     origin_mm: tuple[float, float]
     texel_mm: float
 
     def sample(self, bx: np.ndarray, by: np.ndarray) -> np.ndarray:
-        """Reflectance at board-frame points (mm), nearest texel; any shape."""
-        rows, cols = self.reflectance.shape
+        """Reflectance (0..1) at board-frame points (mm), nearest texel; any shape."""
+        rows, cols = self.levels.shape
         c = np.clip(np.floor((bx - self.origin_mm[0]) / self.texel_mm), 0, cols - 1).astype(np.intp)
         r = np.clip(np.floor((by - self.origin_mm[1]) / self.texel_mm), 0, rows - 1).astype(np.intp)
-        return self.reflectance[r, c]
+        return self.levels[r, c] / np.float32(255)
 
     @property
     def corners_mm(self) -> np.ndarray:
         """(4, 2) board-frame corners of the sheet (mm)."""
-        rows, cols = self.reflectance.shape
+        rows, cols = self.levels.shape
         x0, y0 = self.origin_mm
         x1, y1 = x0 + cols * self.texel_mm, y0 + rows * self.texel_mm
         return np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
@@ -95,11 +95,11 @@ def board_texture(board: Board, *, texel_mm: float = 0.05, margin_mm: float | No
         for centre in board.object_points():
             inside = (x - centre[0]) ** 2 + (y - centre[1]) ** 2 <= (board.diameter_mm / 2) ** 2
             pattern[inside] = 0.0
-    pattern = BLACK_REFLECTANCE + (1.0 - BLACK_REFLECTANCE) * pattern
-    sheet = np.pad(pattern, n_margin, constant_values=1.0)
-    sheet = np.pad(sheet, 1, constant_values=BACKGROUND_REFLECTANCE)
+    pattern = np.where(pattern > 0.5, 255, BLACK_LEVEL).astype(np.uint8)
+    sheet = np.pad(pattern, n_margin, constant_values=255)
+    sheet = np.pad(sheet, 1, constant_values=BACKGROUND_LEVEL)
     origin = (ox - (n_margin + 1) * texel_mm, oy - (n_margin + 1) * texel_mm)
-    return BoardTexture(np.ascontiguousarray(sheet, dtype=np.float32), origin, float(texel_mm))
+    return BoardTexture(np.ascontiguousarray(sheet, dtype=np.uint8), origin, float(texel_mm))
 
 
 @lru_cache(maxsize=4)
@@ -120,27 +120,37 @@ def camera_rays(intrinsics: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray]:
     return _rays_cached(repr((K, D, intrinsics.image_size)).encode(), K, D, intrinsics.image_size)
 
 
-def _integrate(texture: BoardTexture, tx: np.ndarray, ty: np.ndarray, S: int, strip: int = 96) -> np.ndarray:
-    """Mean reflectance over each pixel: S x S sub-samples, the texel map interpolated bilinearly.
+def sample_offsets(n: int) -> np.ndarray:
+    """(n, 2) sub-pixel sample offsets (du, dv) in (-0.5, 0.5): a rank-1 lattice ("n rooks").
 
-    tx, ty: (rows, cols) texel coordinates of the pixel centres. The map is
-    smooth, so its bilinear interpolation at the sub-sample centres
-    (``cv2.resize`` samples at (i + 0.5) / S - 0.5) is exact to second
-    order; ``cv2.resize(INTER_AREA)`` then averages each S x S block.
-    Worked in strips of ``strip`` rows (with one row of overlap) to bound memory.
+    Every sample has its own column and row (offsets (i + 1/2)/n), so an edge
+    parallel to the pixel grid is resolved to 1/n px, not 1/sqrt(n) as on a
+    regular grid; the generator (the integer nearest 0.38 n coprime to n,
+    a Fibonacci lattice) spreads the samples evenly over the pixel.
     """
-    rows, cols = tx.shape
-    out = np.empty((rows, cols), np.float32)
-    for r0 in range(0, rows, strip):
-        r1 = min(r0 + strip, rows)
-        a0, a1 = max(r0 - 1, 0), min(r1 + 1, rows)
-        size = (cols * S, (a1 - a0) * S)
-        mx = cv2.resize(tx[a0:a1], size, interpolation=cv2.INTER_LINEAR)
-        my = cv2.resize(ty[a0:a1], size, interpolation=cv2.INTER_LINEAR)
-        fine = cv2.remap(texture.reflectance, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
-        block = cv2.resize(fine, (cols, a1 - a0), interpolation=cv2.INTER_AREA)
-        out[r0:r1] = block[r0 - a0 : r0 - a0 + (r1 - r0)]
-    return out
+    g = max(1, int(round(0.382 * n)))
+    while np.gcd(g, n) != 1:
+        g += 1
+    i = np.arange(n)
+    return np.stack([(i + 0.5) / n - 0.5, ((i * g) % n + 0.5) / n - 0.5], axis=1)
+
+
+def _integrate(texture: BoardTexture, tx: np.ndarray, ty: np.ndarray, n_samples: int) -> np.ndarray:
+    """Mean reflectance over each pixel from ``n_samples`` sub-samples (:func:`sample_offsets`).
+
+    tx, ty: (rows, cols) float64 texel coordinates of the pixel centres. The
+    map pixel -> texel is smooth: a sub-sample at (du, dv) is looked up at
+    ``t + du dt/du + dv dt/dv`` (first order; the Jacobian by central differences).
+    """
+    tx_v, tx_u = (g.astype(np.float32) for g in np.gradient(tx))
+    ty_v, ty_u = (g.astype(np.float32) for g in np.gradient(ty))
+    tx32, ty32 = tx.astype(np.float32), ty.astype(np.float32)
+    acc = np.zeros(tx.shape, np.uint16)
+    for du, dv in sample_offsets(n_samples):
+        mx = cv2.scaleAdd(tx_v, float(dv), cv2.scaleAdd(tx_u, float(du), tx32))
+        my = cv2.scaleAdd(ty_v, float(dv), cv2.scaleAdd(ty_u, float(du), ty32))
+        acc += cv2.remap(texture.levels, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+    return acc.astype(np.float32) / np.float32(255 * n_samples)
 
 
 def render_board(
@@ -158,7 +168,7 @@ def render_board(
     width, height = intrinsics.image_size
     R = np.asarray(R_camera_board, float)
     t = np.asarray(t_camera_board, float)
-    coverage = np.full((height, width), BACKGROUND_REFLECTANCE, np.float32)
+    coverage = np.full((height, width), BACKGROUND_LEVEL / 255, np.float32)
     # Region of interest: the sheet's outline, projected.
     edge = np.linspace(0.0, 1.0, 64)[:, None]
     c = texture.corners_mm
@@ -178,8 +188,7 @@ def render_board(
             # Texel coordinates for cv2.remap's nearest lookup (texel i covers [i - 0.5, i + 0.5)).
             tx = ((Hinv[0, 0] * x + Hinv[0, 1] * y + Hinv[0, 2]) / den - texture.origin_mm[0]) / texture.texel_mm - 0.5
             ty = ((Hinv[1, 0] * x + Hinv[1, 1] * y + Hinv[1, 2]) / den - texture.origin_mm[1]) / texture.texel_mm - 0.5
-            coverage[v0 : v1 + 1, u0 : u1 + 1] = _integrate(texture, tx.astype(np.float32), ty.astype(np.float32),
-                                                          int(supersample))
+            coverage[v0 : v1 + 1, u0 : u1 + 1] = _integrate(texture, tx, ty, int(supersample) ** 2)
     light = background_image(intrinsics.image_size, WHITE_DN, np.random.default_rng(illumination_seed))
     clean = cv2.GaussianBlur(coverage * light, (0, 0), sensor.blur_sigma_px)
     return add_noise(clean, sensor, rng)
@@ -296,5 +305,17 @@ def render_calibration_views(
         }
         if mirrored is not None:
             view[mirrored] = np.ascontiguousarray(view[mirrored][:, ::-1])
+        for image in view.values():
+            image.flags.writeable = False
         images.append(view)
     return CalibrationViews(board, calibration, tuple(poses), tuple(images), sensor.bit_depth, sensor)
+
+
+@lru_cache(maxsize=2)
+def cached_calibration_views(
+    scenario: str = "station", n_views: int = 20, seed: int = 1, board: Board | None = None,
+    outlier_views: tuple[int, ...] = (),
+) -> CalibrationViews:
+    """:func:`render_calibration_views`, remembered (the images are read-only): a process that
+    calibrates the same simulated session twice (the tests, the CLI in-process) renders it once."""
+    return render_calibration_views(scenario, n_views=n_views, seed=seed, board=board, outlier_views=outlier_views)
