@@ -99,6 +99,25 @@ def _half_window(image_points: np.ndarray, ids: np.ndarray, board: Board) -> int
     return int(np.clip(min(sides) / 3.0, 3, 15))
 
 
+def _first_square_black(grey8: np.ndarray, pts: np.ndarray, cols: int) -> np.ndarray:
+    """Order chessboard corners so that corner 0 touches the printed black top-left square.
+
+    findChessboardCornersSB may start from either end of the grid (a half
+    turn); the colours tell: the square beyond corner 0 is black, its
+    neighbour along the row white (``Board`` requires squares_x + squares_y
+    odd, so a half turn swaps the two).
+    """
+    h, w = grey8.shape
+
+    def value(p: np.ndarray) -> float:
+        x, y = int(round(p[0])), int(round(p[1]))
+        return float(grey8[min(max(y, 0), h - 1), min(max(x, 0), w - 1)])
+
+    outer = pts[0] + 0.5 * (pts[0] - pts[cols + 1])  # centre of square (0, 0)
+    beside = outer + (pts[1] - pts[0])  # centre of square (1, 0)
+    return pts if value(outer) < value(beside) else pts[::-1].copy()
+
+
 class BoardDetector:
     """Detects one :class:`Board` in grey images (reusable across images).
 
@@ -134,7 +153,7 @@ class BoardDetector:
             if not found:
                 return None
             ids = np.arange(self.board.n_points)
-            pts = corners.reshape(-1, 2).astype(np.float64)
+            pts = _first_square_black(grey8, corners.reshape(-1, 2).astype(np.float64), self.board.pattern_size[0])
             pts = _refine(image, pts, _half_window(pts, ids, self.board))
         else:
             found, centres = cv2.findCirclesGrid(

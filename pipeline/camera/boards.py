@@ -9,7 +9,8 @@ Three kinds of board, each a ``[board]`` table:
   with an even number of rows. Partial views are usable.
 * ``type = "chessboard"``: ``squares_x`` x ``squares_y`` squares of
   ``square_mm``; the inner corners ((squares_x - 1) x (squares_y - 1)) are
-  the points; the whole board must be in view.
+  the points; the whole board must be in view; squares_x + squares_y must
+  be odd (an even x odd board is not symmetric under a half turn).
 * ``type = "circles"``: OpenCV's asymmetric circle grid, ``circles_x``
   circles per row, ``circles_y`` rows, ``spacing_mm`` between the rows (a
   row's circles are ``2 * spacing_mm`` apart, every other row shifted by
@@ -176,6 +177,12 @@ def board_from_dict(data: dict[str, Any], source: str = "<board>") -> Board:
         if markers > size:
             raise ConfigError(f"{source}: [board] needs {markers} markers, dictionary {name} has only {size}")
         return board
+    if kind == "chessboard" and (values["squares_x"] + values["squares_y"]) % 2 == 0:
+        raise ConfigError(
+            f"{source}: [board] a chessboard of {values['squares_x']} x {values['squares_y']} squares looks the same "
+            f"after a half turn, so its corners cannot be numbered; use an odd number of squares one way and an "
+            f"even number the other (e.g. 9 x 6)"
+        )
     if kind == "circles" and not values["diameter_mm"] < 2 * values["spacing_mm"] * 0.7071:
         raise ConfigError(f"{source}: [board] circles overlap: diameter_mm must be < spacing_mm * sqrt(2)")
     return Board(**values)

@@ -172,10 +172,12 @@ def check_mirrored(
 ) -> None:
     """Refuse a camera whose views show the board reflected (raises :class:`CalibrationError`).
 
-    A chessboard or circle grid is found in a flipped image too, with the
-    orientation reversed (:meth:`BoardDetection.orientation`); ArUco
-    markers are not found in a flipped image at all, so when a camera has
-    too few ChArUco views the failed images are tried flipped.
+    Points whose board-to-image map reverses orientation
+    (:meth:`BoardDetection.orientation`) are reflected. ArUco markers are
+    chiral and are not found in a flipped image at all, so when a camera has
+    too few ChArUco views the failed images are tried flipped. (A plain
+    chessboard is its own mirror image: a flipped chessboard view cannot be
+    told from a real one, and shows only as an inconsistent stereo solution.)
     """
     for cam in CAMERAS:
         found = [d for view in detections if (d := view[cam]) is not None]

@@ -312,10 +312,14 @@ def render_calibration_views(
 
 
 @lru_cache(maxsize=2)
+def _cached_views(scenario: str, n_views: int, seed: int, board: Board, outlier_views: tuple[int, ...]):
+    return render_calibration_views(scenario, n_views=n_views, seed=seed, board=board, outlier_views=outlier_views)
+
+
 def cached_calibration_views(
     scenario: str = "station", n_views: int = 20, seed: int = 1, board: Board | None = None,
     outlier_views: tuple[int, ...] = (),
 ) -> CalibrationViews:
     """:func:`render_calibration_views`, remembered (the images are read-only): a process that
     calibrates the same simulated session twice (the tests, the CLI in-process) renders it once."""
-    return render_calibration_views(scenario, n_views=n_views, seed=seed, board=board, outlier_views=outlier_views)
+    return _cached_views(scenario, n_views, seed, default_board() if board is None else board, tuple(outlier_views))
