@@ -26,6 +26,9 @@ def add_parsers(sub) -> dict:
     src = cal.add_mutually_exclusive_group(required=True)
     src.add_argument("--images", metavar="DIR", help="folder of image pairs (upper_0000.png / lower_0000.png)")
     src.add_argument("--scenario", help="simulated views of a simulator scenario's rig (station or table3)")
+    src.add_argument("--replay", metavar="CAL.mcap",
+                     help="calibrate again from a recorded calibration's raw images (recorded board and settings "
+                     "unless --board / --distortion are given)")
     cal.add_argument("--board", metavar="BOARD.toml",
                      help="board definition ([board], optional [calibration]); default: ChArUco 11x8, 15 mm")
     cal.add_argument("-o", "--output", metavar="CALIB.yml", required=True, help="calibration file to write")
@@ -38,6 +41,7 @@ def add_parsers(sub) -> dict:
                      help="simulated views in which the board moves between the two exposures")
     cal.add_argument("--save-images", metavar="DIR", help="also write the simulated views as image pairs")
     cal.add_argument("--no-report", action="store_true", help="do not write the report")
+    cal.add_argument("--record", metavar="CAL.mcap", help="record the session (images, detections, result) to MCAP")
 
     ver = sub.add_parser(
         "verify",
@@ -87,7 +91,19 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from crossfield.camera.calibrate import calibrate_images
 
     board, settings = _board_and_settings(args.board, args.distortion)
-    if args.scenario:
+    if args.replay:
+        from dataclasses import replace
+
+        from crossfield.camera.calib_record import read_calibration_recording
+
+        recorded = read_calibration_recording(args.replay)
+        images, bit_depth, names = recorded.images, recorded.bit_depth, recorded.names
+        if not args.board:
+            board, settings = recorded.board, recorded.settings
+            if args.distortion:
+                settings = replace(settings, distortion=args.distortion)
+        source = f"crossfield calibrate --replay {args.replay}"
+    elif args.scenario:
         from crossfield.simulator.board_views import cached_calibration_views
 
         try:
@@ -109,6 +125,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         source = f"crossfield calibrate --images {args.images}"
     result = calibrate_images(images, board, bit_depth, settings, names=names, source=source)
     out = write_calibration_result(args.output, result)
+    if args.record:
+        from crossfield.camera.calib_record import record_calibration
+
+        record_calibration(args.record, images, names, bit_depth, result, source)
     c = result.calibration
     print(f"calibration written to {out}")
     print(f"  views: {len(images)} pairs, {len(result.used_stereo)} used in the stereo solution, "
@@ -129,6 +149,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         stem = out.with_name(out.stem + "-report")
         for path in write_report(result, stem):
             print(f"  report: {path}")
+    if args.record:
+        print(f"  recorded to {args.record}")
     return 0
 
 

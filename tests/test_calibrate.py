@@ -306,3 +306,30 @@ def test_calibrate_cli_errors_are_one_line(tmp_path, capsys):
     assert main(["calibrate", "--images", str(tmp_path), "-o", str(tmp_path / "c.yml")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("crossfield: error:") and "upper_0000.png: unreadable image" in err
+
+
+def test_calibration_session_records_and_replays(tmp_path, station_views, capsys):
+    """--record writes the raw pairs; --replay re-detects and re-solves them (same settings: same result).
+
+    The pairs go through the folder source's file format on the way (16-bit PNG), so
+    ``--images`` is exercised too."""
+    from crossfield.camera.calib_images import write_image_pairs
+    from crossfield.camera.calib_record import TOPIC_IMAGE, read_calibration_recording
+
+    folder = tmp_path / "views"
+    write_image_pairs(folder, station_views.images[:10])
+    first, mcap = tmp_path / "first.yml", tmp_path / "cal.mcap"
+    assert main(["calibrate", "--images", str(folder), "-o", str(first), "--record", str(mcap), "--no-report"]) == 0
+    recorded = read_calibration_recording(mcap)
+    assert len(recorded.images) == 10 and recorded.bit_depth == 12 and TOPIC_IMAGE.format(camera="upper")
+    np.testing.assert_array_equal(recorded.images[3]["lower"], station_views.images[3]["lower"])
+    again = tmp_path / "again.yml"
+    assert main(["calibrate", "--replay", str(mcap), "-o", str(again), "--no-report"]) == 0
+    a, b = read_stereo_calibration(first), read_stereo_calibration(again)
+    # Same images, same detections; OpenCV's multi-threaded solver agrees to ~1e-10, not bit for bit.
+    np.testing.assert_allclose(a.t_lower_upper, b.t_lower_upper, rtol=1e-8)
+    np.testing.assert_allclose(a.upper.camera_matrix, b.upper.camera_matrix, rtol=1e-8)
+    rational = tmp_path / "rational.yml"
+    assert main(["calibrate", "--replay", str(mcap), "-o", str(rational), "--distortion", "rational", "--no-report"]) == 0
+    assert len(read_stereo_calibration(rational).upper.dist_coeffs) == 8
+    capsys.readouterr()
