@@ -20,7 +20,6 @@ import time
 
 import cv2
 import numpy as np
-
 from crossfield.camera.calibrate import CalibrationSettings, detect_views, solve_stereo
 from crossfield.simulator.board_views import render_calibration_views
 
@@ -53,7 +52,9 @@ def main() -> None:
     t1 = time.perf_counter()
     detections = detect_views(views.images, views.board, views.bit_depth)
     t2 = time.perf_counter()
-    print(f"rendered {n_max} pairs in {t1 - t0:.1f} s; detection {1000 * (t2 - t1) / (2 * n_max):.0f} ms per image")
+    print(
+        f"rendered {n_max} pairs in {t1 - t0:.1f} s; detection {1000 * (t2 - t1) / (2 * n_max):.0f} ms per image"
+    )
     sizes = {c: views.calibration.camera(c).image_size for c in ("upper", "lower")}
     for n in args.pairs:
         ours, base = [], []
@@ -65,8 +66,10 @@ def main() -> None:
             rms = baseline(detections[:n], sizes["upper"])
             base.append(time.perf_counter() - s)
         a, b = float(np.median(ours)), float(np.median(base))
-        print(f"{n:3d} pairs: crossfield solve_stereo {a:.3f} s (stereo RMS {result.rms_stereo_px:.4f} px), "
-              f"cv2.stereoCalibrate alone {b:.3f} s (RMS {rms:.4f} px), ratio {a / b:.2f}")
+        print(
+            f"{n:3d} pairs: crossfield solve_stereo {a:.3f} s (stereo RMS {result.rms_stereo_px:.4f} px), "
+            f"cv2.stereoCalibrate alone {b:.3f} s (RMS {rms:.4f} px), ratio {a / b:.2f}"
+        )
 
 
 if __name__ == "__main__":

@@ -24,24 +24,46 @@ def add_parsers(sub) -> dict:
         "(<CALIB>-report.html/.json). Exit status 0 on success, 2 if the views cannot give a calibration.",
     )
     src = cal.add_mutually_exclusive_group(required=True)
-    src.add_argument("--images", metavar="DIR", help="folder of image pairs (upper_0000.png / lower_0000.png)")
+    src.add_argument(
+        "--images", metavar="DIR", help="folder of image pairs (upper_0000.png / lower_0000.png)"
+    )
     src.add_argument("--scenario", help="simulated views of a simulator scenario's rig (station or table3)")
-    src.add_argument("--replay", metavar="CAL.mcap",
-                     help="calibrate again from a recorded calibration's raw images (recorded board and settings "
-                     "unless --board / --distortion are given)")
-    cal.add_argument("--board", metavar="BOARD.toml",
-                     help="board definition ([board], optional [calibration]); default: ChArUco 11x8, 15 mm")
+    src.add_argument(
+        "--replay",
+        metavar="CAL.mcap",
+        help="calibrate again from a recorded calibration's raw images (recorded board and settings "
+        "unless --board / --distortion are given)",
+    )
+    cal.add_argument(
+        "--board",
+        metavar="BOARD.toml",
+        help="board definition ([board], optional [calibration]); default: ChArUco 11x8, 15 mm",
+    )
     cal.add_argument("-o", "--output", metavar="CALIB.yml", required=True, help="calibration file to write")
-    cal.add_argument("--pattern", default="{camera}_{seq}.png", help="image file-name pattern (as the folder source)")
-    cal.add_argument("--bit-depth", type=int, help="significant bits of 16-bit images (default: from the pixel values)")
-    cal.add_argument("--distortion", choices=("plumb_bob", "rational"), help="distortion model (default plumb_bob)")
+    cal.add_argument(
+        "--pattern", default="{camera}_{seq}.png", help="image file-name pattern (as the folder source)"
+    )
+    cal.add_argument(
+        "--bit-depth", type=int, help="significant bits of 16-bit images (default: from the pixel values)"
+    )
+    cal.add_argument(
+        "--distortion", choices=("plumb_bob", "rational"), help="distortion model (default plumb_bob)"
+    )
     cal.add_argument("--views", type=int, default=20, help="simulated views (--scenario; default 20)")
     cal.add_argument("--seed", type=int, default=1, help="noise seed of the simulated views (default 1)")
-    cal.add_argument("--outlier-views", type=int, nargs="*", default=[], metavar="K",
-                     help="simulated views in which the board moves between the two exposures")
+    cal.add_argument(
+        "--outlier-views",
+        type=int,
+        nargs="*",
+        default=[],
+        metavar="K",
+        help="simulated views in which the board moves between the two exposures",
+    )
     cal.add_argument("--save-images", metavar="DIR", help="also write the simulated views as image pairs")
     cal.add_argument("--no-report", action="store_true", help="do not write the report")
-    cal.add_argument("--record", metavar="CAL.mcap", help="record the session (images, detections, result) to MCAP")
+    cal.add_argument(
+        "--record", metavar="CAL.mcap", help="record the session (images, detections, result) to MCAP"
+    )
 
     ver = sub.add_parser(
         "verify",
@@ -51,14 +73,24 @@ def add_parsers(sub) -> dict:
         "across the measuring volume; per position the length measurement error E = measured - certified; the "
         "station passes if every |E| <= MPE. Writes <OUT>.json/.html (plot). Exit status 0 pass, 1 fail.",
     )
-    ver.add_argument("--scenario", default="station", help="simulator scenario providing the scale-bar positions")
+    ver.add_argument(
+        "--scenario", default="station", help="simulator scenario providing the scale-bar positions"
+    )
     ver.add_argument("--calibration", metavar="CALIB.yml", required=True, help="the calibration to verify")
-    ver.add_argument("--mpe", type=float, default=0.1, help="maximum permissible length error E_MPE (mm, default 0.1)")
-    ver.add_argument("--bar-mm", type=float, default=100.0, help="certified scale-bar length (mm, default 100)")
-    ver.add_argument("--bar-u-mm", type=float, default=0.002, help="standard uncertainty of the certified length (mm)")
+    ver.add_argument(
+        "--mpe", type=float, default=0.1, help="maximum permissible length error E_MPE (mm, default 0.1)"
+    )
+    ver.add_argument(
+        "--bar-mm", type=float, default=100.0, help="certified scale-bar length (mm, default 100)"
+    )
+    ver.add_argument(
+        "--bar-u-mm", type=float, default=0.002, help="standard uncertainty of the certified length (mm)"
+    )
     ver.add_argument("--frames", type=int, default=3, help="stereo pairs per position (default 3)")
     ver.add_argument("--seed", type=int, default=1, help="noise seed (default 1)")
-    ver.add_argument("-o", "--output", metavar="OUT", default="verification", help="report stem (default verification)")
+    ver.add_argument(
+        "-o", "--output", metavar="OUT", default="verification", help="report stem (default verification)"
+    )
     return {"calibrate": cmd_calibrate, "verify": cmd_verify}
 
 
@@ -107,7 +139,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         from crossfield.simulator.board_views import cached_calibration_views
 
         try:
-            views = cached_calibration_views(args.scenario, args.views, args.seed, board, tuple(args.outlier_views))
+            views = cached_calibration_views(
+                args.scenario, args.views, args.seed, board, tuple(args.outlier_views)
+            )
         except ValueError as exc:
             raise ConfigError(f"--scenario: {exc}") from None
         images, bit_depth = views.images, views.bit_depth
@@ -131,17 +165,23 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         record_calibration(args.record, images, names, bit_depth, result, source)
     c = result.calibration
     print(f"calibration written to {out}")
-    print(f"  views: {len(images)} pairs, {len(result.used_stereo)} used in the stereo solution, "
-          f"{len(result.held_out)} held out, {len({d.view for d in result.dropped if d.stage != 'detect'})} dropped")
+    print(
+        f"  views: {len(images)} pairs, {len(result.used_stereo)} used in the stereo solution, "
+        f"{len(result.held_out)} held out, {len({d.view for d in result.dropped if d.stage != 'detect'})} dropped"
+    )
     for d in result.dropped:
         print(f"  dropped {d.name} ({d.stage}): {d.reason}")
-    print(f"  RMS reprojection error: upper {result.cameras['upper'].rms_px:.4f} px, lower "
-          f"{result.cameras['lower'].rms_px:.4f} px, stereo {result.rms_stereo_px:.4f} px")
+    print(
+        f"  RMS reprojection error: upper {result.cameras['upper'].rms_px:.4f} px, lower "
+        f"{result.cameras['lower'].rms_px:.4f} px, stereo {result.rms_stereo_px:.4f} px"
+    )
     for cam in ("upper", "lower"):
         K = c.camera(cam).camera_matrix
         std = result.std_by_name()
-        print(f"  {cam}: fx {K[0, 0]:.2f} +- {std[cam + '.fx']:.2f} px, fy {K[1, 1]:.2f} +- {std[cam + '.fy']:.2f} px, "
-              f"cx {K[0, 2]:.2f} +- {std[cam + '.cx']:.2f} px, cy {K[1, 2]:.2f} +- {std[cam + '.cy']:.2f} px")
+        print(
+            f"  {cam}: fx {K[0, 0]:.2f} +- {std[cam + '.fx']:.2f} px, fy {K[1, 1]:.2f} +- {std[cam + '.fy']:.2f} px, "
+            f"cx {K[0, 2]:.2f} +- {std[cam + '.cx']:.2f} px, cy {K[1, 2]:.2f} +- {std[cam + '.cy']:.2f} px"
+        )
     print(f"  baseline |T| = {result.baseline_mm:.4f} +- {result.baseline_std_mm:.4f} mm")
     for k, (rms, mx) in sorted(result.holdout_epipolar_px.items()):
         print(f"  held-out {result.view_names[k]}: epipolar error RMS {rms:.3f} px, max {mx:.3f} px")

@@ -25,7 +25,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
 from crossfield.errors import CrossfieldError
 from crossfield.types import StereoCalibration, StereoCentroids, StereoFrame
 
@@ -62,12 +61,21 @@ class VerificationResult:
     def to_dict(self) -> dict[str, Any]:
         return {
             "kind": "crossfield length verification (VDI/VDE 2634-1 style)",
-            "certified_length_mm": self.certified_mm, "certified_u_mm": self.certified_u_mm,
-            "mpe_mm": self.mpe_mm, "max_abs_error_mm": self.max_abs_error_mm, "passed": self.passed,
-            "positions_required": MIN_POSITIONS, "calibration": self.calibration_source,
+            "certified_length_mm": self.certified_mm,
+            "certified_u_mm": self.certified_u_mm,
+            "mpe_mm": self.mpe_mm,
+            "max_abs_error_mm": self.max_abs_error_mm,
+            "passed": self.passed,
+            "positions_required": MIN_POSITIONS,
+            "calibration": self.calibration_source,
             "positions": [
-                {"name": p.name, "length_mm": p.length_mm, "error_mm": p.error_mm, "passed": p.passed,
-                 "frames": list(p.lengths_mm)}
+                {
+                    "name": p.name,
+                    "length_mm": p.length_mm,
+                    "error_mm": p.error_mm,
+                    "passed": p.passed,
+                    "frames": list(p.lengths_mm),
+                }
                 for p in self.positions
             ],
         }
@@ -76,13 +84,16 @@ class VerificationResult:
 def bar_length(frame: StereoFrame, centroid, triangulate, calibration: StereoCalibration) -> float:
     """Distance (mm) between the two targets of one stereo pair; an error unless exactly two are triangulated."""
     centroids = StereoCentroids(
-        frame.sequence, centroid.extract(frame.upper, "upper", frame.sequence),
+        frame.sequence,
+        centroid.extract(frame.upper, "upper", frame.sequence),
         centroid.extract(frame.lower, "lower", frame.sequence),
     )
     points = triangulate.triangulate(centroids, calibration)
     if len(points) != 2:
-        raise CrossfieldError(f"pair {frame.sequence}: {len(points)} targets triangulated, the scale bar has 2 "
-                              f"({'; '.join(points.rejected) or 'no rejections'})")
+        raise CrossfieldError(
+            f"pair {frame.sequence}: {len(points)} targets triangulated, the scale bar has 2 "
+            f"({'; '.join(points.rejected) or 'no rejections'})"
+        )
     return float(np.linalg.norm(points.xyz[0] - points.xyz[1]))
 
 
@@ -98,7 +109,9 @@ def evaluate(
 ) -> VerificationResult:
     """E per position from its frames (see the module docstring)."""
     if len(named_frames) < MIN_POSITIONS:
-        raise CrossfieldError(f"{len(named_frames)} scale-bar positions; VDI/VDE 2634-1 needs at least {MIN_POSITIONS}")
+        raise CrossfieldError(
+            f"{len(named_frames)} scale-bar positions; VDI/VDE 2634-1 needs at least {MIN_POSITIONS}"
+        )
     results = []
     for name, frames in named_frames:
         lengths = tuple(bar_length(f, centroid, triangulate, calibration) for f in frames)
@@ -131,12 +144,16 @@ def _plot_png(result: VerificationResult) -> str:
     fig, ax = plt.subplots(figsize=(7, 3.5))
     names = [p.name for p in result.positions]
     errors = [p.error_mm * 1000 for p in result.positions]
-    ax.bar(range(len(names)), errors, color=["tab:green" if p.passed else "tab:red" for p in result.positions])
+    ax.bar(
+        range(len(names)), errors, color=["tab:green" if p.passed else "tab:red" for p in result.positions]
+    )
     for sign in (-1, 1):
         ax.axhline(sign * result.mpe_mm * 1000, color="k", ls="--", lw=1)
     ax.set_xticks(range(len(names)), names, rotation=30, ha="right", fontsize=8)
     ax.set_ylabel("E (um)")
-    ax.set_title(f"length error E, L = {result.certified_mm:g} mm, MPE = {result.mpe_mm * 1000:g} um (dashed)")
+    ax.set_title(
+        f"length error E, L = {result.certified_mm:g} mm, MPE = {result.mpe_mm * 1000:g} um (dashed)"
+    )
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
     plt.close(fig)
@@ -151,19 +168,23 @@ def write_verification(result: VerificationResult, stem: str | Path) -> tuple[Pa
     json_path.write_text(json.dumps(data, indent=2, allow_nan=False), encoding="utf-8")
     rows = "".join(
         f"<tr><td>{html.escape(p.name)}</td><td>{p.length_mm:.4f}</td><td>{p.error_mm * 1000:+.1f}</td>"
-        f"<td>{'pass' if p.passed else 'FAIL'}</td></tr>" for p in result.positions
+        f"<td>{'pass' if p.passed else 'FAIL'}</td></tr>"
+        for p in result.positions
     )
-    html_path.write_text(f"""<!DOCTYPE html><html><head><meta charset="utf-8"><title>crossfield verification</title>
+    html_path.write_text(
+        f"""<!DOCTYPE html><html><head><meta charset="utf-8"><title>crossfield verification</title>
 <style>body{{font-family:sans-serif;max-width:60em;margin:auto}}td,th{{border:1px solid #ccc;padding:2px 6px}}
 table{{border-collapse:collapse}}</style></head><body>
-<h1>Length verification ({'PASS' if result.passed else 'FAIL'})</h1>
+<h1>Length verification ({"PASS" if result.passed else "FAIL"})</h1>
 <p>Scale bar L = {result.certified_mm:g} mm (u = {result.certified_u_mm * 1000:g} um); MPE = {result.mpe_mm * 1000:g} um;
 max |E| = {result.max_abs_error_mm * 1000:.1f} um over {len(result.positions)} positions.
 Calibration: {html.escape(result.calibration_source)}.</p>
 <img src="data:image/png;base64,{_plot_png(result)}" alt="E per position">
 <table><tr><th>position</th><th>measured (mm)</th><th>E (um)</th><th>result</th></tr>{rows}</table>
 </body></html>
-""", encoding="utf-8")
+""",
+        encoding="utf-8",
+    )
     return json_path, html_path
 
 
@@ -175,12 +196,15 @@ def run_verification_cli(args) -> int:
     from crossfield.simulator.scenarios import SCENARIOS, station_calibration
 
     if args.scenario not in SCENARIOS:
-        raise CrossfieldError(f"--scenario: unknown scenario {args.scenario!r}; scenarios: {', '.join(SCENARIOS)}")
+        raise CrossfieldError(
+            f"--scenario: unknown scenario {args.scenario!r}; scenarios: {', '.join(SCENARIOS)}"
+        )
     if not args.mpe > 0 or not args.bar_mm > 0 or args.frames < 1:
         raise CrossfieldError("--mpe and --bar-mm must be > 0 and --frames >= 1")
     truth = station_calibration()
-    calibration = read_stereo_calibration(args.calibration,
-                                          image_sizes=(truth.upper.image_size, truth.lower.image_size))
+    calibration = read_stereo_calibration(
+        args.calibration, image_sizes=(truth.upper.image_size, truth.lower.image_size)
+    )
     config = load_config(None)
     pm = make_plugin_manager(entry_points=True)
     stages = {}
@@ -188,12 +212,23 @@ def run_verification_cli(args) -> int:
         spec = config.stages[stage]
         stages[stage] = get_implementation(pm, stage, spec.plugin).create(dict(spec.options), stage)
     frames = simulate_positions(truth, args.bar_mm, args.frames, args.seed, args.scenario)
-    result = evaluate(frames, calibration, stages["centroid"], stages["triangulate"],
-                      certified_mm=args.bar_mm, certified_u_mm=args.bar_u_mm, mpe_mm=args.mpe)
-    print(f"length verification, scale bar {args.bar_mm:g} mm (u {args.bar_u_mm * 1000:g} um), "
-          f"MPE {args.mpe * 1000:g} um, calibration {args.calibration}")
+    result = evaluate(
+        frames,
+        calibration,
+        stages["centroid"],
+        stages["triangulate"],
+        certified_mm=args.bar_mm,
+        certified_u_mm=args.bar_u_mm,
+        mpe_mm=args.mpe,
+    )
+    print(
+        f"length verification, scale bar {args.bar_mm:g} mm (u {args.bar_u_mm * 1000:g} um), "
+        f"MPE {args.mpe * 1000:g} um, calibration {args.calibration}"
+    )
     for p in result.positions:
-        print(f"  {p.name:<20} {p.length_mm:10.4f} mm  E {p.error_mm * 1000:+7.1f} um  {'pass' if p.passed else 'FAIL'}")
+        print(
+            f"  {p.name:<20} {p.length_mm:10.4f} mm  E {p.error_mm * 1000:+7.1f} um  {'pass' if p.passed else 'FAIL'}"
+        )
     print(f"max |E| = {result.max_abs_error_mm * 1000:.1f} um: {'PASS' if result.passed else 'FAIL'}")
     for path in write_verification(result, args.output):
         print(f"  report: {path}")

@@ -12,24 +12,31 @@ import json
 import cv2
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
-
 from crossfield.camera.board_detect import BoardDetection, BoardDetector
 from crossfield.camera.boards import Board, board_from_dict, board_toml, load_board
 from crossfield.camera.calib_file import read_calibration_uncertainty, write_calibration_result
 from crossfield.camera.calib_report import report_dict, write_report
 from crossfield.camera.calibrate import (
-    CalibrationError, CalibrationSettings, calibrate_images, check_mirrored, detect_views, solve_stereo,
+    CalibrationError,
+    CalibrationSettings,
+    calibrate_images,
+    check_mirrored,
+    detect_views,
+    solve_stereo,
 )
 from crossfield.camera.calibration_io import read_stereo_calibration
 from crossfield.cli import main
 from crossfield.errors import ConfigError
 from crossfield.simulator.board_views import (
-    board_texture, cached_calibration_views, render_board, render_calibration_views, station_board_poses,
+    board_texture,
+    cached_calibration_views,
+    render_board,
+    render_calibration_views,
 )
 from crossfield.simulator.optics import project
 from crossfield.simulator.render import SensorModel
 from crossfield.simulator.scenarios import station_calibration
+from scipy.spatial.transform import Rotation
 
 
 def truth_vector(calibration) -> np.ndarray:
@@ -63,8 +70,9 @@ def test_board_toml_round_trip_and_errors(tmp_path):
     loaded = load_board(path)
     assert (loaded.type, loaded.squares_x, loaded.squares_y, loaded.square_mm) == ("chessboard", 9, 6, 12.5)
     assert loaded.object_points().shape == (8 * 5, 3)
-    (tmp_path / "bad.toml").write_text('[board]\ntype = "charuco"\nsquares_x = 11\nsquares_y = 8\nsquare_mm = 15.0\n'
-                                       'marker_mm = 16.0\n')
+    (tmp_path / "bad.toml").write_text(
+        '[board]\ntype = "charuco"\nsquares_x = 11\nsquares_y = 8\nsquare_mm = 15.0\nmarker_mm = 16.0\n'
+    )
     with pytest.raises(ConfigError, match=r"bad.toml: \[board\] marker_mm .* must be < square_mm"):
         load_board(tmp_path / "bad.toml")
     with pytest.raises(ConfigError, match=r"\[board\] square_mm is missing"):
@@ -74,7 +82,9 @@ def test_board_toml_round_trip_and_errors(tmp_path):
     with pytest.raises(ConfigError, match="unknown key 'squares'"):
         board_from_dict({"type": "chessboard", "squares": 9}, "b.toml")
     with pytest.raises(ConfigError, match="not an OpenCV predefined dictionary"):
-        board_from_dict({"squares_x": 5, "squares_y": 5, "square_mm": 10, "marker_mm": 7, "dictionary": "DICT_9X9"})
+        board_from_dict(
+            {"squares_x": 5, "squares_y": 5, "square_mm": 10, "marker_mm": 7, "dictionary": "DICT_9X9"}
+        )
 
 
 def test_charuco_object_points_match_opencv():
@@ -114,14 +124,16 @@ def test_chessboard_and_circle_grid_detection(kind):
     if kind == "chessboard":
         board = board_from_dict({"type": "chessboard", "squares_x": 9, "squares_y": 6, "square_mm": 12.0})
     else:
-        board = board_from_dict({"type": "circles", "circles_x": 4, "circles_y": 7, "spacing_mm": 10.0,
-                                 "diameter_mm": 8.0})
+        board = board_from_dict(
+            {"type": "circles", "circles_x": 4, "circles_y": 7, "spacing_mm": 10.0, "diameter_mm": 8.0}
+        )
     cal = station_calibration()
     R = Rotation.from_rotvec([0.25, -0.2, 0.1]).as_matrix()
     w, h = board.extent_mm
     t = np.array([0.0, 20.0, 400.0]) - R @ np.array([w / 2, h / 2, 0.0])
-    image = render_board(board_texture(board), R, t, cal.upper, SensorModel(), np.random.default_rng(3),
-                         supersample=3)
+    image = render_board(
+        board_texture(board), R, t, cal.upper, SensorModel(), np.random.default_rng(3), supersample=3
+    )
     d = BoardDetector(board).detect(image, 12)
     assert d is not None and len(d) == board.n_points
     err = np.linalg.norm(d.image_points - project(d.object_points @ R.T + t, cal.upper), axis=1)
@@ -168,8 +180,15 @@ def test_outlier_view_is_dropped_with_its_reason(station_views, station_result):
     R_u, t_u = dR @ pose.R, dR @ pose.t + np.array([0.45, -0.3, 0.25])
     cal = v.calibration
     R_lu, t_lu = np.asarray(cal.R_lower_upper), np.asarray(cal.t_lower_upper)
-    moved = render_board(board_texture(v.board), R_lu @ R_u, R_lu @ t_u + t_lu, cal.lower, SensorModel(),
-                         np.random.default_rng(9), illumination_seed=12)
+    moved = render_board(
+        board_texture(v.board),
+        R_lu @ R_u,
+        R_lu @ t_u + t_lu,
+        cal.lower,
+        SensorModel(),
+        np.random.default_rng(9),
+        illumination_seed=12,
+    )
     images = list(v.images)
     images[5] = {"upper": images[5]["upper"], "lower": moved}
     r = calibrate_images(images, v.board, v.bit_depth)
@@ -190,8 +209,13 @@ def test_too_few_views_are_refused(station_views):
 
 def test_mirrored_images_are_refused(station_views):
     v = station_views
-    images = [{"upper": view["upper"], "lower": np.ascontiguousarray(view["lower"][:, ::-1])} for view in v.images[:8]]
-    with pytest.raises(CalibrationError, match=r"the lower camera's images are mirrored.*flipping them left-right"):
+    images = [
+        {"upper": view["upper"], "lower": np.ascontiguousarray(view["lower"][:, ::-1])}
+        for view in v.images[:8]
+    ]
+    with pytest.raises(
+        CalibrationError, match=r"the lower camera's images are mirrored.*flipping them left-right"
+    ):
         calibrate_images(images, v.board, v.bit_depth)
 
 
@@ -203,12 +227,16 @@ def test_reflected_detections_are_refused(station_views):
     reflected = []
     for view in detections:
         d = view["upper"]
-        flipped = BoardDetection(d.ids, np.column_stack([width - 1 - d.image_points[:, 0], d.image_points[:, 1]]),
-                                 d.object_points)
+        flipped = BoardDetection(
+            d.ids, np.column_stack([width - 1 - d.image_points[:, 0], d.image_points[:, 1]]), d.object_points
+        )
         assert d.orientation() == 1.0 and flipped.orientation() == -1.0
         reflected.append({"upper": flipped, "lower": view["lower"]})
-    with pytest.raises(CalibrationError, match=r"the upper camera's images are mirrored: the board appears reflected "
-                                               r"in 6 of 6 views"):
+    with pytest.raises(
+        CalibrationError,
+        match=r"the upper camera's images are mirrored: the board appears reflected "
+        r"in 6 of 6 views",
+    ):
         check_mirrored(reflected, None, v.board, v.bit_depth, 6)
     check_mirrored(detections, None, v.board, v.bit_depth, 6)  # the real views pass
 
@@ -216,8 +244,12 @@ def test_reflected_detections_are_refused(station_views):
 def test_rational_model_is_offered(station_views):
     v = station_views
     detections = detect_views(v.images, v.board, v.bit_depth)
-    r = solve_stereo(detections, {c: v.calibration.camera(c).image_size for c in ("upper", "lower")}, v.board,
-                     CalibrationSettings(distortion="rational"))
+    r = solve_stereo(
+        detections,
+        {c: v.calibration.camera(c).image_size for c in ("upper", "lower")},
+        v.board,
+        CalibrationSettings(distortion="rational"),
+    )
     assert len(r.calibration.upper.dist_coeffs) == 8 and len(r.param_names) == 2 * 12 + 6
     assert abs(r.baseline_mm - np.linalg.norm(v.calibration.t_lower_upper)) < 0.02
 
@@ -229,8 +261,14 @@ def test_yaml_has_stereo_calib_keys_and_std(tmp_path, station_result):
     path = write_calibration_result(tmp_path / "calib.yml", station_result)
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     c = station_result.calibration
-    for key, want in (("M1", c.upper.camera_matrix), ("D1", c.upper.dist_coeffs), ("M2", c.lower.camera_matrix),
-                      ("D2", c.lower.dist_coeffs), ("R", c.R_lower_upper), ("T", c.t_lower_upper)):
+    for key, want in (
+        ("M1", c.upper.camera_matrix),
+        ("D1", c.upper.dist_coeffs),
+        ("M2", c.lower.camera_matrix),
+        ("D2", c.lower.dist_coeffs),
+        ("R", c.R_lower_upper),
+        ("T", c.t_lower_upper),
+    ):
         np.testing.assert_allclose(fs.getNode(key).mat().reshape(np.shape(want)), want, rtol=1e-15)
     for key in ("R1", "R2", "P1", "P2", "Q"):
         assert fs.getNode(key).mat().shape in ((3, 3), (3, 4), (4, 4))
@@ -248,20 +286,40 @@ def test_yaml_written_like_stereo_calib_sample_loads(tmp_path, station_result):
     """samples/cpp/stereo_calib.cpp writes intrinsics.yml (M1 D1 M2 D2) and extrinsics.yml (R T R1 R2 P1 P2 Q)."""
     c = station_result.calibration
     fs = cv2.FileStorage(str(tmp_path / "intrinsics.yml"), cv2.FILE_STORAGE_WRITE)
-    for key, value in (("M1", c.upper.camera_matrix), ("D1", c.upper.dist_coeffs.reshape(1, -1)),
-                       ("M2", c.lower.camera_matrix), ("D2", c.lower.dist_coeffs.reshape(1, -1))):
+    for key, value in (
+        ("M1", c.upper.camera_matrix),
+        ("D1", c.upper.dist_coeffs.reshape(1, -1)),
+        ("M2", c.lower.camera_matrix),
+        ("D2", c.lower.dist_coeffs.reshape(1, -1)),
+    ):
         fs.write(key, np.asarray(value))
     fs.release()
-    R1, R2, P1, P2, Q, _, _ = cv2.stereoRectify(c.upper.camera_matrix, c.upper.dist_coeffs, c.lower.camera_matrix,
-                                                 c.lower.dist_coeffs, (1626, 1236), c.R_lower_upper,
-                                                 c.t_lower_upper.reshape(3, 1), flags=cv2.CALIB_ZERO_DISPARITY, alpha=-1)
+    R1, R2, P1, P2, Q, _, _ = cv2.stereoRectify(
+        c.upper.camera_matrix,
+        c.upper.dist_coeffs,
+        c.lower.camera_matrix,
+        c.lower.dist_coeffs,
+        (1626, 1236),
+        c.R_lower_upper,
+        c.t_lower_upper.reshape(3, 1),
+        flags=cv2.CALIB_ZERO_DISPARITY,
+        alpha=-1,
+    )
     fs = cv2.FileStorage(str(tmp_path / "extrinsics.yml"), cv2.FILE_STORAGE_WRITE)
-    for key, value in (("R", c.R_lower_upper), ("T", c.t_lower_upper.reshape(3, 1)), ("R1", R1), ("R2", R2),
-                       ("P1", P1), ("P2", P2), ("Q", Q)):
+    for key, value in (
+        ("R", c.R_lower_upper),
+        ("T", c.t_lower_upper.reshape(3, 1)),
+        ("R1", R1),
+        ("R2", R2),
+        ("P1", P1),
+        ("P2", P2),
+        ("Q", Q),
+    ):
         fs.write(key, np.asarray(value))
     fs.release()
-    back = read_stereo_calibration([tmp_path / "intrinsics.yml", tmp_path / "extrinsics.yml"],
-                                   image_sizes=((1626, 1236), (1626, 1236)))
+    back = read_stereo_calibration(
+        [tmp_path / "intrinsics.yml", tmp_path / "extrinsics.yml"], image_sizes=((1626, 1236), (1626, 1236))
+    )
     np.testing.assert_allclose(back.lower.camera_matrix, c.lower.camera_matrix)
     np.testing.assert_allclose(back.R_lower_upper, c.R_lower_upper)
     assert read_calibration_uncertainty(tmp_path / "extrinsics.yml") is None
@@ -271,7 +329,11 @@ def test_report_json_and_html(tmp_path, station_result):
     json_path, html_path = write_report(station_result, tmp_path / "calib-report")
     data = json.loads(json_path.read_text())
     assert set(data["rms_px"]) == {"upper", "lower", "stereo"}
-    assert len(data["views"]) == 20 and {v["status"] for v in data["views"]} <= {"used", "held out", "dropped"}
+    assert len(data["views"]) == 20 and {v["status"] for v in data["views"]} <= {
+        "used",
+        "held out",
+        "dropped",
+    }
     assert data["coverage"]["upper"] > 0.7
     assert data["uncertainty_3d"]["length"]["pairs"] > 0
     text = html_path.read_text()
@@ -286,8 +348,24 @@ def test_calibrate_then_run_table3_then_verify(tmp_path, capsys):
     assert main(["calibrate", "--scenario", "station", "-o", str(calib)]) == 0
     assert "baseline |T|" in capsys.readouterr().out
     assert (tmp_path / "calib-report.html").is_file()
-    code = main(["run", "--scenario", "table3", "--frames", "3", "--option", f"acquire.calibration={json.dumps(str(calib))}",
-                 "-o", str(tmp_path / "runs"), "--name", "t3", "--no-record", "--no-rerun", "-q"])
+    code = main(
+        [
+            "run",
+            "--scenario",
+            "table3",
+            "--frames",
+            "3",
+            "--option",
+            f"acquire.calibration={json.dumps(str(calib))}",
+            "-o",
+            str(tmp_path / "runs"),
+            "--name",
+            "t3",
+            "--no-record",
+            "--no-rerun",
+            "-q",
+        ]
+    )
     capsys.readouterr()
     report = json.loads((tmp_path / "runs" / "t3" / "report.json").read_text())
     assert report["acquisition"]["calibration_file"] == str(calib)
@@ -295,7 +373,12 @@ def test_calibrate_then_run_table3_then_verify(tmp_path, capsys):
     assert len(errors) == 10 and max(map(abs, errors)) < 0.1
     assert code == 0
     out = tmp_path / "verification"
-    assert main(["verify", "--scenario", "station", "--calibration", str(calib), "-o", str(out), "--frames", "1"]) == 0
+    assert (
+        main(
+            ["verify", "--scenario", "station", "--calibration", str(calib), "-o", str(out), "--frames", "1"]
+        )
+        == 0
+    )
     data = json.loads(out.with_suffix(".json").read_text())
     assert data["passed"] and len(data["positions"]) >= 7 and data["max_abs_error_mm"] < 0.1
 
@@ -319,7 +402,10 @@ def test_calibration_session_records_and_replays(tmp_path, station_views, capsys
     folder = tmp_path / "views"
     write_image_pairs(folder, station_views.images[:10])
     first, mcap = tmp_path / "first.yml", tmp_path / "cal.mcap"
-    assert main(["calibrate", "--images", str(folder), "-o", str(first), "--record", str(mcap), "--no-report"]) == 0
+    assert (
+        main(["calibrate", "--images", str(folder), "-o", str(first), "--record", str(mcap), "--no-report"])
+        == 0
+    )
     recorded = read_calibration_recording(mcap)
     assert len(recorded.images) == 10 and recorded.bit_depth == 12 and TOPIC_IMAGE.format(camera="upper")
     np.testing.assert_array_equal(recorded.images[3]["lower"], station_views.images[3]["lower"])
@@ -330,6 +416,20 @@ def test_calibration_session_records_and_replays(tmp_path, station_views, capsys
     np.testing.assert_allclose(a.t_lower_upper, b.t_lower_upper, rtol=1e-8)
     np.testing.assert_allclose(a.upper.camera_matrix, b.upper.camera_matrix, rtol=1e-8)
     rational = tmp_path / "rational.yml"
-    assert main(["calibrate", "--replay", str(mcap), "-o", str(rational), "--distortion", "rational", "--no-report"]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                "--replay",
+                str(mcap),
+                "-o",
+                str(rational),
+                "--distortion",
+                "rational",
+                "--no-report",
+            ]
+        )
+        == 0
+    )
     assert len(read_stereo_calibration(rational).upper.dist_coeffs) == 8
     capsys.readouterr()

@@ -7,7 +7,6 @@ import json
 
 import numpy as np
 import pytest
-
 from crossfield.camera.calibration_io import write_stereo_calibration
 from crossfield.cli import main
 from crossfield.config import load_config
@@ -21,8 +20,10 @@ from crossfield.verification import MIN_POSITIONS, evaluate, simulate_positions
 @pytest.fixture(scope="module")
 def stages():
     config, pm = load_config(None), make_plugin_manager()
-    return tuple(get_implementation(pm, s, config.stages[s].plugin).create(dict(config.stages[s].options), s)
-                 for s in ("centroid", "triangulate"))
+    return tuple(
+        get_implementation(pm, s, config.stages[s].plugin).create(dict(config.stages[s].options), s)
+        for s in ("centroid", "triangulate")
+    )
 
 
 @pytest.fixture(scope="module")
@@ -42,8 +43,9 @@ def test_positions_span_the_volume():
 
 
 def test_true_calibration_passes(bar_frames, stages):
-    result = evaluate(bar_frames, station_calibration(), *stages, certified_mm=100.0, certified_u_mm=0.002,
-                      mpe_mm=0.05)
+    result = evaluate(
+        bar_frames, station_calibration(), *stages, certified_mm=100.0, certified_u_mm=0.002, mpe_mm=0.05
+    )
     assert result.passed and result.max_abs_error_mm < 0.02
 
 
@@ -58,7 +60,14 @@ def test_wrong_baseline_fails_by_the_scale_error(bar_frames, stages):
 
 def test_too_few_positions_refused(bar_frames, stages):
     with pytest.raises(CrossfieldError, match="needs at least 7"):
-        evaluate(bar_frames[:6], station_calibration(), *stages, certified_mm=100.0, certified_u_mm=0.002, mpe_mm=0.1)
+        evaluate(
+            bar_frames[:6],
+            station_calibration(),
+            *stages,
+            certified_mm=100.0,
+            certified_u_mm=0.002,
+            mpe_mm=0.1,
+        )
 
 
 def test_verify_cli_fails_a_bad_calibration(tmp_path, capsys):

@@ -17,7 +17,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-
 from crossfield.camera.boards import Board
 from crossfield.types import frozen_array
 
@@ -44,7 +43,7 @@ class BoardDetection:
     def __len__(self) -> int:
         return len(self.ids)
 
-    def subset(self, ids: np.ndarray) -> "BoardDetection":
+    def subset(self, ids: np.ndarray) -> BoardDetection:
         """The points whose id is in ``ids``, in the order of ``ids``."""
         index = {int(i): k for k, i in enumerate(self.ids)}
         rows = [index[int(i)] for i in ids]
@@ -92,7 +91,9 @@ def _half_window(image_points: np.ndarray, ids: np.ndarray, board: Board) -> int
     """cornerSubPix half window: about a third of the smallest imaged square side (px), 3..15."""
     cols = board.pattern_size[0]
     by_id = {int(i): p for i, p in zip(ids, image_points)}
-    sides = [np.linalg.norm(by_id[i + 1] - p) for i, p in by_id.items() if (i % cols) < cols - 1 and i + 1 in by_id]
+    sides = [
+        np.linalg.norm(by_id[i + 1] - p) for i, p in by_id.items() if (i % cols) < cols - 1 and i + 1 in by_id
+    ]
     sides += [np.linalg.norm(by_id[i + cols] - p) for i, p in by_id.items() if i + cols in by_id]
     if not sides:
         return 5
@@ -153,11 +154,15 @@ class BoardDetector:
             if not found:
                 return None
             ids = np.arange(self.board.n_points)
-            pts = _first_square_black(grey8, corners.reshape(-1, 2).astype(np.float64), self.board.pattern_size[0])
+            pts = _first_square_black(
+                grey8, corners.reshape(-1, 2).astype(np.float64), self.board.pattern_size[0]
+            )
             pts = _refine(image, pts, _half_window(pts, ids, self.board))
         else:
             found, centres = cv2.findCirclesGrid(
-                grey8, self.board.pattern_size, flags=cv2.CALIB_CB_ASYMMETRIC_GRID,  # dark circles on white
+                grey8,
+                self.board.pattern_size,
+                flags=cv2.CALIB_CB_ASYMMETRIC_GRID,  # dark circles on white
             )
             if not found:
                 return None

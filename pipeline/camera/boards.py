@@ -32,14 +32,19 @@ from typing import Any
 
 import cv2
 import numpy as np
-
 from crossfield.errors import ConfigError
 
 BOARD_TYPES = ("charuco", "chessboard", "circles")
 
 _KEYS: dict[str, dict[str, type]] = {
-    "charuco": {"squares_x": int, "squares_y": int, "square_mm": float, "marker_mm": float, "dictionary": str,
-                "legacy_pattern": bool},
+    "charuco": {
+        "squares_x": int,
+        "squares_y": int,
+        "square_mm": float,
+        "marker_mm": float,
+        "dictionary": str,
+        "legacy_pattern": bool,
+    },
     "chessboard": {"squares_x": int, "squares_y": int, "square_mm": float},
     "circles": {"circles_x": int, "circles_y": int, "spacing_mm": float, "diameter_mm": float},
 }
@@ -112,13 +117,16 @@ class Board:
 
     # ---- OpenCV objects -------------------------------------------------------------------------
 
-    def aruco_dictionary(self) -> "cv2.aruco.Dictionary":
+    def aruco_dictionary(self) -> cv2.aruco.Dictionary:
         return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
 
-    def charuco_board(self) -> "cv2.aruco.CharucoBoard":
+    def charuco_board(self) -> cv2.aruco.CharucoBoard:
         """The OpenCV ChArUco board (``type == "charuco"`` only)."""
         board = cv2.aruco.CharucoBoard(
-            (self.squares_x, self.squares_y), float(self.square_mm), float(self.marker_mm), self.aruco_dictionary()
+            (self.squares_x, self.squares_y),
+            float(self.square_mm),
+            float(self.marker_mm),
+            self.aruco_dictionary(),
         )
         board.setLegacyPattern(bool(self.legacy_pattern))
         return board
@@ -163,7 +171,9 @@ def board_from_dict(data: dict[str, Any], source: str = "<board>") -> Board:
             if key in _DEFAULTS:
                 values[key] = _DEFAULTS[key]
                 continue
-            raise ConfigError(f"{source}: [board] {key} is missing (type {kind!r} needs {', '.join(allowed)})")
+            raise ConfigError(
+                f"{source}: [board] {key} is missing (type {kind!r} needs {', '.join(allowed)})"
+            )
         values[key] = _check_value(source, key, data[key], expected)
     if kind == "charuco":
         if not values["marker_mm"] < values["square_mm"]:
@@ -206,7 +216,10 @@ def board_toml(board: Board) -> str:
     """The ``[board]`` table for ``board`` (what :func:`load_board` reads)."""
     lines = ["[board]"]
     for key, value in board.to_dict().items():
-        text = f'"{value}"' if isinstance(value, str) else ("true" if value is True else "false" if value is False
-                                                           else repr(value))
+        text = (
+            f'"{value}"'
+            if isinstance(value, str)
+            else ("true" if value is True else "false" if value is False else repr(value))
+        )
         lines.append(f"{key} = {text}")
     return "\n".join(lines) + "\n"

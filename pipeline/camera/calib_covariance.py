@@ -55,8 +55,10 @@ def project_with_jacobians(
     """
     uv, J = cv2.projectPoints(
         np.ascontiguousarray(object_points, np.float64).reshape(-1, 1, 3),
-        np.asarray(rvec, np.float64).reshape(3, 1), np.asarray(tvec, np.float64).reshape(3, 1),
-        np.asarray(K, np.float64), np.asarray(D, np.float64).ravel(),
+        np.asarray(rvec, np.float64).reshape(3, 1),
+        np.asarray(tvec, np.float64).reshape(3, 1),
+        np.asarray(K, np.float64),
+        np.asarray(D, np.float64).ravel(),
     )
     return uv.reshape(-1, 2), J[:, :6], J[:, 6 : 10 + len(np.ravel(D))]
 
@@ -75,9 +77,14 @@ class StereoObservations:
 
 def stereo_jacobian(
     obs: StereoObservations,
-    K1: np.ndarray, D1: np.ndarray, K2: np.ndarray, D2: np.ndarray,
-    rvec: np.ndarray, T: np.ndarray,
-    rvecs: Sequence[np.ndarray], tvecs: Sequence[np.ndarray],
+    K1: np.ndarray,
+    D1: np.ndarray,
+    K2: np.ndarray,
+    D2: np.ndarray,
+    rvec: np.ndarray,
+    T: np.ndarray,
+    rvecs: Sequence[np.ndarray],
+    tvecs: Sequence[np.ndarray],
 ) -> tuple[np.ndarray, np.ndarray]:
     """Residuals (m,) px (observed - projected) and Jacobian (m, p) of the stereo problem at a solution.
 
@@ -100,8 +107,10 @@ def stereo_jacobian(
         row += m
         # Lower camera: (R_l, t_l) = (R R_i, R t_i + T), cv2.composeRT(r_i, t_i, r, T).
         r_l, t_l, dr3dr1, dr3dt1, dr3dr2, dr3dt2, dt3dr1, dt3dt1, dt3dr2, dt3dt2 = cv2.composeRT(
-            np.asarray(rvecs[i], np.float64).reshape(3, 1), np.asarray(tvecs[i], np.float64).reshape(3, 1),
-            np.asarray(rvec, np.float64).reshape(3, 1), np.asarray(T, np.float64).reshape(3, 1),
+            np.asarray(rvecs[i], np.float64).reshape(3, 1),
+            np.asarray(tvecs[i], np.float64).reshape(3, 1),
+            np.asarray(rvec, np.float64).reshape(3, 1),
+            np.asarray(T, np.float64).reshape(3, 1),
         )
         uv, J_pose, J_cam = project_with_jacobians(X, r_l, t_l, K2, D2)
         Jr, Jt = J_pose[:, :3], J_pose[:, 3:]
@@ -123,14 +132,23 @@ def covariance_from_jacobian(res: np.ndarray, J: np.ndarray) -> tuple[np.ndarray
     # Column scaling keeps J^T J well conditioned (focal lengths ~1e3 px next to k3 ~ 1).
     scale = np.linalg.norm(J, axis=0)
     scale[scale == 0] = 1.0
-    Js = J / scale
-    cov = np.linalg.inv(Js.T @ Js) / np.outer(scale, scale)
+    # (J^T J)^-1 = V S^-2 V^T from the SVD J = U S V^T: positive semi-definite by construction even
+    # where J^T J is ill-conditioned (the rational model's k4..k6 against k1..k3).
+    _, sv, Vt = np.linalg.svd(J / scale, full_matrices=False)
+    if sv[-1] <= sv[0] * 1e-14:
+        raise ValueError("the parameters are not determined by the views (singular Jacobian)")
+    cov = (Vt.T / sv**2) @ Vt / np.outer(scale, scale)
     return sigma2 * cov, float(np.sqrt(sigma2))
 
 
 def triangulation_sensitivity(
     points_upper: np.ndarray,
-    K1: np.ndarray, D1: np.ndarray, K2: np.ndarray, D2: np.ndarray, rvec: np.ndarray, T: np.ndarray,
+    K1: np.ndarray,
+    D1: np.ndarray,
+    K2: np.ndarray,
+    D2: np.ndarray,
+    rvec: np.ndarray,
+    T: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """For (N, 3) upper-frame points (mm): G (N, 3, p_cam) = dX/dtheta_cam and H (N, 3, 4) = dX/d(pixels).
 

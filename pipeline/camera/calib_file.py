@@ -23,7 +23,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-
 from crossfield.camera.calibrate import CalibrationResult
 from crossfield.camera.calibration_io import stereo_calibration_to_yaml, write_stereo_calibration
 from crossfield.errors import ConfigError
@@ -35,9 +34,12 @@ def _extra(result: CalibrationResult) -> dict[str, object]:
     upper, lower, rig = std[:n_int], std[n_int : 2 * n_int], std[2 * n_int :]
     board = "; ".join(f"{k} = {v!r}" for k, v in result.board.to_dict().items())
     return {
-        "std_M1": upper[:4].reshape(1, 4), "std_D1": upper[4:].reshape(1, -1),
-        "std_M2": lower[:4].reshape(1, 4), "std_D2": lower[4:].reshape(1, -1),
-        "std_R": rig[:3].reshape(3, 1), "std_T": rig[3:].reshape(3, 1),
+        "std_M1": upper[:4].reshape(1, 4),
+        "std_D1": upper[4:].reshape(1, -1),
+        "std_M2": lower[:4].reshape(1, 4),
+        "std_D2": lower[4:].reshape(1, -1),
+        "std_R": rig[:3].reshape(3, 1),
+        "std_T": rig[3:].reshape(3, 1),
         "cov_params": np.asarray(result.covariance),
         "cov_param_names": " ".join(result.param_names),
         "rms_px_upper": float(result.cameras["upper"].rms_px),
@@ -82,7 +84,9 @@ def read_calibration_uncertainty(path: str | Path) -> CalibrationUncertainty | N
         cov = node.mat()
         labels = tuple(names.string().split()) if not names.empty() else ()
         if cov is None or cov.ndim != 2 or cov.shape[0] != cov.shape[1] or len(labels) != cov.shape[0]:
-            raise ConfigError(f"{path}: 'cov_params' must be a square matrix with one name per row in 'cov_param_names'")
+            raise ConfigError(
+                f"{path}: 'cov_params' must be a square matrix with one name per row in 'cov_param_names'"
+            )
         return CalibrationUncertainty(labels, np.asarray(cov, float), str(path))
     finally:
         fs.release()

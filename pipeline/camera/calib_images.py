@@ -1,4 +1,6 @@
-"""Calibration image pairs from a folder, named like the folder source's (``upper_0000.png`` / ``lower_0000.png``).
+"""Calibration image pairs from a folder, named like the folder source's pairs.
+
+File names follow a pattern as the folder source's (``upper_0000.png`` / ``lower_0000.png``).
 
 8-bit or 16-bit single-channel PNG/TIFF; the bit depth of 16-bit files is
 the smallest of 10, 12, 14, 16 that holds every pixel value unless given.
@@ -12,7 +14,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-
 from crossfield.errors import ConfigError
 from crossfield.plugins.acquire_folder import pattern_regex
 from crossfield.types import CAMERAS
@@ -35,11 +36,15 @@ def _read(path: Path) -> np.ndarray:
     if image.ndim == 3 and image.shape[2] in (3, 4):
         image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
     if image.ndim != 2 or image.dtype not in (np.uint8, np.uint16):
-        raise ConfigError(f"{path}: expected an 8- or 16-bit grey image, got {image.dtype} of shape {image.shape}")
+        raise ConfigError(
+            f"{path}: expected an 8- or 16-bit grey image, got {image.dtype} of shape {image.shape}"
+        )
     return image
 
 
-def read_image_pairs(folder: str | Path, pattern: str = "{camera}_{seq}.png", bit_depth: int | None = None) -> ImagePairs:
+def read_image_pairs(
+    folder: str | Path, pattern: str = "{camera}_{seq}.png", bit_depth: int | None = None
+) -> ImagePairs:
     """Every complete (upper, lower) pair in ``folder``, in increasing sequence number."""
     folder = Path(folder)
     if not folder.is_dir():
@@ -65,8 +70,10 @@ def read_image_pairs(folder: str | Path, pattern: str = "{camera}_{seq}.png", bi
         for cam in CAMERAS:
             first = images[0][cam] if images else pair[cam]
             if pair[cam].shape != first.shape or pair[cam].dtype != first.dtype:
-                raise ConfigError(f"{slot[cam]}: {pair[cam].dtype} {pair[cam].shape[::-1]} differs from the "
-                                  f"first {cam} image's {first.dtype} {first.shape[::-1]}")
+                raise ConfigError(
+                    f"{slot[cam]}: {pair[cam].dtype} {pair[cam].shape[::-1]} differs from the "
+                    f"first {cam} image's {first.dtype} {first.shape[::-1]}"
+                )
         images.append(pair)
         names.append(slot["upper"].name)
     if bit_depth is None:

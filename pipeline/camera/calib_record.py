@@ -24,10 +24,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
-from mcap.reader import make_reader
-from mcap.writer import Writer
-
 from crossfield.camera.boards import Board, board_from_dict
 from crossfield.camera.calib_file import calibration_result_yaml
 from crossfield.camera.calib_report import report_dict
@@ -35,6 +31,9 @@ from crossfield.camera.calibrate import CalibrationResult, CalibrationSettings, 
 from crossfield.errors import RecordingError
 from crossfield.recording.recorder import protobuf_schema, raw_image_message
 from crossfield.types import CAMERAS
+from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+from mcap.reader import make_reader
+from mcap.writer import Writer
 
 #: The topic names of a calibration recording (the one place they are defined).
 TOPIC_IMAGE = "/calibration/{camera}/image"
@@ -65,27 +64,43 @@ def record_calibration(
         schema = protobuf_schema(RawImage)
         raw_id = writer.register_schema(schema.name, schema.encoding, schema.data)
         image_channels = {
-            cam: writer.register_channel(TOPIC_IMAGE.format(camera=cam), "protobuf", raw_id) for cam in CAMERAS
+            cam: writer.register_channel(TOPIC_IMAGE.format(camera=cam), "protobuf", raw_id)
+            for cam in CAMERAS
         }
         json_id = writer.register_schema("", "", b"")
         det_channel = writer.register_channel(TOPIC_DETECTIONS, "json", json_id)
         result_channel = writer.register_channel(TOPIC_RESULT, "json", json_id)
         for k, view in enumerate(images):
             for cam in CAMERAS:
-                writer.add_message(image_channels[cam], _ns(k), raw_image_message(view[cam], cam, _ns(k)), _ns(k), k)
+                writer.add_message(
+                    image_channels[cam], _ns(k), raw_image_message(view[cam], cam, _ns(k)), _ns(k), k
+                )
                 d = result.detections[k][cam] if k < len(result.detections) else None
-                doc = {"view": k, "camera": cam, "ids": [] if d is None else d.ids.tolist(),
-                       "image_points_px": [] if d is None else d.image_points.tolist()}
+                doc = {
+                    "view": k,
+                    "camera": cam,
+                    "ids": [] if d is None else d.ids.tolist(),
+                    "image_points_px": [] if d is None else d.image_points.tolist(),
+                }
                 writer.add_message(det_channel, _ns(k), json.dumps(doc).encode(), _ns(k), k)
         end = _ns(len(images))
-        writer.add_message(result_channel, end, json.dumps(report_dict(result), allow_nan=False).encode(), end)
+        writer.add_message(
+            result_channel, end, json.dumps(report_dict(result), allow_nan=False).encode(), end
+        )
         settings = {k: getattr(result.settings, k) for k in result.settings.__dataclass_fields__}
-        writer.add_metadata(METADATA_NAME, {
-            "board": json.dumps(result.board.to_dict()), "settings": json.dumps(settings),
-            "bit_depth": str(int(bit_depth)), "view_names": json.dumps(list(names)), "source": source,
-        })
-        writer.add_attachment(end, end, ATTACHMENT_CALIBRATION, "application/x-yaml",
-                              calibration_result_yaml(result).encode())
+        writer.add_metadata(
+            METADATA_NAME,
+            {
+                "board": json.dumps(result.board.to_dict()),
+                "settings": json.dumps(settings),
+                "bit_depth": str(int(bit_depth)),
+                "view_names": json.dumps(list(names)),
+                "source": source,
+            },
+        )
+        writer.add_attachment(
+            end, end, ATTACHMENT_CALIBRATION, "application/x-yaml", calibration_result_yaml(result).encode()
+        )
         writer.finish()
     return path
 
@@ -111,8 +126,14 @@ def _image(message: bytes, where: str) -> np.ndarray:
         raise RecordingError(f"{where}: image encoding {raw.encoding!r}, expected mono8 or mono16")
     itemsize = np.dtype(dtype).itemsize
     if raw.step != raw.width * itemsize or len(raw.data) != raw.step * raw.height:
-        raise RecordingError(f"{where}: image of {raw.width} x {raw.height} px does not match its {len(raw.data)} bytes")
-    return np.frombuffer(raw.data, dtype=dtype).reshape(raw.height, raw.width).astype(np.dtype(dtype).newbyteorder("="))
+        raise RecordingError(
+            f"{where}: image of {raw.width} x {raw.height} px does not match its {len(raw.data)} bytes"
+        )
+    return (
+        np.frombuffer(raw.data, dtype=dtype)
+        .reshape(raw.height, raw.width)
+        .astype(np.dtype(dtype).newbyteorder("="))
+    )
 
 
 def read_calibration_recording(path: str | Path) -> RecordedCalibration:
@@ -127,18 +148,23 @@ def read_calibration_recording(path: str | Path) -> RecordedCalibration:
             reader = make_reader(stream)
             header = reader.get_header()
             if header.profile != PROFILE:
-                raise RecordingError(f"{path}: not a crossfield calibration recording (profile {header.profile!r})")
+                raise RecordingError(
+                    f"{path}: not a crossfield calibration recording (profile {header.profile!r})"
+                )
             meta: dict[str, Any] = {}
             for record in reader.iter_metadata():
                 if record.name == METADATA_NAME:
                     meta = dict(record.metadata)
-            yaml_text = next((a.data.decode() for a in reader.iter_attachments() if a.name == ATTACHMENT_CALIBRATION), "")
+            yaml_text = next(
+                (a.data.decode() for a in reader.iter_attachments() if a.name == ATTACHMENT_CALIBRATION), ""
+            )
             by_view: dict[int, dict[str, np.ndarray]] = {}
             topics = {TOPIC_IMAGE.format(camera=c): c for c in CAMERAS}
             for _, channel, message in reader.iter_messages(topics=list(topics)):
                 view = message.sequence
                 by_view.setdefault(view, {})[topics[channel.topic]] = _image(
-                    message.data, f"{path}: {channel.topic} view {view}")
+                    message.data, f"{path}: {channel.topic} view {view}"
+                )
         except RecordingError:
             raise
         except Exception as exc:  # the mcap library's own errors for a damaged file
@@ -158,4 +184,6 @@ def read_calibration_recording(path: str | Path) -> RecordedCalibration:
         raise RecordingError(f"{path}: metadata {METADATA_NAME!r} is damaged: {exc}") from None
     if len(names) != len(views):
         names = tuple(f"view {k}" for k in range(len(views)))
-    return RecordedCalibration(tuple(views), names, bit_depth, board, settings, meta.get("source", ""), yaml_text)
+    return RecordedCalibration(
+        tuple(views), names, bit_depth, board, settings, meta.get("source", ""), yaml_text
+    )

@@ -30,11 +30,14 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-
 from crossfield.camera.board_detect import BoardDetection, BoardDetector
 from crossfield.camera.boards import Board
 from crossfield.camera.calib_covariance import (
-    StereoObservations, camera_param_names, covariance_from_jacobian, stereo_jacobian, triangulation_sensitivity,
+    StereoObservations,
+    camera_param_names,
+    covariance_from_jacobian,
+    stereo_jacobian,
+    triangulation_sensitivity,
 )
 from crossfield.errors import CrossfieldError
 from crossfield.types import CAMERAS, CameraIntrinsics, StereoCalibration
@@ -75,7 +78,9 @@ class CalibrationSettings:
                 f"distortion model {self.distortion!r} unknown; choose one of {', '.join(DISTORTION_MODELS)}"
             )
         if self.min_views < 3:
-            raise CalibrationError(f"min_views must be >= 3 (Zhang's method needs 3 planes), got {self.min_views}")
+            raise CalibrationError(
+                f"min_views must be >= 3 (Zhang's method needs 3 planes), got {self.min_views}"
+            )
 
 
 @dataclass(frozen=True)
@@ -191,8 +196,10 @@ def check_mirrored(
         if board.type == "charuco" and len(found) < min_views and images is not None:
             detector = BoardDetector(board)
             failed = [k for k, view in enumerate(detections) if view[cam] is None][:8]
-            flipped = sum(detector.detect(np.ascontiguousarray(images[k][cam][:, ::-1]), bit_depth) is not None
-                          for k in failed)
+            flipped = sum(
+                detector.detect(np.ascontiguousarray(images[k][cam][:, ::-1]), bit_depth) is not None
+                for k in failed
+            )
             if failed and flipped > len(failed) / 2:
                 raise CalibrationError(
                     f"the {cam} camera's images are mirrored: the ChArUco board is found in {flipped} of "
@@ -208,8 +215,10 @@ def _f32(a: np.ndarray, cols: int) -> np.ndarray:
     return np.ascontiguousarray(a, np.float32).reshape(-1, 1, cols)
 
 
-def _drop_worst(errors: Mapping[int, float], settings: CalibrationSettings) -> tuple[int, float, float] | None:
-    """The view to drop (index, error, limit) or None: Section docstring step 3."""
+def _drop_worst(
+    errors: Mapping[int, float], settings: CalibrationSettings
+) -> tuple[int, float, float] | None:
+    """The view to drop (index, error px, limit px) or None (module docstring, step 3)."""
     values = np.array(list(errors.values()))
     limit = max(settings.outlier_factor * float(np.median(values)), settings.outlier_floor_px)
     worst = max(errors, key=errors.get)
@@ -218,7 +227,9 @@ def _drop_worst(errors: Mapping[int, float], settings: CalibrationSettings) -> t
     return None
 
 
-def _too_few(what: str, have: int, settings: CalibrationSettings, dropped: Sequence[DroppedView]) -> CalibrationError:
+def _too_few(
+    what: str, have: int, settings: CalibrationSettings, dropped: Sequence[DroppedView]
+) -> CalibrationError:
     lost = f"; dropped: {'; '.join(f'{d.name} ({d.stage}: {d.reason})' for d in dropped)}" if dropped else ""
     return CalibrationError(
         f"too few views for {what}: {have} usable, at least {settings.min_views} needed "
@@ -238,15 +249,22 @@ def calibrate_camera(
     flag, n_dist = DISTORTION_MODELS[settings.distortion]
     active = {k: d for k, d in views.items() if len(d) >= settings.min_points}
     for k in sorted(set(views) - set(active)):
-        dropped.append(DroppedView(k, names[k], camera, f"only {len(views[k])} points (< {settings.min_points})"))
+        dropped.append(
+            DroppedView(k, names[k], camera, f"only {len(views[k])} points (< {settings.min_points})")
+        )
     while True:
         if len(active) < settings.min_views:
             raise _too_few(f"the {camera} camera", len(active), settings, dropped)
         keys = sorted(active)
         try:
             rms, K, D, _, _, std_in, _, per_view = cv2.calibrateCameraExtended(
-                [_f32(active[k].object_points, 3) for k in keys], [_f32(active[k].image_points, 2) for k in keys],
-                image_size, None, None, flags=flag, criteria=_CRITERIA,
+                [_f32(active[k].object_points, 3) for k in keys],
+                [_f32(active[k].image_points, 2) for k in keys],
+                image_size,
+                None,
+                None,
+                flags=flag,
+                criteria=_CRITERIA,
             )
         except cv2.error as exc:
             raise CalibrationError(f"the {camera} camera: OpenCV calibrateCamera failed: {exc.err}") from None
@@ -255,11 +273,17 @@ def calibrate_camera(
         if worst is None:
             break
         k, err, limit = worst
-        dropped.append(DroppedView(k, names[k], camera, f"RMS reprojection error {err:.3f} px > limit {limit:.3f} px"))
+        dropped.append(
+            DroppedView(k, names[k], camera, f"RMS reprojection error {err:.3f} px > limit {limit:.3f} px")
+        )
         del active[k]
     std = np.asarray(std_in).ravel()[: 4 + n_dist]
     return CameraSolution(
-        np.asarray(K, float), np.asarray(D, float).ravel()[:n_dist], float(rms), std, errors,
+        np.asarray(K, float),
+        np.asarray(D, float).ravel()[:n_dist],
+        float(rms),
+        std,
+        errors,
         int(sum(len(active[k]) for k in keys)),
     )
 
@@ -291,8 +315,12 @@ def _epipolar_errors(
     return np.abs(np.sum(h2 * lines, axis=1)) / np.hypot(lines[:, 0], lines[:, 1])
 
 
-def working_volume_points(calibration: StereoCalibration, depths_mm: Sequence[float] = (350.0, 400.0, 450.0),
-                          grid: int = 5, margin: float = 0.1) -> np.ndarray:
+def working_volume_points(
+    calibration: StereoCalibration,
+    depths_mm: Sequence[float] = (350.0, 400.0, 450.0),
+    grid: int = 5,
+    margin: float = 0.1,
+) -> np.ndarray:
     """(N, 3) upper-frame points (mm) seen by both cameras: a grid x grid lattice at each depth."""
     out = []
     K1 = np.asarray(calibration.upper.camera_matrix)
@@ -302,9 +330,13 @@ def working_volume_points(calibration: StereoCalibration, depths_mm: Sequence[fl
             for fv in np.linspace(margin, 1 - margin, grid):
                 X = np.linalg.inv(K1) @ np.array([fu * (w - 1), fv * (h - 1), 1.0]) * z
                 Xl = np.asarray(calibration.R_lower_upper) @ X + np.asarray(calibration.t_lower_upper)
-                uv, _ = cv2.projectPoints(Xl[None], np.zeros(3), np.zeros(3),
-                                          np.asarray(calibration.lower.camera_matrix),
-                                          np.asarray(calibration.lower.dist_coeffs))
+                uv, _ = cv2.projectPoints(
+                    Xl[None],
+                    np.zeros(3),
+                    np.zeros(3),
+                    np.asarray(calibration.lower.camera_matrix),
+                    np.asarray(calibration.lower.dist_coeffs),
+                )
                 wl, hl = calibration.lower.image_size
                 if 0 <= uv[0, 0, 0] < wl and 0 <= uv[0, 0, 1] < hl:
                     out.append(X)
@@ -325,7 +357,11 @@ def solve_stereo(
     names = [f"view {k}" for k in range(n)] if names is None else list(names)
     dropped: list[DroppedView] = []
     flag, n_dist = DISTORTION_MODELS[settings.distortion]
-    held_out = tuple(k for k in range(n) if settings.holdout_every and k % settings.holdout_every == settings.holdout_every - 1)
+    held_out = tuple(
+        k
+        for k in range(n)
+        if settings.holdout_every and k % settings.holdout_every == settings.holdout_every - 1
+    )
     usable: dict[str, dict[int, BoardDetection]] = {cam: {} for cam in CAMERAS}
     for k, view in enumerate(detections):
         for cam in CAMERAS:
@@ -333,7 +369,9 @@ def solve_stereo(
             if d is None:
                 dropped.append(DroppedView(k, names[k], "detect", f"board not found in the {cam} image"))
             elif d.orientation() < 0:
-                dropped.append(DroppedView(k, names[k], "mirrored", f"the board appears reflected in the {cam} image"))
+                dropped.append(
+                    DroppedView(k, names[k], "mirrored", f"the board appears reflected in the {cam} image")
+                )
             elif k not in held_out:
                 usable[cam][k] = d
     cameras = {
@@ -344,8 +382,14 @@ def solve_stereo(
     for k in sorted(set(cameras["upper"].per_view_px) & set(cameras["lower"].per_view_px)):
         a, b = _common(usable["upper"][k], usable["lower"][k])
         if len(a) < settings.min_points:
-            dropped.append(DroppedView(k, names[k], "stereo", f"only {len(a)} points seen by both cameras "
-                                       f"(< {settings.min_points})"))
+            dropped.append(
+                DroppedView(
+                    k,
+                    names[k],
+                    "stereo",
+                    f"only {len(a)} points seen by both cameras (< {settings.min_points})",
+                )
+            )
         else:
             pairs[k] = (a, b)
     K1, D1 = cameras["upper"].K, cameras["upper"].D
@@ -359,8 +403,15 @@ def solve_stereo(
                 [_f32(pairs[k][0].object_points, 3) for k in keys],
                 [_f32(pairs[k][0].image_points, 2) for k in keys],
                 [_f32(pairs[k][1].image_points, 2) for k in keys],
-                K1.copy(), D1.copy(), K2.copy(), D2.copy(), image_sizes["upper"], None, None,
-                flags=cv2.CALIB_USE_INTRINSIC_GUESS | flag, criteria=_CRITERIA,
+                K1.copy(),
+                D1.copy(),
+                K2.copy(),
+                D2.copy(),
+                image_sizes["upper"],
+                None,
+                None,
+                flags=cv2.CALIB_USE_INTRINSIC_GUESS | flag,
+                criteria=_CRITERIA,
             )
         except cv2.error as exc:
             raise CalibrationError(f"OpenCV stereoCalibrate failed: {exc.err}") from None
@@ -370,8 +421,15 @@ def solve_stereo(
         if worst is None:
             break
         k, err, limit = worst
-        dropped.append(DroppedView(k, names[k], "stereo", f"stereo RMS reprojection error {err:.3f} px > limit "
-                                   f"{limit:.3f} px (the board moved between the exposures, or unpaired images?)"))
+        dropped.append(
+            DroppedView(
+                k,
+                names[k],
+                "stereo",
+                f"stereo RMS reprojection error {err:.3f} px > limit "
+                f"{limit:.3f} px (the board moved between the exposures, or unpaired images?)",
+            )
+        )
         del pairs[k]
     R = np.asarray(R, float)
     T = np.asarray(T, float).ravel()
@@ -380,21 +438,33 @@ def solve_stereo(
     K1s, K2s = np.asarray(K1s, float), np.asarray(K2s, float)
     D1s, D2s = np.asarray(D1s, float).ravel()[:n_dist], np.asarray(D2s, float).ravel()[:n_dist]
     calibration = StereoCalibration(
-        CameraIntrinsics(K1s, D1s, image_sizes["upper"]), CameraIntrinsics(K2s, D2s, image_sizes["lower"]),
-        R, T, source=source,
+        CameraIntrinsics(K1s, D1s, image_sizes["upper"]),
+        CameraIntrinsics(K2s, D2s, image_sizes["lower"]),
+        R,
+        T,
+        source=source,
     )
     # Step 5: covariance at the solution (the board poses marginalised).
     obs = StereoObservations(
-        tuple(pairs[k][0].object_points for k in keys), tuple(pairs[k][0].image_points for k in keys),
+        tuple(pairs[k][0].object_points for k in keys),
+        tuple(pairs[k][0].image_points for k in keys),
         tuple(pairs[k][1].image_points for k in keys),
     )
     rvec = cv2.Rodrigues(R)[0].ravel()
-    res, J = stereo_jacobian(obs, K1s, D1s, K2s, D2s, rvec, T, [np.ravel(r) for r in rvecs],
-                             [np.ravel(t) for t in tvecs])
-    cov_full, sigma = covariance_from_jacobian(res, J)
+    res, J = stereo_jacobian(
+        obs, K1s, D1s, K2s, D2s, rvec, T, [np.ravel(r) for r in rvecs], [np.ravel(t) for t in tvecs]
+    )
+    try:
+        cov_full, sigma = covariance_from_jacobian(res, J)
+    except ValueError as exc:
+        raise CalibrationError(
+            f"no uncertainty for this calibration: {exc}; add views with other tilts"
+        ) from None
     p_cam = 2 * (4 + n_dist) + 6
     cov = cov_full[:p_cam, :p_cam]
-    params = np.concatenate([K1s[[0, 1, 0, 1], [0, 1, 2, 2]], D1s, K2s[[0, 1, 0, 1], [0, 1, 2, 2]], D2s, rvec, T])
+    params = np.concatenate(
+        [K1s[[0, 1, 0, 1], [0, 1, 2, 2]], D1s, K2s[[0, 1, 0, 1], [0, 1, 2, 2]], D2s, rvec, T]
+    )
     holdout = {}
     for k in held_out:
         a, b = detections[k]["upper"], detections[k]["lower"]
@@ -408,12 +478,24 @@ def solve_stereo(
     cov_X = np.einsum("nip,pq,njq->nij", G, cov, G)
     sigma_X = np.sqrt(np.einsum("nii->ni", cov_X))
     return CalibrationResult(
-        calibration=calibration, board=board, settings=settings, view_names=tuple(names), cameras=cameras,
-        rms_stereo_px=float(rms), per_view_stereo_px={k: tuple(map(float, per_view[i])) for i, k in enumerate(keys)},
-        dropped=tuple(sorted(dropped, key=lambda d: (d.view, d.stage))), held_out=held_out,
-        param_names=camera_param_names(n_dist), params=params, covariance=cov, sigma_px=sigma,
-        holdout_epipolar_px=holdout, detections=tuple(dict(v) for v in detections),
-        uncertainty_points=points, uncertainty_sigma_mm=sigma_X, used_stereo=tuple(keys),
+        calibration=calibration,
+        board=board,
+        settings=settings,
+        view_names=tuple(names),
+        cameras=cameras,
+        rms_stereo_px=float(rms),
+        per_view_stereo_px={k: tuple(map(float, per_view[i])) for i, k in enumerate(keys)},
+        dropped=tuple(sorted(dropped, key=lambda d: (d.view, d.stage))),
+        held_out=held_out,
+        param_names=camera_param_names(n_dist),
+        params=params,
+        covariance=cov,
+        sigma_px=sigma,
+        holdout_epipolar_px=holdout,
+        detections=tuple(dict(v) for v in detections),
+        uncertainty_points=points,
+        uncertainty_sigma_mm=sigma_X,
+        used_stereo=tuple(keys),
     )
 
 
@@ -440,12 +522,16 @@ def settings_from_dict(data: Mapping[str, object], source: str = "<calibration>"
     fields = CalibrationSettings.__dataclass_fields__
     unknown = sorted(set(data) - set(fields))
     if unknown:
-        raise CalibrationError(f"{source}: [calibration] unknown key {unknown[0]!r} (keys: {', '.join(fields)})")
+        raise CalibrationError(
+            f"{source}: [calibration] unknown key {unknown[0]!r} (keys: {', '.join(fields)})"
+        )
     values = {}
     for key, value in data.items():
         default = fields[key].default
         if isinstance(default, str) != isinstance(value, str) or isinstance(value, bool):
-            raise CalibrationError(f"{source}: [calibration] {key} must be a {type(default).__name__}, got {value!r}")
+            raise CalibrationError(
+                f"{source}: [calibration] {key} must be a {type(default).__name__}, got {value!r}"
+            )
         if isinstance(default, int) and not isinstance(default, bool) and not isinstance(value, int):
             raise CalibrationError(f"{source}: [calibration] {key} must be an integer, got {value!r}")
         values[key] = float(value) if isinstance(default, float) else value

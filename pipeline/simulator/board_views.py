@@ -2,7 +2,9 @@
 
 Each pixel's value is the exact image of the printed pattern: every
 sub-sample of the pixel (``supersample``^2 of them, each in its own row and
-column of the pixel, :func:`sample_offsets`) is cast back through the lens (distortion inverted, :func:`crossfield.simulator.optics.pixel_rays`)
+column of the pixel, :func:`sample_offsets`) is cast back through the lens
+(distortion inverted, the fixed-point iteration of
+:func:`crossfield.simulator.optics.pixel_rays`, run by ``cv2.undistortPoints``)
 and intersected with the board plane, where the printed pattern (a raster
 of ``texel_mm`` texels whose edges fall exactly on the squares' edges) is
 looked up. The pixel's coverage is then lit (a vignetted illumination),
@@ -24,13 +26,12 @@ from functools import lru_cache
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
-
 from crossfield.camera.boards import Board
-from crossfield.simulator.optics import pixel_rays, project
+from crossfield.simulator.optics import project
 from crossfield.simulator.render import SensorModel, add_noise, background_image
 from crossfield.simulator.scenarios import SCENARIOS, VIEW_CENTRE, station_calibration
 from crossfield.types import CAMERAS, CameraIntrinsics, StereoCalibration
+from scipy.spatial.transform import Rotation
 
 #: Reflectance of the surroundings and of the black print, in 1/255 of the white paper's.
 BACKGROUND_LEVEL = 20
@@ -109,7 +110,9 @@ def _rays_cached(key: bytes, K: tuple, D: tuple, size: tuple[int, int]) -> tuple
     v, u = np.mgrid[0 : size[1], 0 : size[0]].astype(np.float64)
     pts = np.stack([u.ravel(), v.ravel()], axis=1).reshape(-1, 1, 2)
     criteria = (cv2.TERM_CRITERIA_COUNT, 20, 0.0)
-    xy = cv2.undistortPoints(pts, np.array(K).reshape(3, 3), np.array(D), criteria=criteria).reshape(size[1], size[0], 2)
+    xy = cv2.undistortPoints(pts, np.array(K).reshape(3, 3), np.array(D), criteria=criteria).reshape(
+        size[1], size[0], 2
+    )
     return np.ascontiguousarray(xy[..., 0]), np.ascontiguousarray(xy[..., 1])
 
 
@@ -186,8 +189,12 @@ def render_board(
             Hinv = np.linalg.inv(np.column_stack([R[:, 0], R[:, 1], t]))
             den = Hinv[2, 0] * x + Hinv[2, 1] * y + Hinv[2, 2]
             # Texel coordinates for cv2.remap's nearest lookup (texel i covers [i - 0.5, i + 0.5)).
-            tx = ((Hinv[0, 0] * x + Hinv[0, 1] * y + Hinv[0, 2]) / den - texture.origin_mm[0]) / texture.texel_mm - 0.5
-            ty = ((Hinv[1, 0] * x + Hinv[1, 1] * y + Hinv[1, 2]) / den - texture.origin_mm[1]) / texture.texel_mm - 0.5
+            tx = (
+                (Hinv[0, 0] * x + Hinv[0, 1] * y + Hinv[0, 2]) / den - texture.origin_mm[0]
+            ) / texture.texel_mm - 0.5
+            ty = (
+                (Hinv[1, 0] * x + Hinv[1, 1] * y + Hinv[1, 2]) / den - texture.origin_mm[1]
+            ) / texture.texel_mm - 0.5
             coverage[v0 : v1 + 1, u0 : u1 + 1] = _integrate(texture, tx, ty, int(supersample) ** 2)
     light = background_image(intrinsics.image_size, WHITE_DN, np.random.default_rng(illumination_seed))
     clean = cv2.GaussianBlur(coverage * light, (0, 0), sensor.blur_sigma_px)
@@ -247,8 +254,13 @@ def station_board_poses(n_views: int, board: Board, *, layout_seed: int = 2026) 
         z = rng.uniform(340.0, 470.0)
         gx, gy = (k % 3) - 1, ((k // 3) % 3) - 1
         lateral = np.array([gx * 0.16 * z + rng.uniform(-8, 8), gy * 0.10 * z + rng.uniform(-6, 6)])
-        centre = np.array([VIEW_CENTRE[0] * z / VIEW_CENTRE[2] + lateral[0],
-                           VIEW_CENTRE[1] * z / VIEW_CENTRE[2] + lateral[1], z])
+        centre = np.array(
+            [
+                VIEW_CENTRE[0] * z / VIEW_CENTRE[2] + lateral[0],
+                VIEW_CENTRE[1] * z / VIEW_CENTRE[2] + lateral[1],
+                z,
+            ]
+        )
         axis_angle = rng.uniform(0, 2 * np.pi)
         tilt = np.radians(rng.uniform(12.0, 40.0))
         tilt_rot = Rotation.from_rotvec(tilt * np.array([np.cos(axis_angle), np.sin(axis_angle), 0.0]))
@@ -299,9 +311,19 @@ def render_calibration_views(
             dR = Rotation.from_rotvec(pose.lower_shift[0]).as_matrix()
             R_u, t_u = dR @ R_u, dR @ t_u + np.asarray(pose.lower_shift[1])
         view = {
-            "upper": render_board(texture, pose.R, pose.t, calibration.upper, sensor, rng, supersample=supersample),
-            "lower": render_board(texture, R_lu @ R_u, R_lu @ t_u + t_lu, calibration.lower, sensor, rng,
-                                  supersample=supersample, illumination_seed=12),
+            "upper": render_board(
+                texture, pose.R, pose.t, calibration.upper, sensor, rng, supersample=supersample
+            ),
+            "lower": render_board(
+                texture,
+                R_lu @ R_u,
+                R_lu @ t_u + t_lu,
+                calibration.lower,
+                sensor,
+                rng,
+                supersample=supersample,
+                illumination_seed=12,
+            ),
         }
         if mirrored is not None:
             view[mirrored] = np.ascontiguousarray(view[mirrored][:, ::-1])
@@ -313,13 +335,20 @@ def render_calibration_views(
 
 @lru_cache(maxsize=2)
 def _cached_views(scenario: str, n_views: int, seed: int, board: Board, outlier_views: tuple[int, ...]):
-    return render_calibration_views(scenario, n_views=n_views, seed=seed, board=board, outlier_views=outlier_views)
+    return render_calibration_views(
+        scenario, n_views=n_views, seed=seed, board=board, outlier_views=outlier_views
+    )
 
 
 def cached_calibration_views(
-    scenario: str = "station", n_views: int = 20, seed: int = 1, board: Board | None = None,
+    scenario: str = "station",
+    n_views: int = 20,
+    seed: int = 1,
+    board: Board | None = None,
     outlier_views: tuple[int, ...] = (),
 ) -> CalibrationViews:
     """:func:`render_calibration_views`, remembered (the images are read-only): a process that
     calibrates the same simulated session twice (the tests, the CLI in-process) renders it once."""
-    return _cached_views(scenario, n_views, seed, default_board() if board is None else board, tuple(outlier_views))
+    return _cached_views(
+        scenario, n_views, seed, default_board() if board is None else board, tuple(outlier_views)
+    )
