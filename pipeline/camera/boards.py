@@ -172,7 +172,7 @@ def board_from_dict(data: dict[str, Any], source: str = "<board>") -> Board:
                 values[key] = _DEFAULTS[key]
                 continue
             raise ConfigError(
-                f"{source}: [board] {key} is missing (type {kind!r} needs {', '.join(allowed)})"
+                f"{source}: [board] {key} is missing (type {kind!r} needs {', '.join(k for k in allowed if k not in _DEFAULTS)})"
             )
         values[key] = _check_value(source, key, data[key], expected)
     if kind == "charuco":
