@@ -23,6 +23,7 @@ BENCHMARKS = (
     ("bench_serial.py", [], ["--points", "1000", "--runs", "1"]),
     ("bench_acquire.py", [], ["--pairs", "10", "--rounds", "2"]),
     ("bench_replay.py", ["--frames", "60", "--repeat", "3"], ["--frames", "20", "--repeat", "1"]),
+    ("bench_calibrate.py", [], ["--pairs", "20", "--repeat", "1"]),
 )
 
 

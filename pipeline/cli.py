@@ -159,6 +159,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     plugins = command("plugins", help="list every stage's registered implementations")
     plugins.add_argument("--json", action="store_true", help="machine-readable output")
+
+    # calibrate / verify (crossfield.calibration_cli): parsers and their commands
+    from crossfield.calibration_cli import add_parsers as _add_calibration_parsers
+
+    COMMANDS.update(_add_calibration_parsers(command))
     return parser
 
 

@@ -31,6 +31,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from crossfield.camera.pair_files import pattern_regex
 from crossfield.camera.calibration_io import read_stereo_calibration
 from crossfield.errors import ConfigError
 from crossfield.hookspecs import Register, hookimpl
@@ -42,30 +43,6 @@ DEFAULT_CALIBRATION_FILES: tuple[tuple[str, ...], ...] = (
     ("calibration.yaml",),
     ("intrinsics.yml", "extrinsics.yml"),
 )
-
-
-def pattern_regex(pattern: str) -> re.Pattern[str]:
-    """Compile a file-name pattern with ``{camera}``, ``{seq}`` and ``*`` into a regex.
-
-    Both placeholders must occur exactly once; every other character matches itself.
-    """
-    for placeholder in ("{camera}", "{seq}"):
-        if pattern.count(placeholder) != 1:
-            raise ValueError(f"option 'pattern' must contain {placeholder} exactly once, got {pattern!r}")
-    if "/" in pattern or os.sep in pattern:
-        raise ValueError(f"option 'pattern' names files inside the folder, not paths: {pattern!r}")
-    parts = re.split(r"(\{camera\}|\{seq\}|\*)", pattern)
-    regex = []
-    for part in parts:
-        if part == "{camera}":
-            regex.append("(?P<camera>" + "|".join(CAMERAS) + ")")
-        elif part == "{seq}":
-            regex.append(r"(?P<seq>\d+)")
-        elif part == "*":
-            regex.append(".*")
-        else:
-            regex.append(re.escape(part))
-    return re.compile("".join(regex) + r"\Z")
 
 
 class FolderAcquisition:

@@ -28,7 +28,10 @@ class SimulatorSource:
     ten cross-field lengths). frames: number of stereo pairs. seed: noise
     seed (images and arm). arm_sigma_mm: CMM arm noise per coordinate (mm).
     start_time_ns: capture time of the first pair (ns since the Unix epoch;
-    0 = now); pairs follow at the camera's 14 Hz.
+    0 = now); pairs follow at the camera's 14 Hz. calibration: a FileStorage
+    calibration file (e.g. written by ``crossfield calibrate --scenario``) that
+    the session measures with instead of the rig's true calibration; the
+    images are still rendered through the true one ("" = the truth).
     """
 
     def __init__(
@@ -39,6 +42,7 @@ class SimulatorSource:
         seed: int = 1,
         arm_sigma_mm: float = 0.01,
         start_time_ns: int = 0,
+        calibration: str = "",
     ) -> None:
         if scenario not in SCENARIOS:
             raise ValueError(f"option 'scenario': unknown scenario {scenario!r}; scenarios: {', '.join(SCENARIOS)}")
@@ -51,6 +55,13 @@ class SimulatorSource:
         self.seed = seed
         self.scene = build_scene(scenario, arm_sigma_mm=arm_sigma_mm)
         self.calibration = self.scene.calibration
+        self.calibration_file = calibration
+        if calibration:
+            from crossfield.camera.calibration_io import read_stereo_calibration
+
+            self.calibration = read_stereo_calibration(
+                calibration, image_sizes=(self.calibration.upper.image_size, self.calibration.lower.image_size)
+            )
         self.ground_truth = self.scene.ground_truth
         self.default_plan = self.scene.plan
         self.start_time_ns = start_time_ns  # 0: taken when the first pair is acquired
@@ -92,6 +103,7 @@ class SimulatorSource:
             },
             "arm_sigma_mm": s.arm_sigma_mm,
             "targets": len(s.targets),
+            "calibration_file": self.calibration_file or None,
         }
 
     def close(self) -> None:

@@ -854,6 +854,7 @@ def test_compressed_chunks_stay_lossless(tmp_path, compression):
 #: How a topic literal starts (every topic of docs/recording.md).
 TOPIC_PREFIXES = (
     "/camera/",
+    "/calibration/",
     "/points/",
     "/cmm/raw",
     "/tf",

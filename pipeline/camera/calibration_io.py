@@ -23,8 +23,9 @@ the key at fault.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -212,7 +213,9 @@ def stereo_calibration_from_yaml(
         fs.release()
 
 
-def _write(fs: cv2.FileStorage, calibration: StereoCalibration, rectification: bool) -> None:
+def _write(
+    fs: cv2.FileStorage, calibration: StereoCalibration, rectification: bool, extra: Mapping[str, Any] | None = None
+) -> None:
     fs.writeComment(
         "crossfield stereo calibration (OpenCV stereo_calib.cpp keys). Camera 1 = upper, camera 2 = lower; "
         "p_lower = R * p_upper + T, T in mm; pixel (0,0) = centre of the top-left pixel."
@@ -245,23 +248,29 @@ def _write(fs: cv2.FileStorage, calibration: StereoCalibration, rectification: b
         )
         for key, value in (("R1", R1), ("R2", R2), ("P1", P1), ("P2", P2), ("Q", Q)):
             fs.write(key, value)
+    for key, value in (extra or {}).items():  # e.g. the standard deviations `crossfield calibrate` adds
+        fs.write(key, np.asarray(value, dtype=np.float64) if isinstance(value, np.ndarray) else value)
 
 
-def stereo_calibration_to_yaml(calibration: StereoCalibration, *, rectification: bool = True) -> str:
-    """The calibration as FileStorage YAML text (one document with all keys)."""
+def stereo_calibration_to_yaml(
+    calibration: StereoCalibration, *, rectification: bool = True, extra: Mapping[str, Any] | None = None
+) -> str:
+    """The calibration as FileStorage YAML text (one document with all keys, then ``extra``'s)."""
     fs = cv2.FileStorage("calibration.yml", cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
-    _write(fs, calibration, rectification)
+    _write(fs, calibration, rectification, extra)
     return fs.releaseAndGetString()
 
 
 def write_stereo_calibration(
-    path: str | Path, calibration: StereoCalibration, *, rectification: bool = True
+    path: str | Path, calibration: StereoCalibration, *, rectification: bool = True,
+    extra: Mapping[str, Any] | None = None,
 ) -> Path:
     """Write ``calibration`` to one FileStorage file (``.yml``/``.yaml``/``.xml``).
 
     Keys: M1 D1 M2 D2 R T image_width image_height (per-camera sizes as
     image_width1 ... when the cameras differ), plus R1 R2 P1 P2 Q from
-    ``cv2.stereoRectify`` when ``rectification`` is true. Returns the path.
+    ``cv2.stereoRectify`` when ``rectification`` is true, then the keys of
+    ``extra`` (numpy arrays as matrices, numbers, strings). Returns the path.
     """
     path = Path(path)
     try:
@@ -271,7 +280,7 @@ def write_stereo_calibration(
     if not fs.isOpened():
         raise ConfigError(f"{path}: cannot open for writing")
     try:
-        _write(fs, calibration, rectification)
+        _write(fs, calibration, rectification, extra)
     finally:
         fs.release()
     return path

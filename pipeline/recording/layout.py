@@ -48,6 +48,18 @@ TOPIC_LOG = "/log"
 #: The integrity chain's records (:mod:`crossfield.recording.integrity`).
 TOPIC_INTEGRITY = "/integrity"
 
+# ---- a calibration session (crossfield calibrate --record; docs/calibration.md) ----
+
+#: Raw board views, one per camera and view (foxglove.RawImage, lossless).
+TOPIC_CALIBRATION_IMAGE = "/calibration/{camera}/image"
+#: The board detections of each view (JSON).
+TOPIC_CALIBRATION_DETECTIONS = "/calibration/detections"
+#: The solved calibration and its report (JSON).
+TOPIC_CALIBRATION_RESULT = "/calibration/result"
+CALIBRATION_METADATA = "crossfield.calibration"
+CALIBRATION_ATTACHMENT = "calibration.yml"
+CALIBRATION_PROFILE = "crossfield-calibration"
+
 
 def image_topic(camera: str) -> str:
     """``/camera/<camera>/image`` (foxglove.RawImage)."""

@@ -1,0 +1,201 @@
+"""``crossfield calibrate`` and ``crossfield verify`` (``docs/calibration.md``).
+
+Kept out of :mod:`crossfield.cli`, which only adds these parsers and their
+commands in one block.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tomllib
+from pathlib import Path
+
+from crossfield.errors import ConfigError
+
+
+def add_parsers(command) -> dict:
+    """Add the ``calibrate`` and ``verify`` subcommands with ``command(name, **kwargs)``
+    (the CLI's subcommand factory, which gives every command -v / -q); returns {name: handler}."""
+    cal = command(
+        "calibrate",
+        help="stereo-calibrate the upper/lower pair from views of a planar board (Zhang), write CALIB.yml",
+        description="Zhang stereo calibration from image pairs of a planar board (ChArUco, chessboard or asymmetric "
+        "circles), or from simulated views (--scenario). Writes the OpenCV FileStorage YAML the folder, basler and "
+        "opencv sources read (M1 D1 M2 D2 R T, image size) with standard deviations under std_* keys, and a report "
+        "(<CALIB>-report.html/.json). Exit status 0 on success, 2 if the views cannot give a calibration.",
+    )
+    src = cal.add_mutually_exclusive_group(required=True)
+    src.add_argument(
+        "--images", metavar="DIR", help="folder of image pairs (upper_0000.png / lower_0000.png)"
+    )
+    src.add_argument("--scenario", help="simulated views of a simulator scenario's rig (station or table3)")
+    src.add_argument(
+        "--replay",
+        metavar="CAL.mcap",
+        help="calibrate again from a recorded calibration's raw images (recorded board and settings "
+        "unless --board / --distortion are given)",
+    )
+    cal.add_argument(
+        "--board",
+        metavar="BOARD.toml",
+        help="board definition ([board], optional [calibration]); default: ChArUco 11x8, 15 mm",
+    )
+    cal.add_argument("-o", "--output", metavar="CALIB.yml", required=True, help="calibration file to write")
+    cal.add_argument(
+        "--pattern", default="{camera}_{seq}.png", help="image file-name pattern (as the folder source)"
+    )
+    cal.add_argument(
+        "--bit-depth", type=int, help="significant bits of 16-bit images (default: from the pixel values)"
+    )
+    cal.add_argument(
+        "--distortion", choices=("plumb_bob", "rational"), help="distortion model (default plumb_bob)"
+    )
+    cal.add_argument("--views", type=int, default=20, help="simulated views (--scenario; default 20)")
+    cal.add_argument("--seed", type=int, default=1, help="noise seed of the simulated views (default 1)")
+    cal.add_argument(
+        "--outlier-views",
+        type=int,
+        nargs="*",
+        default=[],
+        metavar="K",
+        help="simulated views in which the board moves between the two exposures",
+    )
+    cal.add_argument("--save-images", metavar="DIR", help="also write the simulated views as image pairs")
+    cal.add_argument("--no-report", action="store_true", help="do not write the report")
+    cal.add_argument(
+        "--record", metavar="CAL.mcap", help="record the session (images, detections, result) to MCAP"
+    )
+
+    ver = command(
+        "verify",
+        help="VDI/VDE 2634-1 length test: a scale bar in >= 7 positions, length errors E against the MPE",
+        description="Acceptance / re-verification of the stereo station in the manner of VDI/VDE 2634 Part 1: a "
+        "scale bar with two targets and a certified length is measured in at least 7 positions and orientations "
+        "across the measuring volume; per position the length measurement error E = measured - certified; the "
+        "station passes if every |E| <= MPE. Writes <OUT>.json/.html (plot). Exit status 0 pass, 1 fail.",
+    )
+    ver.add_argument(
+        "--scenario", default="station", help="simulator scenario providing the scale-bar positions"
+    )
+    ver.add_argument("--calibration", metavar="CALIB.yml", required=True, help="the calibration to verify")
+    ver.add_argument(
+        "--mpe", type=float, default=0.1, help="maximum permissible length error E_MPE (mm, default 0.1)"
+    )
+    ver.add_argument(
+        "--bar-mm", type=float, default=100.0, help="certified scale-bar length (mm, default 100)"
+    )
+    ver.add_argument(
+        "--bar-u-mm", type=float, default=0.002, help="standard uncertainty of the certified length (mm)"
+    )
+    ver.add_argument("--frames", type=int, default=3, help="stereo pairs per position (default 3)")
+    ver.add_argument("--seed", type=int, default=1, help="noise seed (default 1)")
+    ver.add_argument(
+        "-o", "--output", metavar="OUT", default="verification", help="report stem (default verification)"
+    )
+    return {"calibrate": cmd_calibrate, "verify": cmd_verify}
+
+
+def _board_and_settings(path: str | None, distortion: str | None):
+    from crossfield.camera.boards import Board, board_from_dict
+    from crossfield.camera.calibrate import CalibrationSettings, settings_from_dict
+
+    board, settings = Board(), CalibrationSettings()
+    if path:
+        try:
+            data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise ConfigError(f"{path}: board file not found") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+        if not isinstance(data.get("board"), dict):
+            raise ConfigError(f"{path}: no [board] table")
+        board = board_from_dict(data["board"], path)
+        settings = settings_from_dict(data.get("calibration", {}), path)
+    if distortion:
+        from dataclasses import replace
+
+        settings = replace(settings, distortion=distortion)
+    return board, settings
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from crossfield.camera.calib_file import write_calibration_result
+    from crossfield.camera.calib_report import write_report
+    from crossfield.camera.calibrate import calibrate_images
+
+    board, settings = _board_and_settings(args.board, args.distortion)
+    if args.replay:
+        from dataclasses import replace
+
+        from crossfield.camera.calib_record import read_calibration_recording
+
+        recorded = read_calibration_recording(args.replay)
+        images, bit_depth, names = recorded.images, recorded.bit_depth, recorded.names
+        if not args.board:
+            board, settings = recorded.board, recorded.settings
+            if args.distortion:
+                settings = replace(settings, distortion=args.distortion)
+        source = f"crossfield calibrate --replay {args.replay}"
+    elif args.scenario:
+        from crossfield.simulator.board_views import cached_calibration_views
+
+        try:
+            views = cached_calibration_views(
+                args.scenario, args.views, args.seed, board, tuple(args.outlier_views)
+            )
+        except ValueError as exc:
+            raise ConfigError(f"--scenario: {exc}") from None
+        images, bit_depth = views.images, views.bit_depth
+        names = [f"sim view {k}" for k in range(len(images))]
+        source = f"crossfield calibrate --scenario {args.scenario}"
+        if args.save_images:
+            from crossfield.camera.calib_images import write_image_pairs
+
+            write_image_pairs(args.save_images, images)
+    else:
+        from crossfield.camera.calib_images import read_image_pairs
+
+        pairs = read_image_pairs(args.images, args.pattern, args.bit_depth)
+        images, bit_depth, names = pairs.images, pairs.bit_depth, pairs.names
+        source = f"crossfield calibrate --images {args.images}"
+    result = calibrate_images(images, board, bit_depth, settings, names=names, source=source)
+    out = write_calibration_result(args.output, result)
+    if args.record:
+        from crossfield.camera.calib_record import record_calibration
+
+        record_calibration(args.record, images, names, bit_depth, result, source)
+    c = result.calibration
+    print(f"calibration written to {out}")
+    print(
+        f"  views: {len(images)} pairs, {len(result.used_stereo)} used in the stereo solution, "
+        f"{len(result.held_out)} held out, {len({d.view for d in result.dropped if d.stage != 'detect'})} dropped"
+    )
+    for d in result.dropped:
+        print(f"  dropped {d.name} ({d.stage}): {d.reason}")
+    print(
+        f"  RMS reprojection error: upper {result.cameras['upper'].rms_px:.4f} px, lower "
+        f"{result.cameras['lower'].rms_px:.4f} px, stereo {result.rms_stereo_px:.4f} px"
+    )
+    for cam in ("upper", "lower"):
+        K = c.camera(cam).camera_matrix
+        std = result.std_by_name()
+        print(
+            f"  {cam}: fx {K[0, 0]:.2f} +- {std[cam + '.fx']:.2f} px, fy {K[1, 1]:.2f} +- {std[cam + '.fy']:.2f} px, "
+            f"cx {K[0, 2]:.2f} +- {std[cam + '.cx']:.2f} px, cy {K[1, 2]:.2f} +- {std[cam + '.cy']:.2f} px"
+        )
+    print(f"  baseline |T| = {result.baseline_mm:.4f} +- {result.baseline_std_mm:.4f} mm")
+    for k, (rms, mx) in sorted(result.holdout_epipolar_px.items()):
+        print(f"  held-out {result.view_names[k]}: epipolar error RMS {rms:.3f} px, max {mx:.3f} px")
+    if not args.no_report:
+        stem = out.with_name(out.stem + "-report")
+        for path in write_report(result, stem):
+            print(f"  report: {path}")
+    if args.record:
+        print(f"  recorded to {args.record}")
+    return 0
+
+
+def cmd_verify(args: argparse.Namespace) -> int:
+    from crossfield.verification import run_verification_cli
+
+    return run_verification_cli(args)
