@@ -15,44 +15,32 @@ r_r the global points, both about their (weighted) centroids:
 A quaternion is always a proper rotation, so the method cannot return a
 reflection; it can however return a poor rotation for mirrored point sets.
 To apply the shared criterion (:mod:`crossfield.rigid`) the best improper fit
-is found the same way after mirroring the camera points (z -> -z):
-R_improper = R' diag(1, 1, -1), where R' is Horn's rotation for the mirrored set.
+is needed too: it maximises ``trace(R_m H)`` over det = -1, so ``-R_m`` is the
+rotation that *minimises* ``trace(R H) = q^T N q``, the quaternion of N's
+smallest eigenvalue (the same eigenproblem; Horn 1987 sec. 4.B).
+
+The numbers are computed by the shared kernel :func:`crossfield.rigid.kabsch`
+with ``method="quaternion"`` (Horn's N, its extreme eigenpairs in closed form;
+:func:`crossfield.rigid.best_rotations`), the validation and the reflection
+decision are shared with the other implementations.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from crossfield.hookspecs import hookimpl
 from crossfield.rigid import (
     REFLECTION_RATIO,
     check_ratio,
     check_reflection,
+    kabsch,
     point_set_size,
     residual_rms,
     validate_pairs,
+    weighted_rms,
 )
 from crossfield.types import RigidFit
-
-_MIRROR = np.diag([1.0, 1.0, -1.0])
-
-
-def horn_rotation(camera_centred: np.ndarray, global_centred: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Horn's rotation (3, 3) maximising sum w_i r_r,i . R r_l,i for centred (N, 3) sets."""
-    M = (camera_centred * w[:, None]).T @ global_centred
-    (Sxx, Sxy, Sxz), (Syx, Syy, Syz), (Szx, Szy, Szz) = M
-    N = np.array(
-        [
-            [Sxx + Syy + Szz, Syz - Szy, Szx - Sxz, Sxy - Syx],
-            [Syz - Szy, Sxx - Syy - Szz, Sxy + Syx, Szx + Sxz],
-            [Szx - Sxz, Sxy + Syx, -Sxx + Syy - Szz, Syz + Szy],
-            [Sxy - Syx, Szx + Sxz, Syz + Szy, -Sxx - Syy + Szz],
-        ]
-    )
-    _, vectors = np.linalg.eigh(N)  # ascending eigenvalues
-    q0, qx, qy, qz = vectors[:, -1]
-    return Rotation.from_quat([qx, qy, qz, q0]).as_matrix()  # scipy order: (x, y, z, w)
 
 
 class HornRegistrar:
@@ -70,16 +58,12 @@ class HornRegistrar:
     ) -> RigidFit:
         """R, t with ``global ~ R @ camera + t`` from (N, 3) mm corresponding points."""
         P, Q, w = validate_pairs(camera_xyz, global_xyz, weights)
-        p_bar, q_bar = w @ P, w @ Q
-        Pc, Qc = P - p_bar, Q - q_bar
-        R = horn_rotation(Pc, Qc, w)
-        R_m = horn_rotation(Pc @ _MIRROR, Qc, w) @ _MIRROR  # best det = -1 fit
-        t = q_bar - R @ p_bar  # Horn section 2.C
+        # Horn's N, its largest eigenvector -> R, its smallest -> the best improper fit.
+        R, t, R_mirror, t_mirror = kabsch(P, Q, w, method="quaternion")
         residuals = P @ R.T + t - Q
-        residuals_m = Pc @ R_m.T - Qc
         check_reflection(
-            float(np.sqrt(w @ np.sum(residuals**2, axis=1))),
-            float(np.sqrt(w @ np.sum(residuals_m**2, axis=1))),
+            weighted_rms(residuals, w),
+            weighted_rms(P @ R_mirror.T + t_mirror - Q, w),
             point_set_size(P, w),
             self.reflection_ratio,
             "horn",
