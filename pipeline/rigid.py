@@ -68,7 +68,7 @@ from crossfield.errors import RegistrationError
 #: Default ratio rms_proper / rms_improper above which the pair set is a mirror image.
 REFLECTION_RATIO = 5.0
 
-#: The two solvers of :func:`best_rotations` (and :func:`kabsch`).
+#: The two solvers of :func:`best_rotations` (and :func:`kabsch`); "auto" picks one.
 KABSCH_METHODS = ("svd", "quaternion")
 
 #: Collinearity: rms distance from the best-fit line below this fraction of the
@@ -173,7 +173,7 @@ def weighted_rms(residuals: np.ndarray, w: np.ndarray) -> float:
 
 
 def kabsch(
-    P: np.ndarray, Q: np.ndarray, w: np.ndarray | None = None, *, method: str = "quaternion"
+    P: np.ndarray, Q: np.ndarray, w: np.ndarray | None = None, *, method: str = "auto"
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Weighted Kabsch / Arun fit, batched: ``Q ~ R @ P + t`` (paper Formulas (5)-(9)).
 
@@ -181,9 +181,10 @@ def kabsch(
     batch shape. w: (..., N) or (N,) non-negative weights (normalised here),
     or None for equal weights. No validation: callers check their input
     (:func:`validate_pairs`) once. method: the rotation step,
-    ``"quaternion"`` (closed form, fast for batches) or ``"svd"`` (the
-    paper's Formulas (7)-(8)); both give the same R to ~1e-13 (see
-    :func:`best_rotations`).
+    ``"quaternion"`` (Horn's matrix; in closed form for batches) or ``"svd"``
+    (the paper's Formulas (7)-(8)), which give the same R to ~1e-13 (see
+    :func:`best_rotations`); ``"auto"`` takes the faster one for the batch
+    size (the closed form from 64 registrations, else the SVD).
 
     Returns (R, t, R_mirror, t_mirror): (..., 3, 3), (..., 3), the best proper
     rotation (det +1; the SVD route's ``V diag(1, 1, sign det(V U^T)) U^T``,
@@ -194,24 +195,27 @@ def kabsch(
     P = np.asarray(P, dtype=np.float64)
     Q = np.asarray(Q, dtype=np.float64)
     n = P.shape[-2]
-    if w is None:
-        w = np.full(P.shape[:-1], 1.0 / n)
+    if w is None:  # (the sums as einsum: several times faster than matmul on tiny matrices)
+        p_bar = np.einsum("...ni->...i", P) / n  # centroids
+        q_bar = np.einsum("...ni->...i", Q) / n
+        M_c = P - p_bar[..., None, :]  # M'_i (camera, centred)
+        P_c = Q - q_bar[..., None, :]  # P'_i (global, centred)
+        H = (np.swapaxes(M_c, -1, -2) @ P_c) / n  # Formula (6), w_i = 1 / n
     else:
         w = np.broadcast_to(np.asarray(w, dtype=np.float64), P.shape[:-1])
         w = w / w.sum(axis=-1, keepdims=True)
-    wr = w[..., None, :]  # (..., 1, N): a row, so that the sums below are matrix products
-    p_bar = (wr @ P)[..., 0, :]  # weighted centroids, Formula (6)'s p_bar, q_bar
-    q_bar = (wr @ Q)[..., 0, :]
-    M_c = P - p_bar[..., None, :]  # M'_i (camera, centred)
-    P_c = Q - q_bar[..., None, :]  # P'_i (global, centred)
-    H = np.swapaxes(M_c * w[..., None], -1, -2) @ P_c  # Formula (6): sum_i w_i M'_i P'_i^T
+        p_bar = np.einsum("...n,...ni->...i", w, P)  # weighted centroids
+        q_bar = np.einsum("...n,...ni->...i", w, Q)
+        M_c = P - p_bar[..., None, :]
+        P_c = Q - q_bar[..., None, :]
+        H = np.swapaxes(M_c * w[..., None], -1, -2) @ P_c  # Formula (6): sum_i w_i M'_i P'_i^T
     R, R_mirror = best_rotations(H, method=method)
-    t = q_bar - (R @ p_bar[..., None])[..., 0]  # Formula (9)
-    t_mirror = q_bar - (R_mirror @ p_bar[..., None])[..., 0]
+    t = q_bar - np.einsum("...ij,...j->...i", R, p_bar)  # Formula (9)
+    t_mirror = q_bar - np.einsum("...ij,...j->...i", R_mirror, p_bar)
     return R, t, R_mirror, t_mirror
 
 
-def best_rotations(H: np.ndarray, method: str = "quaternion") -> tuple[np.ndarray, np.ndarray]:
+def best_rotations(H: np.ndarray, method: str = "auto") -> tuple[np.ndarray, np.ndarray]:
     """The orthogonal matrices maximising ``trace(R H)``: (R, R_mirror), each (..., 3, 3).
 
     H: (..., 3, 3) cross-covariance ``sum_i w_i p_i q_i^T`` of centred point
@@ -237,20 +241,27 @@ def best_rotations(H: np.ndarray, method: str = "quaternion") -> tuple[np.ndarra
     ``+-sqrt(3) |H|_F`` (monotone convergence from outside the roots), the
     eigenvector as a column of the adjugate of ``N - l I`` (rank 3 at a simple
     root: ``adj = prod_j (l_j - l) q q^T``), refined by one Rayleigh-quotient
-    step. Elementwise arithmetic on the batch: ~0.1 us per H instead of
-    ~3 us for the batched 3x3 SVD. Where the top eigenvalue is (nearly)
-    double, the rotation itself is ill-determined (collinear points, or
-    symmetric point sets for R_mirror); there ``np.linalg.eigh`` solves N, as
-    robustly as the SVD route.
+    step where the eigenvalue gaps are small (:func:`_eigenvector`).
+    Elementwise arithmetic on blocks of the batch, ~1000 operations per H:
+    about half the time of the batched 3x3 SVD (``bench/bench_registration.py``),
+    and more accurate where two singular values are close. Where the extreme
+    eigenvalue is (nearly) repeated the rotation itself is ill-determined
+    (collinear points; symmetric point sets for R_mirror); there, and for
+    batches under 64, ``np.linalg.eigh`` solves N.
+
+    method ``"auto"`` (default): ``"quaternion"`` for 64 or more matrices,
+    else ``"svd"`` (faster for a few).
     """
     H = np.asarray(H, dtype=np.float64)
     if H.shape[-2:] != (3, 3):
         raise ValueError(f"best_rotations needs (..., 3, 3) matrices, got shape {H.shape}")
+    if method == "auto":
+        method = "quaternion" if H.size // 9 >= _CLOSED_FORM_MIN else "svd"
     if method == "svd":
         return _svd_rotations(H)
     if method == "quaternion":
         return _quaternion_rotations(H)
-    raise ValueError(f"unknown Kabsch method {method!r}: expected one of {', '.join(KABSCH_METHODS)}")
+    raise ValueError(f"unknown Kabsch method {method!r}: expected auto, {', '.join(KABSCH_METHODS)}")
 
 
 def _svd_rotations(H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -279,9 +290,13 @@ _REFINE_BELOW = 1.0
 #: eigenvalue gaps at the root) the closed form hands over to np.linalg.eigh.
 _ADJUGATE_FLOOR = 1e-4
 
+#: Batches of fewer registrations take np.linalg.eigh of N (method "quaternion") or,
+#: for method "auto", the SVD route: faster there than ~1000 numpy calls on tiny arrays.
+_CLOSED_FORM_MIN = 64
+
 #: Registrations per block of the closed form: its ~1000 elementwise operations
 #: per registration then run on arrays that stay in the CPU cache.
-_BLOCK = 24000
+_BLOCK = 16384
 
 #: A symmetric 4x4 matrix per registration, as its upper triangle
 #: (a00, a01, a02, a03, a11, a12, a13, a22, a23, a33), each a (K,) array.
@@ -289,9 +304,16 @@ Sym4 = tuple[np.ndarray, ...]
 
 
 def _quaternion_rotations(H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """method="quaternion" of :func:`best_rotations`, block by block of the batch."""
+    """method="quaternion" of :func:`best_rotations`: the closed form block by block of
+    the batch; np.linalg.eigh of N for batches too small to repay its ~1000 numpy calls."""
     shape = H.shape[:-2]
     flat = H.reshape(-1, 3, 3)
+    if len(flat) < _CLOSED_FORM_MIN:
+        S = np.moveaxis(flat, 0, -1)
+        _, vectors = np.linalg.eigh(np.moveaxis(np.array(_rows(_horn_matrix(S))), -1, 0))
+        R = np.moveaxis(_quaternion_matrix(vectors[:, :, -1].T), -1, 0)
+        R_mirror = -np.moveaxis(_quaternion_matrix(vectors[:, :, 0].T), -1, 0)
+        return R.reshape(shape + (3, 3)), R_mirror.reshape(shape + (3, 3))
     R = np.empty(flat.shape)
     R_mirror = np.empty(flat.shape)
     for start in range(0, len(flat), _BLOCK):
@@ -316,9 +338,9 @@ def _quaternion_block(H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     four_det = -0.5 * c1
     start = math.sqrt(3.0) - np.concatenate([np.maximum(-four_det, 0.0), np.maximum(four_det, 0.0)])
     roots = _newton_largest_root(np.tile(c2, 2), np.concatenate([c1, -c1]), np.tile(c0, 2), start)
-    R = _quaternion_matrix(_eigenvector(N, roots[:K], top=True))
-    R_mirror = -_quaternion_matrix(_eigenvector(N, -roots[K:], top=False))
-    return np.moveaxis(R, -1, 0), np.moveaxis(R_mirror, -1, 0)
+    top = np.arange(2 * K) < K
+    R2 = _quaternion_matrix(_eigenvector(tuple(np.tile(a, 2) for a in N), np.where(top, roots, -roots), top))
+    return np.moveaxis(R2[:, :, :K], -1, 0), -np.moveaxis(R2[:, :, K:], -1, 0)
 
 
 def _horn_matrix(S: np.ndarray) -> Sym4:
@@ -428,9 +450,9 @@ def _newton_largest_root(c2: np.ndarray, c1: np.ndarray, c0: np.ndarray, start: 
     return roots
 
 
-def _eigenvector(N: Sym4, lam: np.ndarray, top: bool) -> np.ndarray:
-    """Unit eigenvectors (4, K) of symmetric N for its largest (``top``) or smallest
-    eigenvalues lam (K,).
+def _eigenvector(N: Sym4, lam: np.ndarray, top: np.ndarray) -> np.ndarray:
+    """Unit eigenvectors (4, K) of symmetric N for its largest (where ``top``, (K,) bool)
+    or smallest eigenvalues lam (K,).
 
     The column of largest norm of ``adj(N - lam I) = prod_j (l_j - lam) q q^T``;
     its norm c is at least half the product of the eigenvalue gaps. The root
@@ -458,7 +480,8 @@ def _eigenvector(N: Sym4, lam: np.ndarray, top: bool) -> np.ndarray:
         if unsure.any():  # (nearly) repeated extreme eigenvalue: the robust solver
             which = refine[unsure]
             full = np.moveaxis(np.array([[a[which] for a in row] for row in _rows(N)]), -1, 0)
-            q[:, which] = np.linalg.eigh(full)[1][:, :, -1 if top else 0].T
+            vectors = np.linalg.eigh(full)[1]
+            q[:, which] = np.where(top[which], vectors[:, :, -1].T, vectors[:, :, 0].T)
     return q
 
 
@@ -483,7 +506,7 @@ def _quaternion_matrix(q: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------
 
 
-def project_to_rotation(M: np.ndarray, method: str = "quaternion") -> np.ndarray:
+def project_to_rotation(M: np.ndarray, method: str = "auto") -> np.ndarray:
     """The rotation (det +1) nearest to ``M`` in Frobenius norm, (..., 3, 3) -> (..., 3, 3).
 
     ``|R - M|_F^2 = 3 + |M|_F^2 - 2 trace(R M^T)``, so it is the Kabsch

@@ -303,6 +303,26 @@ def test_batched_kabsch_matches_each_plugin_one_at_a_time(name):
         np.testing.assert_allclose(fit.t, t[k], atol=1e-9)
 
 
+@pytest.fixture(params=["svd", "quaternion-eigh", "quaternion-closed-form"])
+def route(request, monkeypatch):
+    """A rotation route of rigid.kabsch; single registrations normally take np.linalg.eigh
+    of Horn's matrix, "quaternion-closed-form" forces the closed form on them."""
+    if request.param == "quaternion-closed-form":
+        monkeypatch.setattr(rigid, "_CLOSED_FORM_MIN", 1)
+    return request.param.split("-")[0]
+
+
+def test_auto_method_picks_the_closed_form_for_batches(monkeypatch):
+    used = []
+    for name in ("_svd_rotations", "_quaternion_block"):
+        original = getattr(rigid, name)
+        monkeypatch.setattr(rigid, name, lambda H, f=original, n=name: (used.append((n, len(H))), f(H))[1])
+    H = np.random.default_rng(0).normal(size=(100, 3, 3))
+    rigid.best_rotations(H[:5])
+    rigid.best_rotations(H)
+    assert used == [("_svd_rotations", 5), ("_quaternion_block", 100)]
+
+
 @pytest.mark.parametrize(
     "R_true",
     [
@@ -315,13 +335,13 @@ def test_batched_kabsch_matches_each_plugin_one_at_a_time(name):
     ],
     ids=["identity", "half-turn-x", "half-turn-z", "quarter-z", "half-turn-diagonal", "tiny"],
 )
-@pytest.mark.parametrize("method", rigid.KABSCH_METHODS)
-def test_kabsch_analytic_cases(R_true, method):
+def test_kabsch_analytic_cases(R_true, route):
     """Exact data from a known rotation: a 3-D layout, a coplanar one (both the rotation
     and its mirror fit exactly) and the mirror image of the layout."""
     rng = np.random.default_rng(13)
     P = control_layout(rng, 6)
     t_true = np.array([250.0, -40.0, 900.0])
+    method = route
     R, t, R_m, _ = rigid.kabsch(P, P @ R_true.T + t_true, method=method)
     np.testing.assert_allclose(R, R_true, atol=1e-13)
     np.testing.assert_allclose(t, t_true, atol=1e-10)
@@ -344,6 +364,7 @@ def test_kabsch_degenerate_sets_still_give_best_fits(monkeypatch):
     eigh_calls = []
     eigh = np.linalg.eigh
     monkeypatch.setattr(np.linalg, "eigh", lambda A: (eigh_calls.append(A.shape), eigh(A))[1])
+    monkeypatch.setattr(rigid, "_CLOSED_FORM_MIN", 1)  # the closed form, even for one registration
     rng = np.random.default_rng(14)
     line = np.outer(np.linspace(-50, 50, 5), [0.6, 0.0, 0.8]) + [10.0, 20.0, 400.0]
     R_true = Rotation.random(random_state=rng).as_matrix()
@@ -366,7 +387,7 @@ def test_kabsch_shapes_and_leading_batch_dimensions():
     assert R.shape == R_m.shape == (3, 4, 3, 3) and t.shape == t_m.shape == (3, 4, 3)
     single = rigid.kabsch(P[1, 2], Q[1, 2])
     np.testing.assert_allclose(single[0], R[1, 2], atol=1e-15)
-    with pytest.raises(ValueError, match="unknown Kabsch method 'lu'"):
+    with pytest.raises(ValueError, match="unknown Kabsch method 'lu': expected auto, svd, quaternion"):
         rigid.kabsch(P, Q, method="lu")
     with pytest.raises(ValueError, match=r"\(\.\.\., 3, 3\)"):
         rigid.best_rotations(np.eye(4))
