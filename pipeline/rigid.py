@@ -234,11 +234,11 @@ def best_rotations(H: np.ndarray, method: str = "auto") -> tuple[np.ndarray, np.
     ``trace(R H)``, R_mirror is minus the rotation of N's smallest eigenvalue
     (both extremes of one eigenproblem).
     N's characteristic polynomial is ``l^4 + c2 l^2 + c1 l + c0`` with
-    ``c2 = -2 |H|_F^2``, ``c1 = -8 det H``, ``c0 = det N`` (Horn 1987 sec. 4.C;
+    ``c2 = -2 |H|_F^2``, ``c1 = -8 det H``, ``c0 = det N`` (Horn 1987 sec. 4;
     Theobald 2005, "Rapid calculation of RMSDs using a quaternion-based
-    characteristic polynomial", eq. (8)); its extreme roots
-    ``+-(s1 + s2 +- d s3)`` are found by Newton's method from the bounds
-    ``+-sqrt(3) |H|_F`` (monotone convergence from outside the roots), the
+    characteristic polynomial", Acta Cryst. A61); its extreme roots
+    ``+-(s1 + s2 +- d s3)`` are found by Newton's method from upper bounds of
+    them (monotone convergence from outside the roots; :func:`_quaternion_block`), the
     eigenvector as a column of the adjugate of ``N - l I`` (rank 3 at a simple
     root: ``adj = prod_j (l_j - l) q q^T``), refined by one Rayleigh-quotient
     step where the eigenvalue gaps are small (:func:`_eigenvector`).
@@ -295,7 +295,7 @@ _ADJUGATE_FLOOR = 1e-4
 _CLOSED_FORM_MIN = 64
 
 #: Registrations per block of the closed form: its ~1000 elementwise operations
-#: per registration then run on arrays that stay in the CPU cache.
+#: per registration then run on arrays of 128 kB, which stay in the L2 cache.
 _BLOCK = 16384
 
 #: A symmetric 4x4 matrix per registration, as its upper triangle
