@@ -284,7 +284,7 @@ def _svd_rotations(H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 _NEWTON_MAX = 80
 
 #: Below this norm of the adjugate's column (for |H|_F = 1) the eigenvector is refined.
-_REFINE_BELOW = 1.0
+_REFINE_BELOW = 0.2
 
 #: Below this |adj(N - l I) q| (for |H|_F = 1, i.e. the product of the three
 #: eigenvalue gaps at the root) the closed form hands over to np.linalg.eigh.
