@@ -528,5 +528,7 @@ def chord_to_angle(chord: float) -> float:
 
 
 def rotation_angle(R_a: np.ndarray, R_b: np.ndarray) -> float:
-    """Angle in radians of the rotation ``R_a^T R_b`` between (3, 3) rotations (see :func:`chord_to_angle`)."""
-    return chord_to_angle(float(np.linalg.norm(np.asarray(R_a, dtype=np.float64) - np.asarray(R_b, dtype=np.float64))))
+    """Angle in radians of the rotation ``R_a^T R_b`` between (3, 3) rotations
+    (from their chordal distance, :func:`chord_to_angle`)."""
+    difference = np.asarray(R_a, dtype=np.float64) - np.asarray(R_b, dtype=np.float64)
+    return chord_to_angle(float(np.linalg.norm(difference)))

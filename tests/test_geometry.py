@@ -224,7 +224,8 @@ def test_reference_element_fit_errors_name_the_element():
 
     plan = parse_plan(REFERENCE_PLAN, "plan.toml")
     few = ReferenceData(points=reference_data(np.random.default_rng(6)).points[:4])
-    with pytest.raises(ValueError, match=r"reference line L3: 4 of 12 probes imported, a cylinder fit needs at least 5"):
+    message = r"reference line L3: 4 of 12 probes imported, a cylinder fit needs at least 5"
+    with pytest.raises(ValueError, match=message):
         fit_reference_element(plan.reference_lines[0], few.points)
     with pytest.raises(ValueError, match=r"reference line L4: 0 of 6 probes imported"):
         fit_reference_element(plan.reference_lines[1], few.points)

@@ -246,9 +246,13 @@ def mirror_decisions(P, Q, w, fits):
     """Per registration: would check_reflection refuse it (rms_proper > 5 rms_mirror)?"""
     R, t, Rm, tm = fits
     w = w / w.sum(axis=-1, keepdims=True)
-    rms = np.sqrt(np.einsum("bn,bn->b", w, np.sum((np.einsum("bij,bnj->bni", R, P) + t[:, None] - Q) ** 2, -1)))
-    rms_m = np.sqrt(np.einsum("bn,bn->b", w, np.sum((np.einsum("bij,bnj->bni", Rm, P) + tm[:, None] - Q) ** 2, -1)))
-    floor = 1e-9 * np.maximum(1.0, np.sqrt(np.einsum("bn,bn->b", w, np.sum((P - np.einsum("bn,bni->bi", w, P)[:, None]) ** 2, -1))))
+
+    def weighted_rms(residuals):
+        return np.sqrt(np.einsum("bn,bn->b", w, np.sum(residuals**2, axis=-1)))
+
+    rms = weighted_rms(np.einsum("bij,bnj->bni", R, P) + t[:, None] - Q)
+    rms_m = weighted_rms(np.einsum("bij,bnj->bni", Rm, P) + tm[:, None] - Q)
+    floor = 1e-9 * np.maximum(1.0, weighted_rms(P - np.einsum("bn,bni->bi", w, P)[:, None]))
     return (rms > rigid.REFLECTION_RATIO * rms_m) & (rms > floor)
 
 

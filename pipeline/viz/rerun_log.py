@@ -397,7 +397,8 @@ class RerunLogger:
         """Two points (2, 3), mm, on the fitted axis spanning its probes and the feet of
         the plan's targets measured against it, with a margin of 10 % (at least 20 mm)."""
         point, direction = np.asarray(fit.line.point), np.asarray(fit.line.direction)
-        along = [float((np.asarray(p.xyz) - point) @ direction) for p in element_probes(line_id, reference.points)]
+        probes = element_probes(line_id, reference.points)
+        along = [float((np.asarray(p.xyz) - point) @ direction) for p in probes]
         plan = self._plan
         nominal = {t.id: np.asarray(t.nominal) for t in getattr(plan, "targets", ())}
         by_label = reference.by_label()
