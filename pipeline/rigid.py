@@ -64,6 +64,7 @@ import math
 import numpy as np
 
 from crossfield.errors import RegistrationError
+from crossfield.types import RigidFit
 
 #: Default ratio rms_proper / rms_improper above which the pair set is a mirror image.
 REFLECTION_RATIO = 5.0
@@ -165,6 +166,35 @@ def residual_rms(residuals: np.ndarray) -> float:
 def weighted_rms(residuals: np.ndarray, w: np.ndarray) -> float:
     """sqrt(sum_i w_i |r_i|^2) of (N, 3) residuals (mm) with weights (N,) summing to 1."""
     return float(np.sqrt(w @ np.sum(residuals**2, axis=1)))
+
+
+def rigid_fit(
+    camera_xyz: np.ndarray,
+    global_xyz: np.ndarray,
+    weights: np.ndarray | None,
+    *,
+    method: str,
+    reflection_ratio: float = REFLECTION_RATIO,
+    name: str = "",
+) -> RigidFit:
+    """A checked rigid fit ``global ~ R @ camera + t`` as a RigidFit: validation
+    (:func:`validate_pairs`), :func:`kabsch` with ``method``, the reflection decision
+    (:func:`check_reflection`) and residuals ``R @ p_i + t - q_i`` (N, 3) mm.
+
+    camera_xyz, global_xyz: (N, 3) mm; weights: (N,) or None. name: the
+    implementation, for RigidFit.method and error messages.
+    """
+    P, Q, w = validate_pairs(camera_xyz, global_xyz, weights)
+    R, t, R_mirror, t_mirror = kabsch(P, Q, w, method=method)
+    residuals = P @ R.T + t - Q
+    check_reflection(
+        weighted_rms(residuals, w),
+        weighted_rms(P @ R_mirror.T + t_mirror - Q, w),
+        point_set_size(P, w),
+        reflection_ratio,
+        name,
+    )
+    return RigidFit(R=R, t=t, residuals=residuals, rms_mm=residual_rms(residuals), method=name)
 
 
 # --------------------------------------------------------------------------

@@ -19,10 +19,10 @@ is needed too: it maximises ``trace(R_m H)`` over det = -1, so ``-R_m`` is the
 rotation that *minimises* ``trace(R H) = q^T N q``, the quaternion of N's
 smallest eigenvalue (the same eigenproblem; Horn 1987 sec. 4.B).
 
-The numbers are computed by the shared kernel :func:`crossfield.rigid.kabsch`
-with ``method="quaternion"`` (Horn's N, its extreme eigenpairs in closed form;
-:func:`crossfield.rigid.best_rotations`), the validation and the reflection
-decision are shared with the other implementations.
+The numbers are computed by :func:`crossfield.rigid.rigid_fit`: the shared
+validation, the one Kabsch kernel :func:`crossfield.rigid.kabsch` with
+``method="quaternion"`` (Horn's N and its extreme eigenpairs,
+:func:`crossfield.rigid.best_rotations`) and the shared reflection decision.
 """
 
 from __future__ import annotations
@@ -30,16 +30,7 @@ from __future__ import annotations
 import numpy as np
 
 from crossfield.hookspecs import hookimpl
-from crossfield.rigid import (
-    REFLECTION_RATIO,
-    check_ratio,
-    check_reflection,
-    kabsch,
-    point_set_size,
-    residual_rms,
-    validate_pairs,
-    weighted_rms,
-)
+from crossfield.rigid import REFLECTION_RATIO, check_ratio, rigid_fit
 from crossfield.types import RigidFit
 
 
@@ -57,18 +48,10 @@ class HornRegistrar:
         self, camera_xyz: np.ndarray, global_xyz: np.ndarray, weights: np.ndarray | None = None
     ) -> RigidFit:
         """R, t with ``global ~ R @ camera + t`` from (N, 3) mm corresponding points."""
-        P, Q, w = validate_pairs(camera_xyz, global_xyz, weights)
         # Horn's N, its largest eigenvector -> R, its smallest -> the best improper fit.
-        R, t, R_mirror, t_mirror = kabsch(P, Q, w, method="quaternion")
-        residuals = P @ R.T + t - Q
-        check_reflection(
-            weighted_rms(residuals, w),
-            weighted_rms(P @ R_mirror.T + t_mirror - Q, w),
-            point_set_size(P, w),
-            self.reflection_ratio,
-            "horn",
+        return rigid_fit(
+            camera_xyz, global_xyz, weights, method="quaternion", reflection_ratio=self.reflection_ratio, name="horn"
         )
-        return RigidFit(R=R, t=t, residuals=residuals, rms_mm=residual_rms(residuals), method="horn")
 
 
 @hookimpl

@@ -21,9 +21,10 @@ rotation is the best fit only if the data are (nearly) coplanar, otherwise the
 point sets are mirror images and a RegistrationError is raised
 (:mod:`crossfield.rigid` states the criterion).
 
-The numbers are computed by the shared kernel :func:`crossfield.rigid.kabsch`
-with ``method="svd"`` (exactly the formulas above, batched); the validation
-and the reflection decision are shared with the other implementations.
+The numbers are computed by :func:`crossfield.rigid.rigid_fit`: the shared
+validation, the one Kabsch kernel :func:`crossfield.rigid.kabsch` with
+``method="svd"`` (exactly the formulas above) and the shared reflection
+decision.
 """
 
 from __future__ import annotations
@@ -31,16 +32,7 @@ from __future__ import annotations
 import numpy as np
 
 from crossfield.hookspecs import hookimpl
-from crossfield.rigid import (
-    REFLECTION_RATIO,
-    check_ratio,
-    check_reflection,
-    kabsch,
-    point_set_size,
-    residual_rms,
-    validate_pairs,
-    weighted_rms,
-)
+from crossfield.rigid import REFLECTION_RATIO, check_ratio, rigid_fit
 from crossfield.types import RigidFit
 
 
@@ -64,18 +56,10 @@ class SvdRegistrar:
         weights: (N,) non-negative per-point weights (e.g. 1 / variance), or None.
         Residuals in the result are ``R @ p_i + t - q_i`` (mm, global frame).
         """
-        P, Q, w = validate_pairs(camera_xyz, global_xyz, weights)
         # Formulas (6)-(9) with the determinant correction, and the best improper fit.
-        R, t, R_mirror, t_mirror = kabsch(P, Q, w, method="svd")
-        residuals = P @ R.T + t - Q
-        check_reflection(
-            weighted_rms(residuals, w),
-            weighted_rms(P @ R_mirror.T + t_mirror - Q, w),
-            point_set_size(P, w),
-            self.reflection_ratio,
-            "svd",
+        return rigid_fit(
+            camera_xyz, global_xyz, weights, method="svd", reflection_ratio=self.reflection_ratio, name="svd"
         )
-        return RigidFit(R=R, t=t, residuals=residuals, rms_mm=residual_rms(residuals), method="svd")
 
 
 @hookimpl
