@@ -225,6 +225,17 @@ def kabsch(
     P = np.asarray(P, dtype=np.float64)
     Q = np.asarray(Q, dtype=np.float64)
     n = P.shape[-2]
+    if P.ndim == 2:  # one registration: plain 2-D numpy calls cost less than the batched forms
+        if w is None:
+            p_bar, q_bar = P.mean(axis=0), Q.mean(axis=0)
+            H = (P - p_bar).T @ (Q - q_bar) / n  # Formula (6), w_i = 1 / n
+        else:
+            w = np.asarray(w, dtype=np.float64)
+            w = w / w.sum()
+            p_bar, q_bar = w @ P, w @ Q
+            H = ((P - p_bar) * w[:, None]).T @ (Q - q_bar)  # Formula (6)
+        R, R_mirror = best_rotations(H, method=method)
+        return R, q_bar - R @ p_bar, R_mirror, q_bar - R_mirror @ p_bar  # Formula (9)
     if w is None:  # (the sums as einsum: several times faster than matmul on tiny matrices)
         p_bar = np.einsum("...ni->...i", P) / n  # centroids
         q_bar = np.einsum("...ni->...i", Q) / n
@@ -297,6 +308,10 @@ def best_rotations(H: np.ndarray, method: str = "auto") -> tuple[np.ndarray, np.
 def _svd_rotations(H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Formulas (7)-(8): H = U S V^T, R = V diag(1, 1, d) U^T and R_mirror with -d."""
     U, _, Vt = np.linalg.svd(H)  # Formula (7)
+    if H.ndim == 2:  # one matrix
+        V = Vt.T
+        d = 1.0 if np.linalg.det(V @ U.T) >= 0 else -1.0
+        return (V * [1.0, 1.0, d]) @ U.T, (V * [1.0, 1.0, -d]) @ U.T
     V = np.swapaxes(Vt, -1, -2)
     Ut = np.swapaxes(U, -1, -2)
     d = np.sign(np.linalg.det(V @ Ut))
