@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from crossfield.plan import CharacteristicSpec, MeasurementPlan
+from crossfield.rigid import chord_to_angle, project_to_rotation, rotation_angle
 from crossfield.types import CharacteristicResult, Registration, frozen_array
 
 if TYPE_CHECKING:  # session.py imports this module
@@ -47,37 +48,6 @@ FRAME_ROWS_KEPT = 200
 #: Failed frames whose error message a session keeps (the first ones); the
 #: others are counted.
 FRAME_ERRORS_KEPT = 100
-
-
-# --------------------------------------------------------------------------
-# Rotation helpers
-# --------------------------------------------------------------------------
-
-
-def project_to_rotation(M: np.ndarray) -> np.ndarray:
-    """The rotation (det +1) nearest to (3, 3) ``M`` in Frobenius norm.
-
-    SVD projection ``U diag(1, 1, det(U V^T)) V^T`` (Hartley et al. 2013,
-    'Rotation Averaging', Lemma/Theorem on the chordal L2 mean; the same
-    step as the paper's Formula (8) with the reflection guard).
-    """
-    U, _, Vt = np.linalg.svd(np.asarray(M, dtype=np.float64))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
-    return U @ D @ Vt
-
-
-def chord_to_angle(chord: float) -> float:
-    """Rotation angle (rad) of two rotations a Frobenius (chordal) distance ``chord`` apart.
-
-    ``||R_a - R_b||_F = 2 sqrt(2) sin(theta / 2)`` (Hartley et al. 2013, sec. 2),
-    which, unlike ``arccos((tr - 1) / 2)``, stays accurate for tiny angles.
-    """
-    return 2.0 * math.asin(min(1.0, chord / (2.0 * math.sqrt(2.0))))
-
-
-def rotation_angle(R_a: np.ndarray, R_b: np.ndarray) -> float:
-    """Angle in radians of the rotation ``R_a^T R_b`` (see :func:`chord_to_angle`)."""
-    return chord_to_angle(float(np.linalg.norm(np.asarray(R_a) - np.asarray(R_b))))
 
 
 # --------------------------------------------------------------------------

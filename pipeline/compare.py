@@ -33,6 +33,7 @@ import numpy as np
 
 from crossfield.recording import layout as L
 from crossfield.recording.facts import require_session
+from crossfield import rigid
 from crossfield.recording.reader import Recording, open_recording
 from crossfield.registry import STAGES
 from crossfield.types import CAMERAS
@@ -133,11 +134,13 @@ def _delta(a: Any, b: Any) -> Any:
 
 
 def rotation_angle(Ra: Any, Rb: Any) -> float | None:
-    """Angle (rad) of the rotation R_a^T R_b between two rotation matrices."""
+    """Angle (rad) of the rotation R_a^T R_b between two rotation matrices read from
+    report.json (:func:`crossfield.rigid.rotation_angle`); None when either is missing."""
     try:
         A, B = np.asarray(Ra, dtype=np.float64), np.asarray(Rb, dtype=np.float64)
-        c = (np.trace(A.T @ B) - 1.0) / 2.0
-        return float(np.arccos(np.clip(c, -1.0, 1.0)))
+        if A.shape != (3, 3) or B.shape != (3, 3):
+            return None
+        return rigid.rotation_angle(A, B)
     except (TypeError, ValueError):
         return None
 

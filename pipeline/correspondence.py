@@ -55,6 +55,7 @@ from typing import Sequence
 import numpy as np
 
 from crossfield.errors import CorrespondenceError
+from crossfield.rigid import kabsch
 from crossfield.types import Correspondence
 
 #: Default agreement of camera and CMM distances (mm); see the module docstring.
@@ -259,17 +260,14 @@ def _bit_indices(value: int) -> list[int]:
 
 
 def _kabsch_residuals(P: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-point residual norms (N,) of the best proper rigid fit Q ~ R P + t (Kabsch)
-    and of the best improper one (det R = -1), for the mirror diagnosis."""
-    p_bar, q_bar = P.mean(axis=0), Q.mean(axis=0)
-    Pc, Qc = P - p_bar, Q - q_bar
-    U, _, Vt = np.linalg.svd(Pc.T @ Qc)
-    d = 1.0 if np.linalg.det(Vt.T @ U.T) > 0 else -1.0
-    out = []
-    for sign in (d, -d):
-        R = Vt.T @ np.diag([1.0, 1.0, sign]) @ U.T
-        out.append(np.linalg.norm(Pc @ R.T - Qc, axis=1))
-    return out[0], out[1]
+    """Per-point residual norms (N,) of the best proper rigid fit Q ~ R P + t (Kabsch,
+    :func:`crossfield.rigid.kabsch`) and of the best improper one (det R = -1), for the
+    mirror diagnosis."""
+    R, t, R_mirror, t_mirror = kabsch(P, Q)
+    return (
+        np.linalg.norm(P @ R.T + t - Q, axis=1),
+        np.linalg.norm(P @ R_mirror.T + t_mirror - Q, axis=1),
+    )
 
 
 def _verified_subset(

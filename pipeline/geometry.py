@@ -7,6 +7,9 @@
 * :func:`fit_cylinder_axis`: least-squares cylinder, residual
   ``d_i = |(p_i - x0) x a| - r`` (Forbes 1989, sec. 7), solved with
   :func:`scipy.optimize.least_squares` from PCA / circle-fit starts.
+* :func:`fit_reference_element`: the fit of a plan's reference line to its
+  CMM probes, the one used by the measurement (``plugins/measure_plan.py``)
+  and drawn by the viewer (``crossfield.viz.rerun_log``).
 * Distances point-point and point-line, with first-order uncertainties.
 
 Both fits return an :class:`AxisFit`: the line, the residuals and the
@@ -21,12 +24,20 @@ when called by the measurement plugin).
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.optimize import least_squares
 
-from crossfield.types import Line3D, frozen_array
+from crossfield.types import Line3D, ProbedPoint, frozen_array
+
+if TYPE_CHECKING:
+    from crossfield.plan import ReferenceLineSpec
+
+#: Fewest probes each reference-element fit accepts.
+MIN_PROBES = {"line": 2, "cylinder": 5}
 
 __all__ = [
     "AxisFit",
@@ -34,6 +45,7 @@ __all__ = [
     "distance_point_point",
     "fit_cylinder_axis",
     "fit_line",
+    "fit_reference_element",
     "perpendicular_basis",
     "point_line_distance",
 ]
@@ -329,6 +341,51 @@ def _numeric_jacobian(func, x0: np.ndarray, steps: np.ndarray) -> np.ndarray:
         dx[k] = h
         columns.append((func(x0 + dx) - func(x0 - dx)) / (2 * h))
     return np.column_stack(columns)
+
+
+# --------------------------------------------------------------------------
+# The plan's reference elements
+# --------------------------------------------------------------------------
+
+
+def element_probes(element_id: str, points: Iterable[ProbedPoint]) -> list[ProbedPoint]:
+    """The probes of reference element ``element_id``: the points labelled
+    ``<id>.<k>`` (``L3.1``, ``L3.2``...), in import order."""
+    prefix = element_id + "."
+    return [p for p in points if p.label.startswith(prefix)]
+
+
+def fit_reference_element(element: ReferenceLineSpec, points: Iterable[ProbedPoint]) -> AxisFit:
+    """The fit of a plan's reference line to its CMM probes (global frame, mm).
+
+    element: the plan's ``[[reference_line]]`` (``id``, ``fit`` = "line" or
+    "cylinder", ``probes`` = the planned count). points: the imported probed
+    points (``ReferenceData.points``); the element's are those labelled
+    ``<id>.<k>`` (:func:`element_probes`). The fit is :func:`fit_line` or
+    :func:`fit_cylinder_axis`, with the a-priori sigma the largest of the
+    probes' ``sigma_mm``.
+
+    This one function is what the measurement measures against and what the
+    viewer draws. Raises ValueError naming the element when too few probes
+    were imported (:data:`MIN_PROBES`) or the fit fails.
+    """
+    probes = element_probes(element.id, points)
+    minimum = MIN_PROBES.get(element.fit)
+    if minimum is None:
+        raise ValueError(f"reference line {element.id}: unknown fit {element.fit!r} (line or cylinder)")
+    if len(probes) < minimum:
+        raise ValueError(
+            f"reference line {element.id}: {len(probes)} of {element.probes} probes imported, "
+            f"a {element.fit} fit needs at least {minimum}"
+        )
+    xyz = np.array([p.xyz for p in probes], dtype=np.float64)
+    sigma = max(float(p.sigma_mm) for p in probes)
+    try:
+        if element.fit == "cylinder":
+            return fit_cylinder_axis(xyz, sigma_mm=sigma)
+        return fit_line(xyz, sigma_mm=sigma)
+    except ValueError as exc:
+        raise ValueError(f"reference line {element.id}: {exc}") from None
 
 
 # --------------------------------------------------------------------------

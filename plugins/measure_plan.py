@@ -43,7 +43,7 @@ import numpy as np
 
 from crossfield.covariance import camera_covariance, registration_jacobian
 from crossfield.errors import MeasurementError
-from crossfield.geometry import AxisFit, fit_cylinder_axis, fit_line, point_line_distance
+from crossfield.geometry import AxisFit, fit_reference_element, point_line_distance
 from crossfield.hookspecs import hookimpl
 from crossfield.plan import CharacteristicSpec, MeasurementPlan
 from crossfield.types import (
@@ -99,21 +99,10 @@ class PlanMeasurer:
     @staticmethod
     def _fit_line(plan: MeasurementPlan, reference: ReferenceData, line_id: str) -> AxisFit | str:
         spec = next(line for line in plan.reference_lines if line.id == line_id)
-        probes = [p for p in reference.points if p.label.startswith(line_id + ".")]
-        minimum = 5 if spec.fit == "cylinder" else 2
-        if len(probes) < minimum:
-            return (
-                f"reference line {line_id}: {len(probes)} of {spec.probes} probes imported, "
-                f"a {spec.fit} fit needs at least {minimum}"
-            )
-        xyz = np.array([p.xyz for p in probes])
-        sigma = max(float(p.sigma_mm) for p in probes)
         try:
-            if spec.fit == "cylinder":
-                return fit_cylinder_axis(xyz, sigma_mm=sigma)
-            return fit_line(xyz, sigma_mm=sigma)
+            return fit_reference_element(spec, reference.points)  # the viewer draws this same fit
         except ValueError as exc:
-            return f"reference line {line_id}: {exc}"
+            return str(exc)
 
     # ---- per frame -----------------------------------------------------------
 

@@ -15,44 +15,23 @@ r_r the global points, both about their (weighted) centroids:
 A quaternion is always a proper rotation, so the method cannot return a
 reflection; it can however return a poor rotation for mirrored point sets.
 To apply the shared criterion (:mod:`crossfield.rigid`) the best improper fit
-is found the same way after mirroring the camera points (z -> -z):
-R_improper = R' diag(1, 1, -1), where R' is Horn's rotation for the mirrored set.
+is needed too: it maximises ``trace(R_m H)`` over det = -1, so ``-R_m`` is the
+rotation that *minimises* ``trace(R H) = q^T N q``, the quaternion of N's
+smallest eigenvalue (the same eigenproblem; Horn 1987 sec. 4.B).
+
+The numbers are computed by :func:`crossfield.rigid.rigid_fit`: the shared
+validation, the one Kabsch kernel :func:`crossfield.rigid.kabsch` with
+``method="quaternion"`` (Horn's N and its extreme eigenpairs,
+:func:`crossfield.rigid.best_rotations`) and the shared reflection decision.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from crossfield.hookspecs import hookimpl
-from crossfield.rigid import (
-    REFLECTION_RATIO,
-    check_ratio,
-    check_reflection,
-    point_set_size,
-    residual_rms,
-    validate_pairs,
-)
+from crossfield.rigid import REFLECTION_RATIO, check_ratio, rigid_fit
 from crossfield.types import RigidFit
-
-_MIRROR = np.diag([1.0, 1.0, -1.0])
-
-
-def horn_rotation(camera_centred: np.ndarray, global_centred: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Horn's rotation (3, 3) maximising sum w_i r_r,i . R r_l,i for centred (N, 3) sets."""
-    M = (camera_centred * w[:, None]).T @ global_centred
-    (Sxx, Sxy, Sxz), (Syx, Syy, Syz), (Szx, Szy, Szz) = M
-    N = np.array(
-        [
-            [Sxx + Syy + Szz, Syz - Szy, Szx - Sxz, Sxy - Syx],
-            [Syz - Szy, Sxx - Syy - Szz, Sxy + Syx, Szx + Sxz],
-            [Szx - Sxz, Sxy + Syx, -Sxx + Syy - Szz, Syz + Szy],
-            [Sxy - Syx, Szx + Sxz, Syz + Szy, -Sxx - Syy + Szz],
-        ]
-    )
-    _, vectors = np.linalg.eigh(N)  # ascending eigenvalues
-    q0, qx, qy, qz = vectors[:, -1]
-    return Rotation.from_quat([qx, qy, qz, q0]).as_matrix()  # scipy order: (x, y, z, w)
 
 
 class HornRegistrar:
@@ -69,22 +48,10 @@ class HornRegistrar:
         self, camera_xyz: np.ndarray, global_xyz: np.ndarray, weights: np.ndarray | None = None
     ) -> RigidFit:
         """R, t with ``global ~ R @ camera + t`` from (N, 3) mm corresponding points."""
-        P, Q, w = validate_pairs(camera_xyz, global_xyz, weights)
-        p_bar, q_bar = w @ P, w @ Q
-        Pc, Qc = P - p_bar, Q - q_bar
-        R = horn_rotation(Pc, Qc, w)
-        R_m = horn_rotation(Pc @ _MIRROR, Qc, w) @ _MIRROR  # best det = -1 fit
-        t = q_bar - R @ p_bar  # Horn section 2.C
-        residuals = P @ R.T + t - Q
-        residuals_m = Pc @ R_m.T - Qc
-        check_reflection(
-            float(np.sqrt(w @ np.sum(residuals**2, axis=1))),
-            float(np.sqrt(w @ np.sum(residuals_m**2, axis=1))),
-            point_set_size(P, w),
-            self.reflection_ratio,
-            "horn",
+        # Horn's N, its largest eigenvector -> R, its smallest -> the best improper fit.
+        return rigid_fit(
+            camera_xyz, global_xyz, weights, method="quaternion", reflection_ratio=self.reflection_ratio, name="horn"
         )
-        return RigidFit(R=R, t=t, residuals=residuals, rms_mm=residual_rms(residuals), method="horn")
 
 
 @hookimpl

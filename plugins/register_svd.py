@@ -20,6 +20,11 @@ differs from the identity when V U^T is a reflection; then the proper
 rotation is the best fit only if the data are (nearly) coplanar, otherwise the
 point sets are mirror images and a RegistrationError is raised
 (:mod:`crossfield.rigid` states the criterion).
+
+The numbers are computed by :func:`crossfield.rigid.rigid_fit`: the shared
+validation, the one Kabsch kernel :func:`crossfield.rigid.kabsch` with
+``method="svd"`` (exactly the formulas above) and the shared reflection
+decision.
 """
 
 from __future__ import annotations
@@ -27,14 +32,7 @@ from __future__ import annotations
 import numpy as np
 
 from crossfield.hookspecs import hookimpl
-from crossfield.rigid import (
-    REFLECTION_RATIO,
-    check_ratio,
-    check_reflection,
-    point_set_size,
-    residual_rms,
-    validate_pairs,
-)
+from crossfield.rigid import REFLECTION_RATIO, check_ratio, rigid_fit
 from crossfield.types import RigidFit
 
 
@@ -58,29 +56,10 @@ class SvdRegistrar:
         weights: (N,) non-negative per-point weights (e.g. 1 / variance), or None.
         Residuals in the result are ``R @ p_i + t - q_i`` (mm, global frame).
         """
-        P, Q, w = validate_pairs(camera_xyz, global_xyz, weights)
-        p_bar = w @ P  # weighted centroids
-        q_bar = w @ Q
-        M_c = P - p_bar  # M'_i, camera points about their centroid (rows)
-        P_c = Q - q_bar  # P'_i, global points about their centroid (rows)
-        H = (M_c * w[:, None]).T @ P_c  # Formula (6): sum_i w_i M'_i P'_i^T
-        U, _, Vt = np.linalg.svd(H)  # Formula (7): H = U S V^T
-        V = Vt.T
-        d = 1.0 if np.linalg.det(V @ U.T) > 0 else -1.0
-        R = V @ np.diag([1.0, 1.0, d]) @ U.T  # Formula (8) with the determinant correction
-        R_mirror = V @ np.diag([1.0, 1.0, -d]) @ U.T  # the best improper orthogonal fit
-        t = q_bar - R @ p_bar  # Formula (9)
-
-        residuals = P @ R.T + t - Q
-        residuals_mirror = P @ R_mirror.T + (q_bar - R_mirror @ p_bar) - Q
-        check_reflection(
-            float(np.sqrt(w @ np.sum(residuals**2, axis=1))),
-            float(np.sqrt(w @ np.sum(residuals_mirror**2, axis=1))),
-            point_set_size(P, w),
-            self.reflection_ratio,
-            "svd",
+        # Formulas (6)-(9) with the determinant correction, and the best improper fit.
+        return rigid_fit(
+            camera_xyz, global_xyz, weights, method="svd", reflection_ratio=self.reflection_ratio, name="svd"
         )
-        return RigidFit(R=R, t=t, residuals=residuals, rms_mm=residual_rms(residuals), method="svd")
 
 
 @hookimpl

@@ -18,6 +18,11 @@ Formula (6) H, hence R = U S V^T here and R = V U^T there; both map camera
 into global (``y ~ c R x + t``). The improper alternative (S with the other
 sign) is also evaluated so that mirrored point sets raise a
 RegistrationError (criterion in :mod:`crossfield.rigid`).
+
+The rotation (and for the rigid fit the translation) comes from the shared
+kernel :func:`crossfield.rigid.kabsch` (``method="svd"``): Umeyama's
+R = U S V^T of Sigma_xy is the Kabsch V D U^T of its transpose. The scale
+(36), (41), (42) is computed here.
 """
 
 from __future__ import annotations
@@ -29,9 +34,11 @@ from crossfield.rigid import (
     REFLECTION_RATIO,
     check_ratio,
     check_reflection,
+    kabsch,
     point_set_size,
     residual_rms,
     validate_pairs,
+    weighted_rms,
 )
 from crossfield.types import RigidFit
 
@@ -63,27 +70,24 @@ class UmeyamaRegistrar:
         in the global frame: ``scale * R @ p_i + t - q_i``.
         """
         X, Y, w = validate_pairs(camera_xyz, global_xyz, weights)
-        mu_x, mu_y = w @ X, w @ Y  # (34), (35)
-        Xc, Yc = X - mu_x, Y - mu_y
-        sigma_x2 = float(w @ np.sum(Xc**2, axis=1))  # (36)
-        Sigma_xy = (Yc * w[:, None]).T @ Xc  # (38): global index first
-        U, D, Vt = np.linalg.svd(Sigma_xy)
-        sign = 1.0 if np.linalg.det(U) * np.linalg.det(Vt) > 0 else -1.0
-
-        def solve(last: float) -> tuple[np.ndarray, float, np.ndarray]:
-            S = np.array([1.0, 1.0, last])
-            R = U @ np.diag(S) @ Vt  # (40)
-            c = float(D @ S) / sigma_x2 if self.with_scale else 1.0  # (42)
+        # The rotation of (39)-(40), R = U S V^T, is the shared Kabsch kernel's (Sigma_xy
+        # is the transpose of its camera-first H); R_m is the best improper alternative.
+        R, t, R_m, t_m = kabsch(X, Y, w, method="svd")
+        c, c_m = 1.0, 1.0
+        if self.with_scale:
+            mu_x, mu_y = w @ X, w @ Y  # (34), (35)
+            Xc, Yc = X - mu_x, Y - mu_y
+            sigma_x2 = float(w @ np.sum(Xc**2, axis=1))  # (36)
+            # (42): c = trace(D S) / sigma_x^2, and trace(D S) = trace(R^T Sigma_xy)
+            # = sum_i w_i (y_i - mu_y) . R (x_i - mu_x).
+            c = float(w @ np.sum((Xc @ R.T) * Yc, axis=1)) / sigma_x2
+            c_m = float(w @ np.sum((Xc @ R_m.T) * Yc, axis=1)) / sigma_x2
             t = mu_y - c * R @ mu_x  # (41)
-            return R, c, t
-
-        R, c, t = solve(sign)  # (39)/(43): det(R) = +1
-        R_m, c_m, t_m = solve(-sign)  # the best improper alternative
+            t_m = mu_y - c_m * R_m @ mu_x
         residuals = c * X @ R.T + t - Y
-        residuals_m = c_m * X @ R_m.T + t_m - Y
         check_reflection(
-            float(np.sqrt(w @ np.sum(residuals**2, axis=1))),
-            float(np.sqrt(w @ np.sum(residuals_m**2, axis=1))),
+            weighted_rms(residuals, w),
+            weighted_rms(c_m * X @ R_m.T + t_m - Y, w),
             point_set_size(Y, w),
             self.reflection_ratio,
             "umeyama",

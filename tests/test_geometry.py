@@ -159,3 +159,99 @@ def test_point_line_distance_propagates_point_covariance():
     assert d == pytest.approx(100.0)
     np.testing.assert_allclose(gradient, e1, atol=1e-12)
     assert sigma == pytest.approx(0.2, rel=1e-6)  # only the radial variance counts
+
+
+# --------------------------------------------------------------------------
+# The plan's reference elements: one fit for the measurement and the viewer
+# --------------------------------------------------------------------------
+
+REFERENCE_PLAN = """
+[[control]]
+id = "C1"
+[[control]]
+id = "C2"
+[[control]]
+id = "C3"
+[[reference_line]]
+id = "L3"
+probes = 12
+fit = "cylinder"
+[[reference_line]]
+id = "L4"
+probes = 6
+fit = "line"
+"""
+
+LINE_POINT = np.array([-120.0, 240.0, 30.0])
+LINE_DIR = np.array([0.8, 0.6, 0.0])
+
+
+def reference_data(rng, extra=(), sigma=0.01):
+    """ProbedPoints: 12 noisy probes of the cylinder (radius 17 mm about AXIS_POINT,
+    AXIS_DIR), 6 of the line, plus ``extra`` (label, xyz) points."""
+    from crossfield.types import ProbedPoint, ReferenceData
+
+    cylinder = cylinder_probes() + rng.normal(0, sigma, (12, 3))
+    line = LINE_POINT + np.outer(np.linspace(-50, 50, 6), LINE_DIR) + rng.normal(0, sigma, (6, 3))
+    points = [ProbedPoint(f"L3.{k + 1}", xyz, sigma) for k, xyz in enumerate(cylinder)]
+    points += [ProbedPoint(f"L4.{k + 1}", xyz, sigma) for k, xyz in enumerate(line)]
+    points += [ProbedPoint(label, np.asarray(xyz, dtype=np.float64), sigma) for label, xyz in extra]
+    return ReferenceData(points=tuple(points))
+
+
+def test_reference_element_fit_selects_the_elements_probes_and_finds_the_axis():
+    from crossfield.geometry import element_probes, fit_reference_element
+    from crossfield.plan import parse_plan
+
+    plan = parse_plan(REFERENCE_PLAN, "plan.toml")
+    # Points that are not probes of L3 although their labels start alike.
+    reference = reference_data(np.random.default_rng(5), extra=[("L3", [0, 0, 0]), ("L30.1", [9e3, 0, 0])])
+    cyl_spec, line_spec = plan.reference_lines
+    assert [p.label for p in element_probes("L3", reference.points)] == [f"L3.{k}" for k in range(1, 13)]
+    fit = fit_reference_element(cyl_spec, reference.points)
+    assert fit.kind == "cylinder" and fit.radius_mm == pytest.approx(17.0, abs=0.01)
+    assert abs(fit.line.direction @ AXIS_DIR) == pytest.approx(1.0, abs=1e-5)
+    assert fit.line.distance(AXIS_POINT) < 0.01  # the true axis, within the 0.01 mm probe noise
+    line = fit_reference_element(line_spec, reference.points)
+    assert line.kind == "line" and abs(line.line.direction @ LINE_DIR) == pytest.approx(1.0, abs=1e-6)
+    assert line.line.distance(LINE_POINT) < 0.01
+
+
+def test_reference_element_fit_errors_name_the_element():
+    from crossfield.geometry import fit_reference_element
+    from crossfield.plan import parse_plan
+    from crossfield.types import ReferenceData
+
+    plan = parse_plan(REFERENCE_PLAN, "plan.toml")
+    few = ReferenceData(points=reference_data(np.random.default_rng(6)).points[:4])
+    message = r"reference line L3: 4 of 12 probes imported, a cylinder fit needs at least 5"
+    with pytest.raises(ValueError, match=message):
+        fit_reference_element(plan.reference_lines[0], few.points)
+    with pytest.raises(ValueError, match=r"reference line L4: 0 of 6 probes imported"):
+        fit_reference_element(plan.reference_lines[1], few.points)
+
+
+@pytest.mark.parametrize("bad_probe", [None, ("L3.13", [np.nan, 0.0, 0.0])])
+def test_viewer_draws_the_axis_that_is_measured(bad_probe):
+    """The Rerun viewer's axes are the measure plugin's reference fits, bit for bit; a
+    line the measurement refuses (here a non-finite probe) is not drawn."""
+    from crossfield.errors import MeasurementError
+    from crossfield.plan import parse_plan
+    from crossfield.plugins.measure_plan import PlanMeasurer
+    from crossfield.viz.rerun_log import fit_reference_axes
+
+    plan = parse_plan(REFERENCE_PLAN, "plan.toml")
+    reference = reference_data(np.random.default_rng(7), extra=[bad_probe] if bad_probe else [])
+    shown = fit_reference_axes(plan, reference)
+    measurer = PlanMeasurer()
+    for spec in plan.reference_lines:
+        if bad_probe and spec.id == "L3":
+            with pytest.raises(MeasurementError, match="reference line L3"):
+                measurer.reference_line(plan, reference, "L3")
+            assert "L3" not in shown
+            continue
+        measured = measurer.reference_line(plan, reference, spec.id)
+        np.testing.assert_array_equal(shown[spec.id].line.point, measured.line.point)
+        np.testing.assert_array_equal(shown[spec.id].line.direction, measured.line.direction)
+        assert shown[spec.id].radius_mm == measured.radius_mm
+        np.testing.assert_array_equal(shown[spec.id].covariance, measured.covariance)

@@ -219,3 +219,213 @@ def test_umeyama_estimates_scale_only_when_asked():
     assert rigid.rms_mm > 0.1  # 0.2 % of ~400 mm cannot be absorbed by a rigid motion
     with pytest.raises(ConfigError, match="with_scale"):
         REGISTRARS["umeyama"].create({"with_scale": "yes"})
+
+
+# --------------------------------------------------------------------------
+# The shared kernel crossfield.rigid.kabsch: batched, two solvers, one decision
+# --------------------------------------------------------------------------
+
+from crossfield import rigid  # noqa: E402
+
+
+def batch_of_scenes(rng: np.random.Generator, n: int, points: int = 8, kind: str = "noisy"):
+    """n registrations (n, points, 3) camera/global mm of one kind, with their true rotations."""
+    R = Rotation.random(n, random_state=rng).as_matrix()
+    P = np.stack([control_layout(rng, points) for _ in range(n)])
+    if kind == "coplanar":
+        P[..., 2] = 400.0
+    Pm = P * np.array([1.0, 1.0, -1.0]) if kind == "mirrored" else P
+    Q = np.einsum("bij,bnj->bni", R, Pm) + rng.uniform(-1000, 1000, (n, 1, 3))
+    if kind != "exact":
+        P = P + rng.normal(0, 0.02, P.shape)
+        Q = Q + rng.normal(0, 0.02, Q.shape)
+    return P, Q, R
+
+
+def mirror_decisions(P, Q, w, fits):
+    """Per registration: would check_reflection refuse it (rms_proper > 5 rms_mirror)?"""
+    R, t, Rm, tm = fits
+    w = w / w.sum(axis=-1, keepdims=True)
+
+    def weighted_rms(residuals):
+        return np.sqrt(np.einsum("bn,bn->b", w, np.sum(residuals**2, axis=-1)))
+
+    rms = weighted_rms(np.einsum("bij,bnj->bni", R, P) + t[:, None] - Q)
+    rms_m = weighted_rms(np.einsum("bij,bnj->bni", Rm, P) + tm[:, None] - Q)
+    floor = 1e-9 * np.maximum(1.0, weighted_rms(P - np.einsum("bn,bni->bi", w, P)[:, None]))
+    return (rms > rigid.REFLECTION_RATIO * rms_m) & (rms > floor)
+
+
+@pytest.mark.parametrize("kind", ["noisy", "exact", "coplanar", "mirrored"])
+def test_closed_form_and_svd_routes_agree(kind):
+    """The quaternion (closed-form) route gives the SVD route's R, R_mirror to 1e-12
+    and the same proper / mirror decision, on 3000 registrations at once."""
+    rng = np.random.default_rng({"noisy": 1, "exact": 2, "coplanar": 3, "mirrored": 4}[kind])
+    P, Q, R_true = batch_of_scenes(rng, 3000, kind=kind)
+    w = rng.uniform(0.2, 5.0, P.shape[:2])
+    fast = rigid.kabsch(P, Q, w, method="quaternion")
+    svd = rigid.kabsch(P, Q, w, method="svd")
+    for a, b in zip(fast, svd):
+        assert a.shape == b.shape
+    np.testing.assert_allclose(fast[0], svd[0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(fast[2], svd[2], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(fast[1], svd[1], rtol=0, atol=1e-12 * 2000)  # |t| ~ 1000 mm
+    np.testing.assert_allclose(fast[3], svd[3], rtol=0, atol=1e-12 * 2000)
+    np.testing.assert_allclose(np.linalg.det(fast[0]), 1.0, atol=1e-13)
+    np.testing.assert_allclose(np.linalg.det(fast[2]), -1.0, atol=1e-13)
+    decided = mirror_decisions(P, Q, w, fast)
+    np.testing.assert_array_equal(decided, mirror_decisions(P, Q, w, svd))
+    assert decided.all() if kind == "mirrored" else not decided.any()
+    if kind == "exact":
+        np.testing.assert_allclose(fast[0], R_true, atol=1e-12)
+    if kind == "mirrored":  # the data are a reflection of R_true: the improper fit recovers it
+        np.testing.assert_allclose(fast[2], R_true * np.array([1.0, 1.0, -1.0]), atol=1e-2)  # 0.02 mm noise
+
+
+def test_batched_kabsch_matches_scipy_align_vectors():
+    rng = np.random.default_rng(11)
+    P, Q, _ = batch_of_scenes(rng, 200, points=10)
+    w = rng.uniform(0.2, 5.0, P.shape[:2])
+    R, t, _, _ = rigid.kabsch(P, Q, w)
+    for k in range(len(P)):
+        wk = w[k] / w[k].sum()
+        reference, _ = Rotation.align_vectors(Q[k] - wk @ Q[k], P[k] - wk @ P[k], weights=w[k])
+        np.testing.assert_allclose(R[k], reference.as_matrix(), atol=1e-12)
+        np.testing.assert_allclose(t[k], wk @ Q[k] - reference.as_matrix() @ (wk @ P[k]), atol=1e-9)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_batched_kabsch_matches_each_plugin_one_at_a_time(name):
+    rng = np.random.default_rng(12)
+    P, Q, _ = batch_of_scenes(rng, 100)
+    w = rng.uniform(0.2, 5.0, P.shape[:2])
+    R, t, _, _ = rigid.kabsch(P, Q, w)
+    registrar = make(name)
+    for k in range(len(P)):
+        fit = registrar.fit(P[k], Q[k], w[k])
+        np.testing.assert_allclose(fit.R, R[k], atol=1e-12)
+        np.testing.assert_allclose(fit.t, t[k], atol=1e-9)
+
+
+@pytest.fixture(params=["svd", "quaternion-eigh", "quaternion-closed-form"])
+def route(request, monkeypatch):
+    """A rotation route of rigid.kabsch; single registrations normally take np.linalg.eigh
+    of Horn's matrix, "quaternion-closed-form" forces the closed form on them."""
+    if request.param == "quaternion-closed-form":
+        monkeypatch.setattr(rigid, "_CLOSED_FORM_MIN", 1)
+    return request.param.split("-")[0]
+
+
+def test_auto_method_picks_the_closed_form_for_batches(monkeypatch):
+    used = []
+    for name in ("_svd_rotations", "_quaternion_block"):
+        original = getattr(rigid, name)
+        monkeypatch.setattr(rigid, name, lambda H, f=original, n=name: (used.append((n, len(H))), f(H))[1])
+    H = np.random.default_rng(0).normal(size=(100, 3, 3))
+    rigid.best_rotations(H[:5])
+    rigid.best_rotations(H)
+    assert used == [("_svd_rotations", 5), ("_quaternion_block", 100)]
+
+
+@pytest.mark.parametrize(
+    "R_true",
+    [
+        np.eye(3),
+        np.diag([1.0, -1.0, -1.0]),  # half turns: the quaternion's w is 0
+        np.diag([-1.0, -1.0, 1.0]),
+        Rotation.from_rotvec([0.0, 0.0, np.pi / 2]).as_matrix(),
+        Rotation.from_rotvec(np.pi * np.array([1.0, 1.0, 1.0]) / np.sqrt(3)).as_matrix(),
+        Rotation.from_rotvec([1e-9, 0.0, 0.0]).as_matrix(),
+    ],
+    ids=["identity", "half-turn-x", "half-turn-z", "quarter-z", "half-turn-diagonal", "tiny"],
+)
+def test_kabsch_analytic_cases(R_true, route):
+    """Exact data from a known rotation: a 3-D layout, a coplanar one (both the rotation
+    and its mirror fit exactly) and the mirror image of the layout."""
+    rng = np.random.default_rng(13)
+    P = control_layout(rng, 6)
+    t_true = np.array([250.0, -40.0, 900.0])
+    method = route
+    R, t, R_m, _ = rigid.kabsch(P, P @ R_true.T + t_true, method=method)
+    np.testing.assert_allclose(R, R_true, atol=1e-13)
+    np.testing.assert_allclose(t, t_true, atol=1e-10)
+    flat = P.copy()
+    flat[:, 2] = 0.0  # coplanar in z = 0: the mirror in z is an exact improper fit
+    R, _, R_m, t_m = rigid.kabsch(flat, flat @ R_true.T + t_true, method=method)
+    np.testing.assert_allclose(R, R_true, atol=1e-13)
+    np.testing.assert_allclose(R_m, R_true @ np.diag([1.0, 1.0, -1.0]), atol=1e-13)
+    np.testing.assert_allclose(t_m, t_true, atol=1e-10)
+    mirror = R_true @ np.diag([1.0, -1.0, 1.0])
+    _, _, R_m, t_m = rigid.kabsch(P, P @ mirror.T + t_true, method=method)
+    np.testing.assert_allclose(R_m, mirror, atol=1e-13)
+    np.testing.assert_allclose(t_m, t_true, atol=1e-10)
+
+
+def test_kabsch_degenerate_sets_still_give_best_fits(monkeypatch):
+    """Collinear or coincident points (which validate_pairs refuses): the rotation is not
+    unique, but both routes return orthogonal matrices with the same, optimal residual
+    (the closed form hands these repeated eigenvalues to np.linalg.eigh)."""
+    eigh_calls = []
+    eigh = np.linalg.eigh
+    monkeypatch.setattr(np.linalg, "eigh", lambda A: (eigh_calls.append(A.shape), eigh(A))[1])
+    monkeypatch.setattr(rigid, "_CLOSED_FORM_MIN", 1)  # the closed form, even for one registration
+    rng = np.random.default_rng(14)
+    line = np.outer(np.linspace(-50, 50, 5), [0.6, 0.0, 0.8]) + [10.0, 20.0, 400.0]
+    R_true = Rotation.random(random_state=rng).as_matrix()
+    cases = [(line, line @ R_true.T + 5.0), (np.ones((4, 3)), np.ones((4, 3)) * 7.0)]
+    for P, Q in cases:
+        results = [rigid.kabsch(P, Q, method=m) for m in rigid.KABSCH_METHODS]
+        for R, t, R_m, t_m in results:
+            for M, sign in ((R, 1.0), (R_m, -1.0)):
+                np.testing.assert_allclose(M @ M.T, np.eye(3), atol=1e-12)
+                assert np.linalg.det(M) == pytest.approx(sign, abs=1e-12)
+            assert rigid.residual_rms(P @ R.T + t - Q) < 1e-10
+    assert eigh_calls == [(2, 4, 4)] * 2  # proper and mirror, for each of the two cases
+
+
+def test_kabsch_shapes_and_leading_batch_dimensions():
+    rng = np.random.default_rng(15)
+    P, Q, _ = batch_of_scenes(rng, 12)
+    P, Q = P.reshape(3, 4, 8, 3), Q.reshape(3, 4, 8, 3)
+    R, t, R_m, t_m = rigid.kabsch(P, Q, np.ones(8))
+    assert R.shape == R_m.shape == (3, 4, 3, 3) and t.shape == t_m.shape == (3, 4, 3)
+    single = rigid.kabsch(P[1, 2], Q[1, 2])
+    np.testing.assert_allclose(single[0], R[1, 2], atol=1e-15)
+    with pytest.raises(ValueError, match="unknown Kabsch method 'lu': expected auto, svd, quaternion"):
+        rigid.kabsch(P, Q, method="lu")
+    with pytest.raises(ValueError, match=r"\(\.\.\., 3, 3\)"):
+        rigid.best_rotations(np.eye(4))
+
+
+@pytest.mark.parametrize("method", rigid.KABSCH_METHODS)
+def test_project_to_rotation_is_the_nearest_rotation(method):
+    """Against the SVD formula U diag(1, 1, det(U V^T)) V^T, batched, including matrices
+    whose nearest orthogonal matrix is a reflection (negative determinant)."""
+    rng = np.random.default_rng(16)
+    M = Rotation.random(500, random_state=rng).as_matrix() + rng.normal(0, 0.3, (500, 3, 3))
+    M[:100] *= -1.0  # det < 0
+    U, _, Vt = np.linalg.svd(M)
+    d = np.sign(np.linalg.det(U @ Vt))
+    D = np.ones((len(M), 3))
+    D[:, 2] = d
+    expected = (U * D[:, None, :]) @ Vt
+    got = rigid.project_to_rotation(M, method=method)
+    np.testing.assert_allclose(got, expected, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(got), 1.0, atol=1e-13)
+    others = Rotation.random(2000, random_state=rng).as_matrix()
+    for k in (0, 1, 200, 201):  # nearer than any of 2000 random rotations
+        assert np.linalg.norm(got[k] - M[k]) < np.linalg.norm(others - M[k], axis=(1, 2)).min()
+
+
+def test_rotation_angle_against_scipy_and_tiny_angles():
+    rng = np.random.default_rng(17)
+    for angle in (1e-10, 1e-6, 0.3, 2.0, np.pi - 1e-6):
+        axis = rng.normal(size=3)
+        R_a = Rotation.random(random_state=rng).as_matrix()
+        R_b = R_a @ Rotation.from_rotvec(angle * axis / np.linalg.norm(axis)).as_matrix()
+        assert rigid.rotation_angle(R_a, R_b) == pytest.approx(angle, rel=1e-6, abs=1e-15)
+        assert rigid.rotation_angle(R_a, R_b) == pytest.approx(
+            Rotation.from_matrix(R_a.T @ R_b).magnitude(), rel=1e-6, abs=1e-15
+        )
+    assert rigid.chord_to_angle(0.0) == 0.0
+    assert rigid.chord_to_angle(2 * np.sqrt(2)) == pytest.approx(np.pi)

@@ -22,8 +22,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from crossfield.aggregate import project_to_rotation, rotation_angle  # noqa: F401 (re-exported)
 from crossfield.jsonable import matrix, plain, real, vector
+from crossfield.rigid import rotation_angle
 from crossfield.session import FrameResult, SessionSummary
 
 __all__ = [

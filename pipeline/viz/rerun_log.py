@@ -66,7 +66,7 @@ import rerun as rr
 from crossfield.viz import blueprint as bp
 from crossfield.config import SESSION_DEFAULTS
 from crossfield.errors import ConfigError, RecordingError
-from crossfield.geometry import AxisFit, fit_cylinder_axis, fit_line
+from crossfield.geometry import AxisFit, element_probes, fit_reference_element
 from crossfield.hookspecs import hookimpl
 from crossfield.types import CAMERAS, CameraIntrinsics, StereoCalibration
 
@@ -172,24 +172,15 @@ def lower_in_upper(calibration: StereoCalibration) -> rr.Transform3D:
 def fit_reference_axes(plan: Any, reference: Any) -> dict[str, AxisFit]:
     """line id -> the axis fitted to its CMM probes (global frame, mm), for display.
 
-    The same fits as the measurement plugin ``plan`` (:mod:`crossfield.geometry`:
-    a least-squares cylinder or an orthogonal line, a-priori sigma the largest
-    probe sigma); a line with too few probes, or whose fit fails, is left out.
+    The measurement's own fit (:func:`crossfield.geometry.fit_reference_element`,
+    also called by the measure plugin ``plan``), so the viewer draws the axis
+    that was measured against; a line whose fit fails (too few probes, an
+    undetermined cylinder) is left out, as the measurement refuses it.
     """
     axes: dict[str, AxisFit] = {}
     for spec in getattr(plan, "reference_lines", ()):
-        probes = reference.labelled(spec.id)
-        probes = [p for p in probes if p.label != spec.id and np.isfinite(p.xyz).all()]
-        if len(probes) < (5 if spec.fit == "cylinder" else 2):
-            continue
-        xyz = np.array([p.xyz for p in probes], dtype=np.float64)
-        sigma = max(float(p.sigma_mm) for p in probes)
         try:
-            axes[spec.id] = (
-                fit_cylinder_axis(xyz, sigma_mm=sigma)
-                if spec.fit == "cylinder"
-                else fit_line(xyz, sigma_mm=sigma)
-            )
+            axes[spec.id] = fit_reference_element(spec, reference.points)
         except ValueError:
             continue
     return axes
@@ -406,7 +397,8 @@ class RerunLogger:
         """Two points (2, 3), mm, on the fitted axis spanning its probes and the feet of
         the plan's targets measured against it, with a margin of 10 % (at least 20 mm)."""
         point, direction = np.asarray(fit.line.point), np.asarray(fit.line.direction)
-        along = [float((np.asarray(p.xyz) - point) @ direction) for p in reference.labelled(line_id)]
+        probes = element_probes(line_id, reference.points)
+        along = [float((np.asarray(p.xyz) - point) @ direction) for p in probes]
         plan = self._plan
         nominal = {t.id: np.asarray(t.nominal) for t in getattr(plan, "targets", ())}
         by_label = reference.by_label()
