@@ -113,6 +113,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     plugins = sub.add_parser("plugins", help="list every stage's registered implementations")
     plugins.add_argument("--json", action="store_true", help="machine-readable output")
+
+    # Station planning and the Cramér-Rao calculator (crossfield.planning.cli).
+    from crossfield.planning.cli import add_parsers as add_planning_parsers
+
+    add_planning_parsers(sub)
     return parser
 
 
@@ -291,6 +296,18 @@ COMMANDS = {
     "run": cmd_run, "replay": cmd_replay, "compare": cmd_compare, "audit": cmd_audit, "plugins": cmd_plugins,
     "view": cmd_view,
 }
+
+
+def _planning_command(name: str):
+    def run(args: argparse.Namespace) -> int:
+        from crossfield.planning import cli as planning_cli
+
+        return getattr(planning_cli, name)(args)
+
+    return run
+
+
+COMMANDS.update(plan=_planning_command("cmd_plan"), crb=_planning_command("cmd_crb"))
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -35,7 +35,9 @@ import numpy as np
 
 from crossfield.geometry import fit_cylinder_axis, fit_line, point_line_distance
 from crossfield.precision.chain import centroid_sigmas, image_radius_px
-from crossfield.precision.registration import fitzpatrick_covariance, fitzpatrick_tre, point_jacobian
+from crossfield.precision.registration import (
+    fitzpatrick_covariance, fitzpatrick_tre, point_jacobian, registration_covariance,
+)
 from crossfield.precision.stereo import camera_point_covariance, project_stereo, triangulate_batch
 from crossfield.rigid import kabsch
 from crossfield.planning.station import Characteristic, ReferenceLine, Station
@@ -103,46 +105,32 @@ def _true_points(station: Station) -> dict[str, np.ndarray]:
 
 def analytic(station: Station, model: CameraModel | None = None) -> dict[str, Any]:
     """Analytic prediction (module docstring): per characteristic the session u (mm) and its parts,
-    and the Fitzpatrick TRE at the targets and over the measuring volume."""
+    and the Fitzpatrick TRE at the targets and over the measuring volume.
+
+    Each entry also gives ``u_linear_mm``: the same first-order propagation with the
+    registration's exact linear covariance for anisotropic errors and the runner's weights
+    (:func:`crossfield.precision.registration_covariance`) instead of Fitzpatrick's isotropic
+    model; the difference between the two is the cost of the isotropy assumption.
+    """
     model = model or camera_model(station)
     T = len(station.target_ids)
     R = np.asarray(station.R_global_camera)
     Xg = station.to_global(model.X)
     G = Xg[T:]
+    s2 = station.cmm_sigma_mm**2
     fle_cam = float(np.sqrt(np.mean(np.trace(model.cov[T:], axis1=1, axis2=2))))
     fle_cmm = float(np.sqrt(3.0) * station.cmm_sigma_mm)
     C_cam, g_bar = fitzpatrick_covariance(G, fle_cam)
     C_cmm, _ = fitzpatrick_covariance(G, fle_cmm)
-    index = {tid: k for k, tid in enumerate(station.target_ids)}
-    s2 = station.cmm_sigma_mm**2
-
-    def element(eid: str):
-        """xyz (3,), own camera covariance, own CMM covariance (3, 3), registration Jacobian (3, 6)."""
-        if eid in index:
-            k = index[eid]
-            return Xg[k], R @ model.cov[k] @ R.T, np.zeros((3, 3)), point_jacobian(Xg[k], g_bar)
-        xyz = _true_points(station)[eid]  # a control or reference point: a CMM point
-        return xyz, np.zeros((3, 3)), s2 * np.eye(3), np.zeros((3, 6))
-
+    S_cam = R @ model.cov[T:] @ R.T
+    w = 1.0 / np.maximum(np.trace(model.cov[T:], axis1=1, axis2=2) / 3 + s2, 1e-12)  # the runner's weights
+    L_cam, g_w = registration_covariance(G, S_cam, w)
+    L_cmm, _ = registration_covariance(G, np.broadcast_to(s2 * np.eye(3), S_cam.shape), w)
+    fits = {line.id: line_fit(line, station.cmm_sigma_mm) for line in station.reference_lines}
     out = []
     for c in station.characteristics:
-        a, ca_cam, ca_cmm, Ja = element(c.a)
-        line_var = 0.0
-        if c.kind == "point_point":
-            b, cb_cam, cb_cmm, Jb = element(c.b)
-            g = (a - b) / np.linalg.norm(a - b)
-            J = Ja - Jb
-            v_cam = g @ (ca_cam + cb_cam + J @ C_cam @ J.T) @ g
-            v_cmm = g @ (ca_cmm + cb_cmm + J @ C_cmm @ J.T) @ g
-        else:
-            if c.kind == "point_line":
-                line = next(line for line in station.reference_lines if line.id == c.b)
-                _, sigma_line, g = point_line_distance(a, line_fit(line, station.cmm_sigma_mm))
-                line_var = sigma_line**2
-            else:
-                g = np.array([0.0, 0.0, 1.0])
-            v_cam = g @ (ca_cam + Ja @ C_cam @ Ja.T) @ g
-            v_cmm = g @ (ca_cmm + Ja @ C_cmm @ Ja.T) @ g + line_var
+        v_cam, v_cmm, line_var = _variances(station, c, Xg, model.cov, R, C_cam, C_cmm, g_bar, fits)
+        l_cam, l_cmm, _ = _variances(station, c, Xg, model.cov, R, L_cam, L_cmm, g_w, fits)
         u = float(np.sqrt(v_cmm + v_cam / station.frames))
         out.append({
             "name": c.name,
@@ -152,6 +140,7 @@ def analytic(station: Station, model: CameraModel | None = None) -> dict[str, An
             "u_camera_frame_mm": float(np.sqrt(v_cam)),
             "u_cmm_mm": float(np.sqrt(v_cmm)),
             "u_reference_line_mm": float(np.sqrt(line_var)),
+            "u_linear_mm": float(np.sqrt(l_cmm + l_cam / station.frames)),
         })
     tre_t = _tre(G, fle_cam, fle_cmm, Xg[:T], station.frames)
     return {
@@ -161,6 +150,38 @@ def analytic(station: Station, model: CameraModel | None = None) -> dict[str, An
         "tre_targets_mm": {tid: float(v) for tid, v in zip(station.target_ids, tre_t)},
         "tre_field": tre_field(station, G, fle_cam, fle_cmm),
     }
+
+
+def _variances(station, c, Xg, cam_cov, R, C_cam, C_cmm, g_bar, fits) -> tuple[float, float, float]:
+    """(camera part per frame, CMM part, of it the reference line) variances (mm^2) of c."""
+    index = {tid: k for k, tid in enumerate(station.target_ids)}
+    s2 = station.cmm_sigma_mm**2
+
+    def element(eid: str):
+        """xyz (3,), own camera covariance, own CMM covariance (3, 3), registration Jacobian (3, 6)."""
+        if eid in index:
+            k = index[eid]
+            return Xg[k], R @ cam_cov[k] @ R.T, np.zeros((3, 3)), point_jacobian(Xg[k], g_bar)
+        xyz = _true_points(station)[eid]  # a control or reference point: a CMM point
+        return xyz, np.zeros((3, 3)), s2 * np.eye(3), np.zeros((3, 6))
+
+    a, ca_cam, ca_cmm, Ja = element(c.a)
+    line_var = 0.0
+    if c.kind == "point_point":
+        b, cb_cam, cb_cmm, Jb = element(c.b)
+        g = (a - b) / np.linalg.norm(a - b)
+        J = Ja - Jb  # the shared registration: propagate the difference
+        v_cam = g @ (ca_cam + cb_cam + J @ C_cam @ J.T) @ g
+        v_cmm = g @ (ca_cmm + cb_cmm + J @ C_cmm @ J.T) @ g
+    else:
+        if c.kind == "point_line":
+            _, sigma_line, g = point_line_distance(a, fits[c.b])
+            line_var = sigma_line**2
+        else:
+            g = np.array([0.0, 0.0, 1.0])
+        v_cam = g @ (ca_cam + Ja @ C_cam @ Ja.T) @ g
+        v_cmm = g @ (ca_cmm + Ja @ C_cmm @ Ja.T) @ g + line_var
+    return max(float(v_cam), 0.0), max(float(v_cmm), 0.0), float(line_var)  # round-off of a zero part
 
 
 def _tre(G: np.ndarray, fle_cam: float, fle_cmm: float, points: np.ndarray, frames: int) -> np.ndarray:
