@@ -11,6 +11,7 @@ point's covariance in the global frame.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -50,24 +51,37 @@ def image_radius_px(
     return out
 
 
-@lru_cache(maxsize=4096)
-def _crb_cached(radius_px: float, blur: float, contrast: float, background: float, gain: float, read: float):
-    b = centroid_crb(radius_px, blur, contrast, background, NoiseModel(gain, read), centre_px=(0.25, 0.25))
-    return b.sigma_u_px, b.sigma_v_px
+#: Image radii are interpolated between bounds computed at radii 1.02^k px (log-log, exact to ~1e-5).
+_KNOT_RATIO = 1.02
+
+
+@lru_cache(maxsize=8192)
+def _crb_at_knot(k: int, blur: float, contrast: float, background: float, gain: float, read: float):
+    b = centroid_crb(_KNOT_RATIO**k, blur, contrast, background, NoiseModel(gain, read), centre_px=(0.25, 0.25))
+    return math.log(b.sigma_u_px), math.log(b.sigma_v_px)
+
+
+def _crb_interpolated(radius_px: float, *args) -> tuple[float, float]:
+    x = math.log(radius_px) / math.log(_KNOT_RATIO)
+    k = math.floor(x)
+    a, b = _crb_at_knot(k, *args), _crb_at_knot(k + 1, *args)
+    f = x - k
+    return math.exp((1 - f) * a[0] + f * b[0]), math.exp((1 - f) * a[1] + f * b[1])
 
 
 def centroid_sigmas(
     radius_px: np.ndarray, blur_sigma_px: float, contrast_dn: np.ndarray, background_dn: float, noise: NoiseModel
 ) -> np.ndarray:
-    """Centroid bounds (N, 4) px ``[u_upper, v_upper, u_lower, v_lower]`` for image
-    radii (N, 2) px and contrasts (N,) DN (radii rounded to 0.01 px for caching)."""
+    """Centroid bounds (N, 4) px ``[u_upper, v_upper, u_lower, v_lower]`` for image radii (N, 2) px
+    and contrasts (N,) DN: :func:`centroid_crb` at a disc centre (0.25, 0.25) px off a pixel
+    centre, interpolated in log-log between radii 1.02^k px (computed once, cached)."""
     radius_px = np.asarray(radius_px, dtype=np.float64)
     contrast = np.broadcast_to(np.asarray(contrast_dn, dtype=np.float64), radius_px.shape[:1])
     out = np.zeros((len(radius_px), 4))
     for i in range(len(radius_px)):
         for k in range(2):
-            out[i, 2 * k : 2 * k + 2] = _crb_cached(
-                round(float(radius_px[i, k]), 2), float(blur_sigma_px), round(float(contrast[i]), 1),
+            out[i, 2 * k : 2 * k + 2] = _crb_interpolated(
+                float(radius_px[i, k]), float(blur_sigma_px), float(contrast[i]),
                 float(background_dn), float(noise.gain_dn_per_e), float(noise.read_noise_dn),
             )
     return out
