@@ -145,6 +145,7 @@ def cmd_crb(args: argparse.Namespace) -> int:
              "centroid_crb_px": bound.centroid_sigma_px[k].tolist(),
              "camera_sigma_mm": bound.camera_sigma_mm[k].tolist(),
              "camera_cov_mm2": bound.camera_cov[k].tolist(),
+             "global_cov_mm2": bound.global_cov[k].tolist(),
              "global_rms_mm": float(bound.global_rms_mm[k])}
             for k, pid in enumerate(ids)
         ],
