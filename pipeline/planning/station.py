@@ -330,9 +330,11 @@ class _Table:
 
     def integer(self, key: str, default: int | None = None, *, minimum: int = 1) -> int:
         self.used.add(key)
-        if key not in self.data and default is not None:
+        if key not in self.data:
+            if default is None:
+                raise ConfigError(f"{self._where(key)} is missing")
             return default
-        v = self.data.get(key)
+        v = self.data[key]
         if isinstance(v, bool) or not isinstance(v, int) or v < minimum:
             raise ConfigError(f"{self._where(key)} must be an integer >= {minimum}, got {v!r}")
         return v
