@@ -95,6 +95,15 @@ def efficiency(frames: int = 40) -> None:
               f"RMS bias {np.sqrt(np.mean(bias**2)):.5f} px)")
 
 
+def _table(rows: list[dict]) -> None:
+    print(f"{'design point':24s} {'char':9s} {'n':>4s} {'RMS err':>9s} {'mean':>9s} {'u MC':>9s} {'u an.':>9s} "
+          f"{'MC/RMS':>7s} {'an/RMS':>7s} {'cam %':>6s}")
+    for r in rows:
+        print(f"{r['design_point']:24s} {r['characteristic']:9s} {r['sessions']:4d} {r['rms_error_mm']:9.5f} "
+              f"{r['mean_error_mm']:9.5f} {r['monte_carlo_u_mm']:9.5f} {r['analytic_u_mm']:9.5f} "
+              f"{r['ratio_mc']:7.3f} {r['ratio_analytic']:7.3f} {100 * r['camera_share']:6.1f}", flush=True)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sessions", type=int, default=100)
@@ -130,12 +139,9 @@ def main() -> int:
                     "camera_share": c["analytic"]["u_camera_frame_mm"] ** 2 / args.frames / c["analytic"]["u_mm"] ** 2,
                 })
             print(f"# {label}: {args.sessions} sessions in {seconds:.0f} s", flush=True)
-    print(f"{'design point':24s} {'char':9s} {'n':>4s} {'RMS err':>9s} {'mean':>9s} {'u MC':>9s} {'u an.':>9s} "
-          f"{'MC/RMS':>7s} {'an/RMS':>7s} {'cam %':>6s}")
-    for r in rows:
-        print(f"{r['design_point']:24s} {r['characteristic']:9s} {r['sessions']:4d} {r['rms_error_mm']:9.5f} "
-              f"{r['mean_error_mm']:9.5f} {r['monte_carlo_u_mm']:9.5f} {r['analytic_u_mm']:9.5f} "
-              f"{r['ratio_mc']:7.3f} {r['ratio_analytic']:7.3f} {100 * r['camera_share']:6.1f}")
+            _table([r for r in rows if r["design_point"] == label])
+    print("# all design points")
+    _table(rows)
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=2))
     return 0
