@@ -96,11 +96,12 @@ def efficiency(frames: int = 40) -> None:
 
 
 def _table(rows: list[dict]) -> None:
-    print(f"{'design point':24s} {'char':9s} {'n':>4s} {'RMS err':>9s} {'mean':>9s} {'u MC':>9s} {'u an.':>9s} "
-          f"{'MC/RMS':>7s} {'an/RMS':>7s} {'cam %':>6s}")
+    print(f"{'design point':24s} {'char':9s} {'n':>4s} {'RMS err':>9s} {'mean':>9s} {'bias MC':>9s} {'u MC':>9s} "
+          f"{'u an.':>9s} {'MC/RMS':>7s} {'an/RMS':>7s} {'cam %':>6s}")
     for r in rows:
         print(f"{r['design_point']:24s} {r['characteristic']:9s} {r['sessions']:4d} {r['rms_error_mm']:9.5f} "
-              f"{r['mean_error_mm']:9.5f} {r['monte_carlo_u_mm']:9.5f} {r['analytic_u_mm']:9.5f} "
+              f"{r['mean_error_mm']:9.5f} {r.get('predicted_bias_mm', float('nan')):9.5f} "
+              f"{r['monte_carlo_u_mm']:9.5f} {r['analytic_u_mm']:9.5f} "
               f"{r['ratio_mc']:7.3f} {r['ratio_analytic']:7.3f} {100 * r['camera_share']:6.1f}", flush=True)
 
 
@@ -112,6 +113,9 @@ def main() -> int:
     parser.add_argument("--json", metavar="FILE")
     parser.add_argument("--efficiency", action="store_true")
     parser.add_argument("--only", type=int, help="run only design point k (0-based)")
+    parser.add_argument("--sessions-from", metavar="FILE",
+                        help="do not run sessions: compare new predictions with the session errors in FILE "
+                        "(a --json output of an earlier run)")
     args = parser.parse_args()
     if args.efficiency:
         efficiency()
@@ -124,16 +128,26 @@ def main() -> int:
             station = station_from_scenario(scenario, arm_sigma_mm=arm, frames=args.frames)
             prediction = predict(station, sessions=args.mc_sessions)
             t0 = time.perf_counter()
-            errors = run_sessions(scenario, arm, args.frames, args.sessions, out)
+            if args.sessions_from:
+                recorded = {(r["design_point"], r["characteristic"]): r
+                            for r in json.loads(Path(args.sessions_from).read_text())}
+                stats = {c["name"]: recorded[(label, c["name"])] for c in prediction["characteristics"]
+                         if (label, c["name"]) in recorded}
+            else:
+                errors = run_sessions(scenario, arm, args.frames, args.sessions, out)
+                stats = {name: {"sessions": len(e), "rms_error_mm": float(np.sqrt(np.mean(np.square(e)))),
+                                "mean_error_mm": float(np.mean(e)), "std_error_mm": float(np.std(e, ddof=1))}
+                         for name, e in errors.items() if len(e) > 1}
             seconds = time.perf_counter() - t0
             for c in prediction["characteristics"]:
-                e = np.array(errors.get(c["name"], []))
-                if len(e) == 0:
+                if c["name"] not in stats:
                     continue
-                rms = float(np.sqrt(np.mean(e**2)))
+                st = stats[c["name"]]
+                rms = st["rms_error_mm"]
                 rows.append({
-                    "design_point": label, "characteristic": c["name"], "sessions": len(e),
-                    "rms_error_mm": rms, "mean_error_mm": float(e.mean()), "std_error_mm": float(e.std(ddof=1)),
+                    "design_point": label, "characteristic": c["name"], "sessions": st["sessions"],
+                    "rms_error_mm": rms, "mean_error_mm": st["mean_error_mm"], "std_error_mm": st["std_error_mm"],
+                    "predicted_bias_mm": c["monte_carlo"]["bias_mm"],
                     "analytic_u_mm": c["analytic"]["u_mm"], "monte_carlo_u_mm": c["monte_carlo"]["u_mm"],
                     "ratio_mc": c["monte_carlo"]["u_mm"] / rms, "ratio_analytic": c["analytic"]["u_mm"] / rms,
                     "camera_share": c["analytic"]["u_camera_frame_mm"] ** 2 / args.frames / c["analytic"]["u_mm"] ** 2,

@@ -38,6 +38,7 @@ from crossfield.precision.chain import centroid_sigmas, image_radius_px
 from crossfield.precision.registration import (
     fitzpatrick_covariance, fitzpatrick_tre, point_jacobian, registration_covariance,
 )
+from crossfield.precision.perspective import stereo_eccentricity
 from crossfield.precision.stereo import camera_point_covariance, project_stereo, triangulate_batch
 from crossfield.rigid import kabsch
 from crossfield.planning.station import Characteristic, ReferenceLine, Station
@@ -54,6 +55,8 @@ class CameraModel:
     sigma_uv: np.ndarray
     cov: np.ndarray
     crb_sigma_uv: np.ndarray
+    bias_uv: np.ndarray  # (M, 4) px: perspective eccentricity of the blob centres (zeros when off)
+    J: np.ndarray  # (M, 4, 3) px/mm
 
 
 def camera_model(station: Station) -> CameraModel:
@@ -62,7 +65,9 @@ def camera_model(station: Station) -> CameraModel:
     crb = centroid_sigmas(radius_px, station.blur_sigma_px, station.signal_dn, station.background_dn, station.noise)
     sigma = crb * station.centroid_efficiency
     uv, J = project_stereo(station.calibration, X)
-    return CameraModel(X, uv, sigma, camera_point_covariance(J, sigma), crb)
+    bias = (stereo_eccentricity(station.calibration, X, station.camera_normals, station.radius_mm)
+            if station.perspective_bias else np.zeros_like(uv))
+    return CameraModel(X, uv, sigma, camera_point_covariance(J, sigma), crb, bias, J)
 
 
 @lru_cache(maxsize=64)
@@ -127,20 +132,25 @@ def analytic(station: Station, model: CameraModel | None = None) -> dict[str, An
     L_cam, g_w = registration_covariance(G, S_cam, w)
     L_cmm, _ = registration_covariance(G, np.broadcast_to(s2 * np.eye(3), S_cam.shape), w)
     fits = {line.id: line_fit(line, station.cmm_sigma_mm) for line in station.reference_lines}
+    bias_global = _bias_global(model, R, Xg, T, w, g_w)
     out = []
     for c in station.characteristics:
         v_cam, v_cmm, line_var = _variances(station, c, Xg, model.cov, R, C_cam, C_cmm, g_bar, fits)
         l_cam, l_cmm, _ = _variances(station, c, Xg, model.cov, R, L_cam, L_cmm, g_w, fits)
-        u = float(np.sqrt(v_cmm + v_cam / station.frames))
+        bias = _characteristic_bias(station, c, Xg, bias_global, fits)
+        u_random = float(np.sqrt(v_cmm + v_cam / station.frames))
+        u = float(np.sqrt(u_random**2 + bias**2))
         out.append({
             "name": c.name,
             "u_mm": u,
             "U_mm": station.coverage_factor * u,
+            "u_random_mm": u_random,
+            "bias_mm": bias,
             "u_frame_mm": float(np.sqrt(v_cmm + v_cam)),
             "u_camera_frame_mm": float(np.sqrt(v_cam)),
             "u_cmm_mm": float(np.sqrt(v_cmm)),
             "u_reference_line_mm": float(np.sqrt(line_var)),
-            "u_linear_mm": float(np.sqrt(l_cmm + l_cam / station.frames)),
+            "u_linear_mm": float(np.sqrt(l_cmm + l_cam / station.frames + bias**2)),
         })
     tre_t = _tre(G, fle_cam, fle_cmm, Xg[:T], station.frames)
     return {
@@ -150,6 +160,41 @@ def analytic(station: Station, model: CameraModel | None = None) -> dict[str, An
         "tre_targets_mm": {tid: float(v) for tid, v in zip(station.target_ids, tre_t)},
         "tre_field": tre_field(station, G, fle_cam, fle_cmm),
     }
+
+
+def _bias_global(model: CameraModel, R: np.ndarray, Xg: np.ndarray, T: int, w: np.ndarray,
+                 g_w: np.ndarray) -> np.ndarray:
+    """(T, 3) mm: the targets' global-frame bias from the blob-centre bias ``model.bias_uv``,
+    propagated linearly: ML triangulation ``dX = (J^T W J)^-1 J^T W duv``, then the weighted
+    Kabsch fit's response to the controls' bias ``dxi = -A^-1 sum_k w_k J_k^T R dX_k``
+    (``A = sum_k w_k J_k^T J_k``), and ``b_t = R dX_t + J(p_t) dxi``."""
+    W = 1.0 / model.sigma_uv**2
+    JtW = np.swapaxes(model.J, 1, 2) * W[:, None, :]
+    dX = np.linalg.solve(JtW @ model.J, (JtW @ model.bias_uv[:, :, None]))[:, :, 0]  # (M, 3) camera frame
+    wn = w / w.sum()
+    Jc = point_jacobian(Xg[T:], g_w)
+    A = np.einsum("n,nai,naj->ij", wn, Jc, Jc)
+    rhs = np.einsum("n,nai,na->i", wn, Jc, dX[T:] @ R.T)
+    dxi = -np.linalg.solve(A, rhs)
+    return dX[:T] @ R.T + point_jacobian(Xg[:T], g_w) @ dxi
+
+
+def _characteristic_bias(station: Station, c: Characteristic, Xg, bias_global, fits) -> float:
+    """First-order bias (mm) of characteristic c from the targets' global bias (CMM points: none)."""
+    index = {tid: k for k, tid in enumerate(station.target_ids)}
+    points = _true_points(station)
+
+    def b(eid: str) -> np.ndarray:
+        return bias_global[index[eid]] if eid in index else np.zeros(3)
+
+    a = points[c.a]
+    if c.kind == "point_point":
+        g = (a - points[c.b]) / np.linalg.norm(a - points[c.b])
+        return float(g @ (b(c.a) - b(c.b)))
+    if c.kind == "point_line":
+        _, _, g = point_line_distance(a, fits[c.b])
+        return float(g @ b(c.a))
+    return float(b(c.a)[2])
 
 
 def _variances(station, c, Xg, cam_cov, R, C_cam, C_cmm, g_bar, fits) -> tuple[float, float, float]:
@@ -226,7 +271,9 @@ def simulate_sessions(
     out = np.zeros((sessions, len(truth)))
     for start in range(0, sessions, chunk):
         B = min(chunk, sessions - start)
-        uv = model.uv + model.sigma_uv * rng.standard_normal((B, F) + model.uv.shape)
+        # The centroids estimate the blob centres, which the perspective eccentricity moves off the
+        # projected target centres (a fixed bias, the same in every frame and session).
+        uv = model.uv + model.bias_uv + model.sigma_uv * rng.standard_normal((B, F) + model.uv.shape)
         X = triangulate_batch(station.calibration, uv, model.sigma_uv)  # (B, F, M, 3)
         cmm = cmm_true + sigma * rng.standard_normal((B,) + cmm_true.shape)  # (B, P, 3), once per session
         Q = np.broadcast_to(cmm[:, None, :C], (B, F, C, 3))

@@ -86,6 +86,7 @@ class Station:
     control_box: tuple[tuple[float, float, float], tuple[float, float, float]] = ((0, 0, 400), (80, 45, 18))
     source: str = ""
     design: dict[str, float] = field(default_factory=dict)
+    perspective_bias: bool = True  # model the blob centres' perspective eccentricity (precision.perspective)
 
     @property
     def working_distance_mm(self) -> float:
@@ -434,10 +435,19 @@ def parse_station(text: str, source: str = "<station>") -> Station:
     distance = tg.number("working_distance_mm", minimum=0.0, strict=True)
     centre_xy = tg.vector("view_centre_mm", 2, [0.0, 0.0])
     centre = np.array([centre_xy[0], centre_xy[1], distance])
-    target_ids, target_xyz = [], []
+    perspective = tg.data.get("perspective_bias", True)
+    tg.used.add("perspective_bias")
+    if not isinstance(perspective, bool):
+        raise ConfigError(f"{source}: key 'targets.perspective_bias' must be true or false, got {perspective!r}")
+    target_ids, target_xyz, target_normal = [], [], []
     for t in tg.tables("point"):
         target_ids.append(t.string("id"))
-        target_xyz.append(t.vector("xyz_mm", 3))
+        xyz = t.vector("xyz_mm", 3)
+        target_xyz.append(xyz)
+        normal = t.vector("normal", 3, -xyz / np.linalg.norm(xyz))
+        if np.linalg.norm(normal) == 0:
+            raise ConfigError(f"{source}: key '{t.path}.normal' is zero")
+        target_normal.append(normal / np.linalg.norm(normal))
         t.check_unknown()
     tg.check_unknown()
     if not target_ids:
@@ -522,7 +532,8 @@ def parse_station(text: str, source: str = "<station>") -> Station:
     top.check_unknown()
     return Station(
         name=name, calibration=calibration, R_global_camera=R_gc, t_global_camera=t_gc,
-        target_ids=tuple(target_ids), target_xyz=target_xyz, target_normal=_facing(target_xyz),
+        target_ids=tuple(target_ids), target_xyz=target_xyz, target_normal=np.array(target_normal),
+        perspective_bias=perspective,
         control_ids=tuple(ids_c), control_xyz=control_xyz, control_normal=_facing(control_xyz),
         radius_mm=radius, signal_dn=signal, cmm_sigma_mm=sigma, reference_points=ref_points,
         reference_lines=tuple(lines), characteristics=tuple(chars), frames=frames, coverage_factor=k,
