@@ -22,6 +22,13 @@ per session and does not. So ``u_session^2 = u_cmm^2 + u_camera,frame^2 / frames
   lines are drawn from their fit's linear covariance (the cylinder fit itself
   is not batched).
 
+Both routes also carry the perspective eccentricity of the targets' blob centres
+(:mod:`crossfield.precision.perspective`): a fixed offset of every centroid, the
+same in every frame and session, so a fixed bias of each session result
+(``bias_mm``); the analytic route propagates it linearly, the Monte Carlo adds
+it to the true image positions. ``u_mm`` is the RMS session error
+``sqrt(u_random^2 + bias^2)``.
+
 Lengths mm, angles rad.
 """
 
