@@ -164,6 +164,10 @@ def build_parser() -> argparse.ArgumentParser:
     from crossfield.calibration_cli import add_parsers as _add_calibration_parsers
 
     COMMANDS.update(_add_calibration_parsers(command))
+    # Station planning and the Cramér-Rao calculator (crossfield.planning.cli).
+    from crossfield.planning.cli import add_parsers as add_planning_parsers
+
+    add_planning_parsers(command)
     return parser
 
 
@@ -418,6 +422,16 @@ def _stdout_gone() -> int:
     except (OSError, ValueError, AttributeError):  # stdout without a file descriptor
         pass
     return 128 + signal.SIGPIPE
+def _planning_command(name: str):
+    def run(args: argparse.Namespace) -> int:
+        from crossfield.planning import cli as planning_cli
+
+        return getattr(planning_cli, name)(args)
+
+    return run
+
+
+COMMANDS.update(plan=_planning_command("cmd_plan"), crb=_planning_command("cmd_crb"))
 
 
 def main(argv: Sequence[str] | None = None) -> int:

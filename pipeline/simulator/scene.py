@@ -160,7 +160,7 @@ class Scene:
                 n_angles = len(cyl.probe_angles_rad)
                 height = cyl.probe_heights_mm[k // n_angles]
                 angle = cyl.probe_angles_rad[k % n_angles]
-                e1, e2 = _perpendicular_basis(cyl.axis.direction)
+                e1, e2 = probe_ring_basis(cyl.axis.direction)
                 radial = np.cos(angle) * e1 + np.sin(angle) * e2
                 # Ball centre on the outside of the shaft: radius + ball radius.
                 true_xyz = cyl.axis.point + height * cyl.axis.direction + (cyl.radius_mm + ball) * radial
@@ -173,7 +173,10 @@ class Scene:
         return probes
 
 
-def _perpendicular_basis(direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def probe_ring_basis(direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The simulator's own basis (3,), (3,) around a cylinder axis for placing its
+    probes (kept as it was so that scenarios reproduce their recorded numbers;
+    :func:`crossfield.geometry.perpendicular_basis` picks its helper axis differently)."""
     d = direction / np.linalg.norm(direction)
     helper = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     e1 = np.cross(d, helper)

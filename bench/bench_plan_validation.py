@@ -1,0 +1,165 @@
+"""Validation of ``crossfield plan``'s predictions against full-simulator sessions.
+
+Run on demand (slow: every session renders its images and runs the whole
+pipeline, ~2 s per 10-pair session on this machine)::
+
+    .venv/bin/python bench/bench_plan_validation.py [--sessions 100] [--frames 10] [--json out.json]
+    .venv/bin/python bench/bench_plan_validation.py --efficiency   # centroid RMS / CRB only
+
+For each design point (the paper's station, table3, and the station with a
+more precise arm) it predicts the session uncertainty of every characteristic
+by both routes (``crossfield.planning.predict``), then runs ``--sessions``
+sessions with crossfield's runner and the simulator source (record=False,
+new noise seed per session, the simulated ROMER arm on a pseudo-terminal), and
+compares the RMS of the session errors (measured - true) with the prediction:
+``ratio = predicted / RMS``. With n sessions the RMS itself is uncertain by
+about 1 / sqrt(2 n) (7 % for n = 100). ``--efficiency`` measures the
+``weighted`` centroid's RMS scatter over rendered frames against the
+Cramér-Rao bound (the station's ``centroid_efficiency``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from crossfield.config import parse_config  # noqa: E402
+from crossfield.planning.routes import camera_model, predict  # noqa: E402
+from crossfield.planning.station import station_from_scenario  # noqa: E402
+from crossfield.registry import make_plugin_manager  # noqa: E402
+from crossfield.runner import run_session  # noqa: E402
+
+DESIGN_POINTS = (
+    ("paper station", "station", 0.01),
+    ("table3", "table3", 0.01),
+    ("station, arm 0.003 mm", "station", 0.003),
+)
+
+
+def run_sessions(scenario: str, arm_sigma: float, frames: int, sessions: int, out: str) -> dict[str, list[float]]:
+    pm = make_plugin_manager()
+    errors: dict[str, list[float]] = {}
+    for seed in range(1, sessions + 1):
+        data = {
+            "session": {"output_dir": out, "name": f"{scenario}-{arm_sigma}-{seed}", "record": False, "rerun": False},
+            "acquire": {"plugin": "simulator", "scenario": scenario, "frames": frames, "seed": 1000 + seed,
+                        "arm_sigma_mm": arm_sigma},
+            "reference": {"plugin": "romer-serial", "port": "simulator"},
+        }
+        summary = run_session(parse_config(data, "<validation>"), pm)
+        for c in summary.characteristics:
+            if c.error_mm is not None and c.n == frames:
+                errors.setdefault(c.name, []).append(float(c.error_mm))
+    return errors
+
+
+def efficiency(frames: int = 40) -> None:
+    """RMS scatter of the weighted centroid over rendered frames / its CRB (per axis, per target)."""
+    from crossfield.registry import implementations
+    from crossfield.simulator.scenarios import build_scene
+
+    scene = build_scene("station")
+    station = station_from_scenario("station", centroid_efficiency=1.0)
+    model = camera_model(station)
+    ids = station.target_ids + station.control_ids
+    pm = make_plugin_manager()
+    centroider = implementations(pm, "centroid")["weighted"].create({}, "<bench>")
+    rng = np.random.default_rng(5)
+    true = {cam: scene.true_blob_centres(cam) for cam in ("upper", "lower")}
+    errs: dict[str, list[np.ndarray]] = {"upper": [], "lower": []}
+    for k in range(frames):
+        pair = scene.render_pair(k, rng)
+        for cam in ("upper", "lower"):
+            found = centroider.extract(pair.image(cam), cam, k)
+            uv = np.asarray(found.uv)
+            row = []
+            for tid in ids:
+                d = np.linalg.norm(uv - true[cam][tid], axis=1)
+                row.append(uv[np.argmin(d)] - true[cam][tid])
+            errs[cam].append(np.array(row))
+    for j, cam in enumerate(("upper", "lower")):
+        e = np.array(errs[cam])  # (frames, M, 2)
+        scatter = e.std(axis=0, ddof=1)  # per target, per axis
+        bias = e.mean(axis=0)
+        crb = model.crb_sigma_uv[:, 2 * j : 2 * j + 2]
+        print(f"{cam}: RMS scatter / CRB = {np.sqrt(np.mean(scatter**2)) / np.sqrt(np.mean(crb**2)):.3f}  "
+              f"(scatter {np.sqrt(np.mean(scatter**2)):.5f} px, CRB {np.sqrt(np.mean(crb**2)):.5f} px, "
+              f"RMS bias {np.sqrt(np.mean(bias**2)):.5f} px)")
+
+
+def _table(rows: list[dict]) -> None:
+    print(f"{'design point':24s} {'char':9s} {'n':>4s} {'RMS err':>9s} {'mean':>9s} {'bias MC':>9s} {'u MC':>9s} "
+          f"{'u an.':>9s} {'MC/RMS':>7s} {'an/RMS':>7s} {'cam %':>6s}")
+    for r in rows:
+        print(f"{r['design_point']:24s} {r['characteristic']:9s} {r['sessions']:4d} {r['rms_error_mm']:9.5f} "
+              f"{r['mean_error_mm']:9.5f} {r.get('predicted_bias_mm', float('nan')):9.5f} "
+              f"{r['monte_carlo_u_mm']:9.5f} {r['analytic_u_mm']:9.5f} "
+              f"{r['ratio_mc']:7.3f} {r['ratio_analytic']:7.3f} {100 * r['camera_share']:6.1f}", flush=True)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sessions", type=int, default=100)
+    parser.add_argument("--frames", type=int, default=10)
+    parser.add_argument("--mc-sessions", type=int, default=4000)
+    parser.add_argument("--json", metavar="FILE")
+    parser.add_argument("--efficiency", action="store_true")
+    parser.add_argument("--only", type=int, help="run only design point k (0-based)")
+    parser.add_argument("--sessions-from", metavar="FILE",
+                        help="do not run sessions: compare new predictions with the session errors in FILE "
+                        "(a --json output of an earlier run)")
+    args = parser.parse_args()
+    if args.efficiency:
+        efficiency()
+        return 0
+    rows = []
+    with tempfile.TemporaryDirectory() as out:
+        for k, (label, scenario, arm) in enumerate(DESIGN_POINTS):
+            if args.only is not None and k != args.only:
+                continue
+            station = station_from_scenario(scenario, arm_sigma_mm=arm, frames=args.frames)
+            prediction = predict(station, sessions=args.mc_sessions)
+            t0 = time.perf_counter()
+            if args.sessions_from:
+                recorded = {(r["design_point"], r["characteristic"]): r
+                            for r in json.loads(Path(args.sessions_from).read_text())}
+                stats = {c["name"]: recorded[(label, c["name"])] for c in prediction["characteristics"]
+                         if (label, c["name"]) in recorded}
+            else:
+                errors = run_sessions(scenario, arm, args.frames, args.sessions, out)
+                stats = {name: {"sessions": len(e), "rms_error_mm": float(np.sqrt(np.mean(np.square(e)))),
+                                "mean_error_mm": float(np.mean(e)), "std_error_mm": float(np.std(e, ddof=1))}
+                         for name, e in errors.items() if len(e) > 1}
+            seconds = time.perf_counter() - t0
+            for c in prediction["characteristics"]:
+                if c["name"] not in stats:
+                    continue
+                st = stats[c["name"]]
+                rms = st["rms_error_mm"]
+                rows.append({
+                    "design_point": label, "characteristic": c["name"], "sessions": st["sessions"],
+                    "rms_error_mm": rms, "mean_error_mm": st["mean_error_mm"], "std_error_mm": st["std_error_mm"],
+                    "predicted_bias_mm": c["monte_carlo"]["bias_mm"],
+                    "analytic_u_mm": c["analytic"]["u_mm"], "monte_carlo_u_mm": c["monte_carlo"]["u_mm"],
+                    "ratio_mc": c["monte_carlo"]["u_mm"] / rms, "ratio_analytic": c["analytic"]["u_mm"] / rms,
+                    "camera_share": c["analytic"]["u_camera_frame_mm"] ** 2 / args.frames / c["analytic"]["u_mm"] ** 2,
+                })
+            print(f"# {label}: {args.sessions} sessions in {seconds:.0f} s", flush=True)
+            _table([r for r in rows if r["design_point"] == label])
+    print("# all design points")
+    _table(rows)
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
