@@ -37,6 +37,7 @@ BUILTIN_PLUGINS: tuple[str, ...] = (
     "crossfield.plugins.acquire_opencv",
     "crossfield.plugins.centroid_weighted",
     "crossfield.plugins.centroid_ellipse",
+    "crossfield.plugins.centroid_modelfit",
     "crossfield.plugins.triangulate_epipolar",
     "crossfield.plugins.reference_romer_serial",
     "crossfield.plugins.reference_csv",
