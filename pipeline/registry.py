@@ -46,6 +46,7 @@ BUILTIN_PLUGINS: tuple[str, ...] = (
     "crossfield.plugins.register_svd",
     "crossfield.plugins.register_umeyama",
     "crossfield.plugins.register_horn",
+    "crossfield.plugins.register_ml",
     "crossfield.plugins.measure_plan",
     "crossfield.plugins.report_html",
 )
