@@ -430,12 +430,19 @@ class EpipolarTriangulator:
             upper.ellipse_cov[ai] if upper.ellipse_cov is not None else None,
             lower.ellipse_cov[aj] if lower.ellipse_cov is not None else None,
         )
-        circles = eccentricity.fit_circles(X, views, ellipses, covs)
+        try:
+            circles = eccentricity.fit_circles(X, views, ellipses, covs)
+        except np.linalg.LinAlgError:  # degenerate conics (not from a disc fit): leave the points as they are
+            return (*self._refine(X, uv_obs, weights, geometry), None)
         result = (X,)
         for _ in range(2):  # the offsets depend (weakly) on the point: one update suffices
             offsets = eccentricity.centre_offsets(result[0], circles.normal, circles.radius_mm, views)
+            bad = ~np.isfinite(offsets).all(axis=1)
+            offsets[bad] = 0.0  # a circle that could not be fitted: no correction for that target
             result = self._refine(X, uv_obs - offsets, weights, geometry)
-        return (*result, eccentricity.offset_covariance(result[0], circles, views))
+        offset_cov = eccentricity.offset_covariance(result[0], circles, views)
+        offset_cov[bad | ~np.isfinite(offset_cov).all(axis=(1, 2))] = 0.0
+        return (*result, offset_cov)
 
     # ---- refinement ----------------------------------------------------------------------------
 

@@ -133,3 +133,25 @@ def test_reflection_refused_and_bad_covariance_named():
         IMPL["ml"].create({}).fit(cam * np.array([1.0, 1.0, -1.0]), glob, camera_cov=covs)
     with pytest.raises(RegistrationError, match="camera_cov"):
         IMPL["ml"].create({}).fit(cam, glob, camera_cov=covs[:3])
+
+
+def test_runner_hands_ml_the_covariances():
+    """register_frame passes cov_xyz and the CMM sigmas to an implementation that accepts them."""
+    from crossfield.plan import parse_plan
+    from crossfield.runner import register_frame
+    from crossfield.types import ProbedPoint, ReferenceData
+
+    rng = np.random.default_rng(6)
+    P, covs = layout(rng)
+    cam, glob = noisy(rng, P, covs)
+    ids = [f"C{k + 1}" for k in range(len(P))]
+    plan = parse_plan("[plan]\nname = 't'\n" + "".join(f'[[control]]\nid = "{i}"\n' for i in ids), "<t>")
+    reference = ReferenceData(tuple(ProbedPoint(i, q, CMM_SIGMA) for i, q in zip(ids, glob)))
+    points = CameraPoints(0, cam, np.sqrt(np.diagonal(covs, axis1=1, axis2=2)), np.arange(len(P)),
+                          np.arange(len(P)), np.zeros(len(P)), cov_xyz=covs)
+    ml = IMPL["ml"].create({})
+    registration = register_frame(points, reference, plan, ml, 0.5)
+    order = [ids.index(c) for c in registration.correspondence.control_ids]
+    direct = ml.fit(cam[order], glob[order], camera_cov=covs[order], control_sigma=np.full(len(P), CMM_SIGMA))
+    np.testing.assert_allclose(registration.fit.R, direct.R, atol=1e-12)
+    np.testing.assert_allclose(registration.fit.covariance, direct.covariance, rtol=1e-9)
