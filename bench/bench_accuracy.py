@@ -330,8 +330,8 @@ def main(argv=None) -> int:
         moved += bool(m.get("+session", {}).get("moved"))
     print(
         f"scenario {args.scenario}: {args.sessions} sessions x {args.frames} frames, arm sigma {cmm_sigma} mm, "
-        f"{time.perf_counter() - t0:.0f} s; target-point CRB (global, per session) {crb_rms * 1e3:.2f} um RMS; "
-        f"session motion test false alarms: {moved}/{args.sessions}"
+        f"{time.perf_counter() - t0:.0f} s; target-point CRB (global, per session) {crb_rms * 1e3:.2f} um RMS"
+        + (f"; session motion test false alarms: {moved}/{args.sessions}" if "+session" in CONFIGS else "")
     )
     print(f"{'configuration':15s} {'centroid RMS/CRB':>16s} {'camera pt um':>12s} {'target pt um':>12s} "
           f"{'target/CRB':>10s} {'vs opencv':>9s} {'length um':>9s} {'|e|<=2u':>8s}")
