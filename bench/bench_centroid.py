@@ -1,6 +1,7 @@
 """Time the centroid implementations on a realistic frame against an OpenCV baseline.
 
 Run: ``.venv/bin/python bench/bench_centroid.py [--runs N] [--targets N] [--threads N] [--source S]``
+or ``.venv/bin/python bench/bench_centroid.py --efficiency [--frames N]`` (see below).
 
 The frame: 1626 x 1236 uint16, 12-bit, background 150 DN with read noise
 3 DN and photon noise (2.86 e-/DN), ``--targets`` blurred ellipses 30-60 px
@@ -17,6 +18,15 @@ The implementations and the baseline run in turn within each of ``--runs``
 rounds (after a warm-up), so that all see the same machine load. Prints the
 median and 90th percentile ms per frame and the ratio of the medians to the
 baseline's; also the centroid error against the known ellipse centres.
+
+``--efficiency``: the issue-11 frames: 60 targets of 6-12 px radius
+(diameter 12-24 px), rendered with 32 x 32 sub-samples per pixel; the truth
+is each rendered blob's centre of mass, the Cramer-Rao bound that of the
+renderer's own image model (``tests/crb_tools.py``). On ``--frames`` noise
+draws of the same targets, in one run: ms per frame (median) and RMS / CRB
+of every implementation, of "modelfit" with the simulator's pixel-then-blur
+order, and of OpenCV contours + moments (intensity moments inside each
+filled contour, and the contour polygon's own moments).
 """
 
 from __future__ import annotations
@@ -52,6 +62,74 @@ def baseline(image: np.ndarray, threshold_dn: int) -> list[tuple[float, float]]:
     return out
 
 
+def contour_intensity_moments(image: np.ndarray, threshold_dn: int, level_dn: float) -> list[tuple[float, float]]:
+    """OpenCV contours + intensity moments: background-subtracted cv2.moments inside each filled contour."""
+    mask = (image > threshold_dn).astype(np.uint8)
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    out = []
+    for contour in contours:
+        x, y, w, h = cv2.boundingRect(contour)
+        filled = np.zeros((h, w), np.uint8)
+        cv2.drawContours(filled, [contour], -1, 1, thickness=-1, offset=(-x, -y))
+        m = cv2.moments((image[y : y + h, x : x + w].astype(np.float32) - np.float32(level_dn)) * filled)
+        if m["m00"] > 0:
+            out.append((x + m["m10"] / m["m00"], y + m["m01"] / m["m00"]))
+    return out
+
+
+def efficiency(args) -> int:
+    """RMS / CRB and time per frame of every implementation and the OpenCV baselines (module docstring)."""
+    from crb_tools import centre_crb
+    from synthetic_targets import coverage
+
+    shape = (1236, 1626)
+    rng = np.random.default_rng(args.seed)
+    targets = random_targets(rng, 60, shape=shape, diameter_px=(12.0, 24.0))
+    truth = []
+    for e in targets:
+        c, r0, c0 = coverage(e, shape, 32)
+        h, w = c.shape
+        truth.append([(c.sum(0) @ (np.arange(w) + c0)) / c.sum(), (c.sum(1) @ (np.arange(h) + r0)) / c.sum()])
+    truth = np.array(truth)
+    crb = np.array([np.trace(centre_crb(e, shape=shape)) for e in targets])
+    images = [render(targets, np.random.default_rng([args.seed, k]), supersample=32) for k in range(args.frames)]
+    background = estimate_background(images[0], 8.0)
+    pm = make_plugin_manager()
+    candidates = {name: impl.create({}) for name, impl in sorted(implementations(pm, "centroid").items())}
+    candidates["modelfit (psf_order=pixel)"] = implementations(pm, "centroid")["modelfit"].create({"psf_order": "pixel"})
+    functions = {
+        name: (lambda image, x=x: x.extract(image, "upper", 0).uv) for name, x in candidates.items()
+    }
+    functions["opencv contours + intensity moments"] = lambda image: np.array(
+        contour_intensity_moments(image, background.threshold_dn, background.level_dn)
+    )
+    functions["opencv contours + polygon moments"] = lambda image: np.array(baseline(image, background.threshold_dn))
+    times = interleaved_ms({k: (lambda f=f: f(images[0])) for k, f in functions.items()}, args.runs)
+    print(
+        f"{args.frames} frames 1626x1236, 60 targets of 6-12 px radius (32x32 sub-samples), "
+        f"OpenCV {cv2.__version__}, {cv2.getNumThreads()} threads; RMS/CRB over targets and frames"
+    )
+    print(f"{'implementation':40s} {'ms/frame':>9s} {'ratio':>6s} {'found':>6s} {'RMS px':>8s} {'RMS/CRB':>8s}")
+    base = float(np.median(times["weighted"]))
+    for name, fn in functions.items():
+        err2, bound, found = [], [], 0
+        for image in images:
+            uv = fn(image).reshape(-1, 2)
+            d = np.linalg.norm(uv[:, None] - truth[None], axis=2)
+            for k in range(len(truth)):
+                i = int(np.argmin(d[:, k])) if len(uv) else -1
+                if i >= 0 and d[i, k] < 1.0:
+                    err2.append(float(np.sum((uv[i] - truth[k]) ** 2)))
+                    bound.append(crb[k])
+                    found += 1
+        ms = float(np.median(times[name]))
+        rms = np.sqrt(np.mean(err2)) if err2 else float("nan")
+        ratio = np.sqrt(np.sum(err2) / np.sum(bound)) if err2 else float("nan")
+        print(f"{name:40s} {ms:9.2f} {ms / base:6.2f} {found // len(images):6d} {rms:8.4f} {ratio:8.2f}")
+    print(f"(ratio: time relative to 'weighted'; CRB RMS over the targets {np.sqrt(crb.mean()):.4f} px)")
+    return 0
+
+
 def interleaved_ms(functions: dict[str, object], runs: int) -> dict[str, np.ndarray]:
     """Per-run times (ms) of each function, run in turn within every round so
     that all see the same machine load (other processes, CPU frequency)."""
@@ -79,9 +157,13 @@ def main(argv: list[str] | None = None) -> int:
         default="synthetic",
         help="synthetic frame (default) or a simulator scenario's upper image",
     )
+    parser.add_argument("--efficiency", action="store_true", help="RMS/CRB and time on the issue-11 frames")
+    parser.add_argument("--frames", type=int, default=8, help="noise draws for --efficiency")
     args = parser.parse_args(argv)
     if args.threads >= 0:
         cv2.setNumThreads(args.threads)
+    if args.efficiency:
+        return efficiency(args)
 
     rng = np.random.default_rng(args.seed)
     if args.source == "synthetic":

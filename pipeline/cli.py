@@ -63,7 +63,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = command("run", help="run a measurement session (default: the built-in simulator)")
     run.add_argument("-c", "--config", metavar="FILE", help="session config (TOML); defaults apply otherwise")
-    run.add_argument("--scenario", help="simulator scenario: station or table3")
+    run.add_argument("--scenario", help="simulator scenario: station, table3 or camera-limited")
     run.add_argument("--frames", type=int, help="number of stereo pairs (simulator)")
     run.add_argument("--seed", type=int, help="noise seed (simulator)")
     run.add_argument("--plan", metavar="FILE", help="measurement plan (TOML)")

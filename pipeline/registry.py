@@ -42,6 +42,7 @@ BUILTIN_PLUGINS: tuple[str, ...] = (
     "crossfield.plugins.acquire_opencv",
     "crossfield.plugins.centroid_weighted",
     "crossfield.plugins.centroid_ellipse",
+    "crossfield.plugins.centroid_modelfit",
     "crossfield.plugins.triangulate_epipolar",
     "crossfield.plugins.reference_romer_serial",
     "crossfield.plugins.reference_csv",
@@ -50,6 +51,7 @@ BUILTIN_PLUGINS: tuple[str, ...] = (
     "crossfield.plugins.register_svd",
     "crossfield.plugins.register_umeyama",
     "crossfield.plugins.register_horn",
+    "crossfield.plugins.register_ml",
     "crossfield.plugins.measure_plan",
     "crossfield.plugins.report_html",
 )

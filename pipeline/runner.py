@@ -39,6 +39,7 @@ from crossfield.plan import MeasurementPlan, load_plan
 from crossfield.provenance import package_versions
 from crossfield.registry import Implementation, get_implementation
 from crossfield.session import FrameResult, SessionInfo, SessionSummary
+from crossfield.session_registration import SessionPoseAccumulator
 from crossfield.stages import (
     STAGES,
     Acquisition,
@@ -195,7 +196,13 @@ def register_frame(
     # squares (docs/registration.md); equal sigmas give the paper's unweighted fit.
     var = np.sum(points.sigma_xyz[correspondence.camera_index] ** 2, axis=1) / 3 + control_sigma[rows] ** 2
     weights = 1.0 / np.maximum(var, 1e-12)
-    fit = registrar.fit(P, Q, weights)
+    if getattr(registrar, "accepts_covariance", False) and points.cov_xyz is not None:
+        # full camera-point covariances and CMM sigmas (register "ml", docs/registration.md)
+        fit = registrar.fit(
+            P, Q, weights, camera_cov=points.cov_xyz[correspondence.camera_index], control_sigma=control_sigma[rows]
+        )
+    else:
+        fit = registrar.fit(P, Q, weights)
     return Registration(points.sequence, fit, correspondence)
 
 
@@ -538,6 +545,7 @@ def run_pipeline(
     # Aggregated frame by frame: memory does not grow with the session's length
     # (the first rows are kept for the report; the recording has every frame).
     accumulator = SessionAccumulator(info.plan)
+    session_pose = SessionPoseAccumulator()
     for frame in frames:
         hook.on_frame(frame=frame)
         result = process_frame(
@@ -545,7 +553,25 @@ def run_pipeline(
         )
         hook.on_frame_done(result=result)
         accumulator.add(result)
+        session_pose.add(result.points, result.registration)
+        t = frame.timestamp_ns
+    _log_session_pose(hook, session_pose, reference, info.plan, stages.register, t)
     return finish_session(hook, stages, info, reference, accumulator, incomplete())
+
+
+def _log_session_pose(
+    hook: Any, session_pose: SessionPoseAccumulator, reference, plan, registrar, timestamp_ns: int
+) -> None:
+    """The joint static-station pose of all frames and its motion test, as one log line
+    (time stamped with the last frame's capture time, so a replay logs it alike)."""
+    ids, xyz, sigma = control_points(reference, plan)
+    try:
+        pose = session_pose.result(dict(zip(ids, xyz)), dict(zip(ids, sigma.tolist())), registrar)
+    except CrossfieldError as exc:
+        hook.on_log(level="warning", message=f"session pose: {exc}", timestamp_ns=timestamp_ns)
+        return
+    if pose is not None and pose.frames > 1:
+        hook.on_log(level="warning" if pose.moved else "info", message=pose.message(), timestamp_ns=timestamp_ns)
 
 
 def finish_session(

@@ -172,6 +172,11 @@ class CentroidSet:
     sigma_uv: (N, 2) standard uncertainty of u and v in pixels.
     area_px: (N,) blob area in pixels. roundness: (N,) minor/major axis ratio
     (1 = circle). peak: (N,) highest background-subtracted value in DN.
+    ellipse: optional (N, 3) edge conic of each target, ``(s_uu, s_uv, s_vv)``
+    in px^-2: the edge is ``d^T S d = 1`` with d = (u, v) - uv and
+    S = [[s_uu, s_uv], [s_uv, s_vv]] (distorted image pixels, blur removed),
+    for the perspective-eccentricity correction; None when the implementation
+    does not fit one. ellipse_cov: optional (N, 3, 3) its covariance (px^-4).
     """
 
     camera: str
@@ -183,6 +188,8 @@ class CentroidSet:
     peak: np.ndarray
     rejected: tuple[RejectedBlob, ...] = ()
     method: str = ""
+    ellipse: np.ndarray | None = None
+    ellipse_cov: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         _freeze(self, "uv", shape=(None, 2))
@@ -191,6 +198,12 @@ class CentroidSet:
         _freeze(self, "area_px", shape=(n,))
         _freeze(self, "roundness", shape=(n,))
         _freeze(self, "peak", shape=(n,))
+        if self.ellipse is not None:
+            _freeze(self, "ellipse", shape=(n, 3))
+        if self.ellipse_cov is not None:
+            if self.ellipse is None:
+                raise ValueError("ellipse_cov given without ellipse")
+            _freeze(self, "ellipse_cov", shape=(n, 3, 3))
 
     def __len__(self) -> int:
         return len(self.uv)
@@ -218,6 +231,9 @@ class CameraPoints:
     residual_px: (N,) RMS reprojection residual over both images, pixels.
     rejected: reasons for centroids that were not triangulated
     (e.g. ``"upper[3]: ambiguous (2 candidates)"``).
+    cov_xyz: optional (N, 3, 3) mm^2 full covariance of each point, camera
+    frame (the stereo depth error is along the line of sight, not an axis);
+    its diagonal is sigma_xyz^2. None when the implementation gives axes only.
     """
 
     sequence: int
@@ -228,6 +244,7 @@ class CameraPoints:
     residual_px: np.ndarray
     rejected: tuple[str, ...] = ()
     method: str = ""
+    cov_xyz: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         _freeze(self, "xyz", shape=(None, 3))
@@ -236,6 +253,8 @@ class CameraPoints:
         _freeze(self, "upper_index", dtype=np.int64, shape=(n,))
         _freeze(self, "lower_index", dtype=np.int64, shape=(n,))
         _freeze(self, "residual_px", shape=(n,))
+        if self.cov_xyz is not None:
+            _freeze(self, "cov_xyz", shape=(n, 3, 3))
 
     def __len__(self) -> int:
         return len(self.xyz)
@@ -304,6 +323,12 @@ class RigidFit:
 
     R: (3, 3) rotation (det = +1), t: (3,) mm, so that ``q ~ R @ p + t``.
     residuals: (N, 3) mm, ``R @ p_i + t - q_i``. rms_mm: sqrt(mean |residual|^2).
+    covariance: optional (6, 6) covariance of the pose error (omega, tau),
+    rad and mm, where the true pose is ``p_g = exp([omega]x) (R p + t) + tau``
+    (a small rotation and translation applied in the global frame); None
+    when the implementation does not state one. chi2: optional weighted sum
+    of squared residuals at the solution (dimensionless, ~ chi-square with
+    3N - 6 degrees of freedom when the stated covariances are right).
     """
 
     R: np.ndarray
@@ -312,11 +337,15 @@ class RigidFit:
     rms_mm: float
     method: str = ""
     scale: float = 1.0
+    covariance: np.ndarray | None = None
+    chi2: float | None = None
 
     def __post_init__(self) -> None:
         _freeze(self, "R", shape=(3, 3))
         _freeze(self, "t", shape=(3,))
         _freeze(self, "residuals", shape=(None, 3))
+        if self.covariance is not None:
+            _freeze(self, "covariance", shape=(6, 6))
 
     def apply(self, points: np.ndarray) -> np.ndarray:
         """Map (N, 3) points: ``scale * R @ p + t``."""

@@ -24,9 +24,11 @@ from crossfield.types import StereoFrame
 class SimulatorSource:
     """Stereo pairs rendered by the station simulator.
 
-    scenario: ``station`` (the paper's set-up) or ``table3`` (the paper's
-    ten cross-field lengths). frames: number of stereo pairs. seed: noise
-    seed (images and arm). arm_sigma_mm: CMM arm noise per coordinate (mm).
+    scenario: ``station`` (the paper's set-up), ``table3`` (the paper's
+    ten cross-field lengths) or ``camera-limited`` (precise reference, small
+    tilted targets). frames: number of stereo pairs. seed: noise seed
+    (images and arm). arm_sigma_mm: CMM arm noise per coordinate (mm);
+    unset = the scenario's own (0.01, or 0.001 for ``camera-limited``).
     start_time_ns: capture time of the first pair (ns since the Unix epoch;
     0 = now); pairs follow at the camera's 14 Hz. calibration: a FileStorage
     calibration file (e.g. written by ``crossfield calibrate --scenario``) that
@@ -40,7 +42,7 @@ class SimulatorSource:
         scenario: str = "station",
         frames: int = 10,
         seed: int = 1,
-        arm_sigma_mm: float = 0.01,
+        arm_sigma_mm: float | None = None,
         start_time_ns: int = 0,
         calibration: str = "",
     ) -> None:
@@ -48,7 +50,7 @@ class SimulatorSource:
             raise ValueError(f"option 'scenario': unknown scenario {scenario!r}; scenarios: {', '.join(SCENARIOS)}")
         if not isinstance(frames, int) or frames < 1:
             raise ValueError(f"option 'frames' must be a positive integer, got {frames!r}")
-        if not arm_sigma_mm >= 0:
+        if arm_sigma_mm is not None and not arm_sigma_mm >= 0:
             raise ValueError(f"option 'arm_sigma_mm' must be >= 0, got {arm_sigma_mm!r}")
         self.scenario = scenario
         self.n_frames = frames

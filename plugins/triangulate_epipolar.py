@@ -19,6 +19,13 @@ Method (``docs/triangulation.md``):
    ``cov(X) = (J^T W J)^-1`` with ``J`` the 4x3 Jacobian of the two
    projections and ``W = diag(1 / sigma_uv^2)`` (H&Z 5.2.2, backward
    propagation of covariance for an ML estimate).
+5. When both centroid sets carry their fitted edge conics (``ellipse``, e.g.
+   centroid "modelfit") and ``eccentricity`` is on: fit each target's 3-D
+   circle to its two conics, take the perspective eccentricity (the offset of
+   the blob centre from the image of the circle centre) off both centroids,
+   re-triangulate (twice, as the offset depends on the point), and add the
+   offsets' covariance, propagated through the triangulation
+   ``G = (J^T W J)^-1 J^T W``, to cov(X) (:mod:`crossfield.imaging.eccentricity`).
 
 Units: pixels in the images (OpenCV convention), mm in the upper camera frame.
 """
@@ -255,6 +262,8 @@ class EpipolarTriangulator:
     refine: Gauss-Newton refinement of the reprojection error (else linear only).
     max_iterations: Gauss-Newton iteration limit.
     default_sigma_px: used where a centroid carries no valid sigma_uv.
+    eccentricity: correct the perspective eccentricity of circular targets
+        where the centroids carry fitted conics (step 5); no effect otherwise.
     """
 
     def __init__(
@@ -268,6 +277,7 @@ class EpipolarTriangulator:
         refine: bool = True,
         max_iterations: int = 10,
         default_sigma_px: float = 0.05,
+        eccentricity: bool = True,
     ):
         def number(name: str, value, minimum: float = 0.0, strict: bool = False) -> float:
             if isinstance(value, bool) or not isinstance(value, (int, float)) or math.isnan(value):
@@ -291,6 +301,9 @@ class EpipolarTriangulator:
             raise ValueError(f"option 'max_iterations' must be an integer >= 1, got {max_iterations!r}")
         self.max_iterations = max_iterations
         self.default_sigma_px = number("default_sigma_px", default_sigma_px, strict=True)
+        if not isinstance(eccentricity, bool):
+            raise ValueError(f"option 'eccentricity' must be true or false, got {eccentricity!r}")
+        self.eccentricity = eccentricity
         self._cached_calibration: StereoCalibration | None = None
         self._cached_geometry: _Geometry | None = None
 
@@ -370,11 +383,20 @@ class EpipolarTriangulator:
         uv_obs = np.hstack([upper.uv[ai], lower.uv[aj]])  # (K, 4) px
         weights = 1.0 / np.hstack([sigma_u[ai], sigma_l[aj]]) ** 2
         X, residual, J, information = self._refine(X, uv_obs, weights, geometry)
+        offset_cov = None
+        if self.eccentricity and len(X) and upper.ellipse is not None and lower.ellipse is not None:
+            X, residual, J, information, offset_cov = self._eccentricity(
+                X, uv_obs, weights, geometry, calibration, upper, lower, ai, aj
+            )
 
         # First-order propagation: cov(X) = (J^T W J)^-1 (ML estimate, H&Z 5.2.2).
         if information is None:
             information = np.matmul(np.swapaxes(J, 1, 2) * weights[:, None, :], J)
         covariance = np.linalg.inv(information) if len(X) else np.zeros((0, 3, 3))
+        if offset_cov is not None:
+            # the eccentricity offsets' own uncertainty: G cov G^T, G = (J^T W J)^-1 J^T W (3 x 4)
+            G = np.matmul(covariance, np.swapaxes(J, 1, 2) * weights[:, None, :])
+            covariance = covariance + np.matmul(np.matmul(G, offset_cov), np.swapaxes(G, 1, 2))
         sigma_xyz = np.sqrt(np.abs(np.diagonal(covariance, axis1=1, axis2=2)))
         residual_px = np.sqrt(0.5 * np.sum(residual**2, axis=1))
         return CameraPoints(
@@ -386,7 +408,41 @@ class EpipolarTriangulator:
             residual_px=residual_px,
             rejected=tuple(rejected),
             method="epipolar",
+            cov_xyz=covariance,
         )
+
+    # ---- eccentricity ----------------------------------------------------------------------------
+
+    def _eccentricity(self, X, uv_obs, weights, geometry, calibration, upper, lower, ai, aj):
+        """Step 5: fit the circles, take the eccentricity off the centroids, re-triangulate.
+
+        Returns X, residual, J, information as :meth:`_refine` does, and the (K, 4, 4) px^2
+        covariance of the offsets taken off [u_upper, v_upper, u_lower, v_lower].
+        """
+        from crossfield.imaging import eccentricity
+
+        views = (
+            eccentricity.View(geometry.upper.K, geometry.upper.dist, geometry.upper.R, geometry.upper.t),
+            eccentricity.View(geometry.lower.K, geometry.lower.dist, geometry.lower.R, geometry.lower.t),
+        )
+        ellipses = (upper.ellipse[ai], lower.ellipse[aj])
+        covs = (
+            upper.ellipse_cov[ai] if upper.ellipse_cov is not None else None,
+            lower.ellipse_cov[aj] if lower.ellipse_cov is not None else None,
+        )
+        try:
+            circles = eccentricity.fit_circles(X, views, ellipses, covs)
+        except np.linalg.LinAlgError:  # degenerate conics (not from a disc fit): leave the points as they are
+            return (*self._refine(X, uv_obs, weights, geometry), None)
+        result = (X,)
+        for _ in range(2):  # the offsets depend (weakly) on the point: one update suffices
+            offsets = eccentricity.centre_offsets(result[0], circles.normal, circles.radius_mm, views)
+            bad = ~np.isfinite(offsets).all(axis=1)
+            offsets[bad] = 0.0  # a circle that could not be fitted: no correction for that target
+            result = self._refine(X, uv_obs - offsets, weights, geometry)
+        offset_cov = eccentricity.offset_covariance(result[0], circles, views)
+        offset_cov[bad | ~np.isfinite(offset_cov).all(axis=(1, 2))] = 0.0
+        return (*result, offset_cov)
 
     # ---- refinement ----------------------------------------------------------------------------
 

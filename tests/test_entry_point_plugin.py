@@ -92,7 +92,7 @@ def test_plugins_lists_the_entry_point_plugin(site):
 def test_not_loaded_without_entry_points(recorded, tmp_path):
     """Tests' plugin managers do not load entry points: the name is unknown there,
     and the error says the package may not be installed."""
-    with pytest.raises(PluginError, match="available: ellipse, weighted.*may not be installed"):
+    with pytest.raises(PluginError, match="available: ellipse, modelfit, weighted.*may not be installed"):
         replay_session(recorded, make_plugin_manager(), plugins={"centroid": "squared"}, output_dir=tmp_path)
 
 

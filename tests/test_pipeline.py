@@ -100,7 +100,7 @@ def test_cli_bad_config_is_one_line_naming_the_key(tmp_path, capsys):
 
 def test_cli_unknown_plugin_lists_choices(tmp_path, capsys):
     assert main(["run", "--centroid", "nope", "-o", str(tmp_path), "-q"]) == 2
-    assert "no centroid implementation named 'nope'; available: ellipse, weighted" in capsys.readouterr().err
+    assert "no centroid implementation named 'nope'; available: ellipse, modelfit, weighted" in capsys.readouterr().err
 
 
 def test_cli_plugins_lists_every_stage(capsys):

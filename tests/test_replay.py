@@ -190,7 +190,7 @@ def test_cli_bad_option_is_one_line_and_leaves_no_folder(recorded, tmp_path, cap
     assert "session.mcap (recorded config, with replay overrides): [register]" in err and "reflection_ratio" in err
     assert not any(tmp_path.iterdir())
     assert main(["replay", str(path), "--centroid", "nope", "-q"]) == 2
-    assert "no centroid implementation named 'nope'; available: ellipse, weighted" in capsys.readouterr().err
+    assert "no centroid implementation named 'nope'; available: ellipse, modelfit, weighted" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("command", [["replay"], ["audit"], ["compare", "OTHER"]])

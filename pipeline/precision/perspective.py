@@ -39,7 +39,6 @@ def ellipse_centre_offset(K: np.ndarray, centre: np.ndarray, normal: np.ndarray,
     r = np.broadcast_to(np.asarray(radius_mm, dtype=np.float64), (len(c),))
     e1, e2 = _basis(n)
     H = np.asarray(K, dtype=np.float64) @ np.stack([e1, e2, c], axis=2)  # (N, 3, 3)
-    Hinv = np.linalg.inv(H)
     Q = np.zeros((len(c), 3, 3))
     Q[:, 0, 0] = Q[:, 1, 1] = 1.0
     Q[:, 2, 2] = -(r**2)

@@ -69,6 +69,7 @@ class Scene:
     probe_diameter_mm: float = 3.0
     frame_rate_hz: float = 14.0
     background_seed: int = 7
+    supersample: int = 8  # sub-samples per pixel and axis of the target rendering
 
     # ---- geometry ------------------------------------------------------
 
@@ -104,7 +105,10 @@ class Scene:
             R = np.eye(3) if cam == "upper" else self.calibration.R_lower_upper
             out[cam] = {}
             for t in self.targets:
-                disc = render_disc(self.to_camera(cam, t.centre_camera[None])[0], R @ t.normal_camera, t.radius_mm, intr)
+                disc = render_disc(
+                    self.to_camera(cam, t.centre_camera[None])[0], R @ t.normal_camera, t.radius_mm, intr,
+                    supersample=self.supersample,
+                )
                 if disc is not None:
                     out[cam][t.id] = disc
         return out

@@ -1,0 +1,162 @@
+"""Register implementation "ml": maximum-likelihood rigid fit with full per-point covariances.
+
+Model (``docs/registration.md``, "Maximum likelihood"): each camera point
+p_i (camera frame) has covariance C_i (3x3, e.g. the stereo depth along the
+line of sight several times the lateral error: ``CameraPoints.cov_xyz``),
+each control q_i (global frame) an isotropic CMM sigma s_i. With
+independent Gaussian errors, eliminating the true points gives the
+negative log-likelihood (up to constants)
+
+    L(R, t) = sum_i r_i^T S_i^-1 r_i,   r_i = R p_i + t - q_i,   S_i = R C_i R^T + s_i^2 I
+
+(the errors-in-variables form; det S_i does not depend on R, so no
+log-det term). It is minimised by Gauss-Newton on SE(3) (e.g. Barfoot,
+State Estimation for Robotics, 7.1): a perturbation (omega, tau) acts in the
+global frame, ``g -> exp([omega]x) g + tau``, so dr_i / d(omega, tau) =
+[-[g_i]x, I] with g_i = R p_i + t, and S_i is re-evaluated at every
+iterate. Start: the weighted Kabsch fit (:func:`crossfield.rigid.kabsch`,
+weights 1 / tr(S_i)); the same reflection test as every registration
+(:func:`crossfield.rigid.check_reflection`) runs on it.
+
+Covariance: ``(J^T S^-1 J)^-1`` (6x6, (omega rad, tau mm)) at the solution;
+when no absolute uncertainty is given (no weights, no covariances) it is
+scaled by the variance factor chi2 / (3N - 6). ``RigidFit.chi2`` holds the
+weighted sum of squares, ~ chi-square(3N - 6) when the stated covariances
+are right.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from crossfield.errors import RegistrationError
+from crossfield.hookspecs import hookimpl
+from crossfield.rigid import REFLECTION_RATIO, check_ratio, check_reflection, kabsch, point_set_size, residual_rms, validate_pairs
+from crossfield.types import RigidFit
+
+#: Gauss-Newton stops when the step is below this (rad and mm).
+STEP_TOLERANCE = 1e-13
+
+
+def _skew(g: np.ndarray) -> np.ndarray:
+    """(N, 3) -> (N, 3, 3) cross-product matrices [g]x."""
+    S = np.zeros(g.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2] = -g[..., 2], g[..., 1]
+    S[..., 1, 0], S[..., 1, 2] = g[..., 2], -g[..., 0]
+    S[..., 2, 0], S[..., 2, 1] = -g[..., 1], g[..., 0]
+    return S
+
+
+def _exp_so3(omega: np.ndarray) -> np.ndarray:
+    """Rodrigues' formula: exp([omega]x), (3,) rad -> (3, 3)."""
+    angle = float(np.linalg.norm(omega))
+    K = _skew(omega[None])[0]
+    if angle < 1e-12:
+        return np.eye(3) + K
+    return np.eye(3) + np.sin(angle) / angle * K + (1 - np.cos(angle)) / angle**2 * (K @ K)
+
+
+class MaximumLikelihoodRegistrar:
+    """ML rigid registration: full camera-point covariances, CMM sigmas, Gauss-Newton on SE(3).
+
+    Options:
+        reflection_ratio: as for "svd" (mirror-image test, :mod:`crossfield.rigid`).
+        max_iterations: Gauss-Newton iteration limit.
+    """
+
+    #: the runner hands this implementation the camera points' covariances (docs/registration.md)
+    accepts_covariance = True
+
+    def __init__(self, *, reflection_ratio: float = REFLECTION_RATIO, max_iterations: int = 20):
+        self.reflection_ratio = check_ratio(reflection_ratio)
+        if isinstance(max_iterations, bool) or not isinstance(max_iterations, int) or max_iterations < 1:
+            raise ValueError(f"max_iterations must be an integer >= 1, got {max_iterations!r}")
+        self.max_iterations = max_iterations
+
+    def fit(
+        self,
+        camera_xyz: np.ndarray,
+        global_xyz: np.ndarray,
+        weights: np.ndarray | None = None,
+        *,
+        camera_cov: np.ndarray | None = None,
+        control_sigma: np.ndarray | None = None,
+    ) -> RigidFit:
+        """R, t with ``global ~ R @ camera + t`` from (N, 3) mm corresponding points.
+
+        camera_cov: (N, 3, 3) mm^2 covariance of each camera point (camera frame);
+        control_sigma: (N,) mm CMM sigma per coordinate of each control. Without
+        them, ``weights`` (N,) are taken as 1 / variance of an isotropic error
+        per pair (as the runner's weights are), or all pairs alike.
+        """
+        P, Q, w = validate_pairs(camera_xyz, global_xyz, weights)
+        n = len(P)
+        absolute = camera_cov is not None or weights is not None
+        if camera_cov is not None:
+            C = np.asarray(camera_cov, dtype=np.float64)
+            if C.shape != (n, 3, 3) or not np.isfinite(C).all():
+                raise RegistrationError(f"camera_cov must be a finite ({n}, 3, 3) array, got {C.shape}")
+            s2 = np.zeros(n) if control_sigma is None else np.asarray(control_sigma, dtype=np.float64) ** 2
+            if s2.shape != (n,) or not np.isfinite(s2).all():
+                raise RegistrationError(f"control_sigma must be a finite ({n},) array")
+        else:
+            raw = np.ones(n) if weights is None else np.asarray(weights, dtype=np.float64)
+            C = np.zeros((n, 3, 3))
+            s2 = 1.0 / np.where(raw > 0, raw, 1.0)  # zero-weight pairs are left out below
+        use = w > 0
+
+        def covariances(R: np.ndarray) -> np.ndarray:
+            S = R @ C @ R.T + s2[:, None, None] * np.eye(3)
+            return S
+
+        # Kabsch start with weights 1 / tr(S_i), and the shared reflection test on it.
+        S0 = covariances(np.eye(3))  # trace is rotation invariant
+        w0 = np.where(use, 1.0 / np.maximum(np.trace(S0, axis1=1, axis2=2), 1e-300), 0.0)
+        R, t, R_m, t_m = kabsch(P, Q, w0)
+        w0n = w0 / w0.sum()
+        rms = float(np.sqrt(w0n @ np.sum((P @ R.T + t - Q) ** 2, axis=1)))
+        rms_m = float(np.sqrt(w0n @ np.sum((P @ R_m.T + t_m - Q) ** 2, axis=1)))
+        check_reflection(rms, rms_m, point_set_size(P, w0n), self.reflection_ratio, "ml")
+
+        I3 = np.eye(3)
+        for _ in range(self.max_iterations):
+            g = P @ R.T + t
+            r = g - Q
+            Winv = np.linalg.inv(covariances(R)[use])
+            J = np.concatenate([-_skew(g[use]), np.broadcast_to(I3, (int(use.sum()), 3, 3))], axis=2)  # (M, 3, 6)
+            JtW = np.swapaxes(J, 1, 2) @ Winv
+            H = np.sum(JtW @ J, axis=0)
+            b = np.sum(JtW @ r[use][:, :, None], axis=0)[:, 0]
+            step = -np.linalg.solve(H, b)
+            E = _exp_so3(step[:3])
+            R = E @ R
+            t = E @ t + step[3:]
+            if np.max(np.abs(step)) < STEP_TOLERANCE:
+                break
+        # re-orthonormalise (products of exponentials drift by ~1e-16 per step)
+        U, _, Vt = np.linalg.svd(R)
+        R = U @ Vt
+        g = P @ R.T + t
+        residuals = g - Q
+        Winv = np.linalg.inv(covariances(R)[use])
+        J = np.concatenate([-_skew(g[use]), np.broadcast_to(I3, (int(use.sum()), 3, 3))], axis=2)
+        JtW = np.swapaxes(J, 1, 2) @ Winv
+        H = np.sum(JtW @ J, axis=0)
+        chi2 = float(np.einsum("ni,nij,nj->", residuals[use], Winv, residuals[use]))
+        covariance = np.linalg.inv(H)
+        dof = 3 * int(use.sum()) - 6
+        if not absolute and dof > 0:
+            covariance = covariance * (chi2 / dof)
+        return RigidFit(
+            R=R, t=t, residuals=residuals, rms_mm=residual_rms(residuals), method="ml",
+            covariance=0.5 * (covariance + covariance.T), chi2=chi2,
+        )
+
+
+@hookimpl
+def register_registers(register):
+    register(
+        "ml",
+        MaximumLikelihoodRegistrar,
+        "Maximum-likelihood rigid fit: full camera-point covariances and CMM sigmas, Gauss-Newton on SE(3)",
+    )
