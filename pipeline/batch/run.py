@@ -3,6 +3,7 @@ written as each finishes (``crossfield batch audit | replay | compare``)."""
 
 from __future__ import annotations
 
+import shutil
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -15,12 +16,20 @@ from crossfield.batch.tasks import KINDS, run_task
 from crossfield.errors import ConfigError
 from crossfield.runner import new_session_dir
 
-__all__ = ["default_output", "run_batch"]
+__all__ = ["default_output", "remove_attempts", "run_batch"]
 
 
 def default_output(kind: str, base: str | Path = "recordings") -> Path:
     """A new folder ``<base>/batch-<kind>-<UTC time>`` (``-2``, ... if it exists)."""
     return new_session_dir(Path(base), f"batch-{kind}-{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}")
+
+
+def remove_attempts(folder: Path) -> None:
+    """Remove what attempts of tasks left behind, once every task has finished: the temporary
+    folders (``.<name>.tmp-<id>``, :func:`crossfield.batch.tasks.in_own_folder`) of attempts
+    whose worker was lost before they could rename them."""
+    for tmp in folder.glob(".*.tmp-*") if folder.is_dir() else ():
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def run_batch(
@@ -81,6 +90,7 @@ def run_batch(
                     prefix=f"crossfield-{kind}",
                     progress=progress,
                 )
+            remove_attempts(out / "sessions")
         finished = True
     finally:
         report.finish(complete=finished)
