@@ -383,7 +383,8 @@ def cmd_batch(args: argparse.Namespace) -> int:
     print(", ".join(f"{v} {n}" for v, n in doc["counts"].items()) + f" of {doc['inputs']} session(s)")
     for entry in doc["sessions"]:
         if entry["verdict"] != "PASS":
-            print(f"  {entry['verdict']:<10} {entry['path']}: {entry['reason']}")
+            where = "" if entry["reason"].startswith(entry["path"]) else f"{entry['path']}: "
+            print(f"  {entry['verdict']:<10} {where}{entry['reason']}")
     print(f"report: {report.json_path}")
     print(f"        {report.html_path}")
     return 0 if doc["counts"]["PASS"] == doc["inputs"] else 1

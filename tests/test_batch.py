@@ -169,6 +169,10 @@ def test_batch_compare_matches_per_session_replay_and_compare(archive, cluster, 
     # the batch's replay of s0 is the per-session replay: the same measured values, bit for bit
     _, same = cli_json(capsys, ["compare", str(own), entries[mcap(given[0])]["replay"], "--json"])
     assert [d for d in same["differences"] if d["path"].startswith("characteristics.")] == []
+    for name, stats in report["distribution"].items():  # over the archive: the sessions' own shifts
+        shifts = [r["shift_mm"] for e in entries.values() for r in e["characteristics"] if r["name"] == name]
+        assert stats["sessions"] == len(shifts) == 2
+        assert (stats["shift_mm"]["min"], stats["shift_mm"]["max"]) == (min(shifts), max(shifts))
     html = (out / "batch-report.html").read_text()
     assert "<svg" in html and "ellipse" in html and "s1" in html
 

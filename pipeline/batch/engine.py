@@ -111,7 +111,7 @@ def dashboard_text(c: "Client") -> str:
     link = c.dashboard_link if "dashboard" in info.get("services", {}) else None
     return (
         f"Dask scheduler {c.scheduler.address}, {len(info.get('workers', {}))} worker(s); "
-        + (f"dashboard {link}" if link else "no dashboard (bokeh not installed on the scheduler)")
+        + (f"dashboard {link}" if link else "the scheduler serves no dashboard")
     )
 
 

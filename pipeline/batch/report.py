@@ -8,6 +8,7 @@
      "counts": {"PASS": .., "FAIL": .., "INCOMPLETE": .., "ERROR": ..},
      "plugins": {...}, "options": [...],            # what a replay / compare swaps
      "uncertainty": "...",                          # compare: where U comes from
+     "decision_changes": n, "distribution": {name: {...}},   # compare: over the archive
      "sessions": [{"path", "verdict", "reason", ...}, ...],   # input order
      "not_finished": [path, ...]}                   # inputs without an entry yet
 
@@ -34,7 +35,9 @@ from crossfield.batch.plot import shift_histogram_svg
 from crossfield.batch.tasks import VERDICTS
 from crossfield.recording.integrity import utc
 
-__all__ = ["REPORT_FORMAT", "JSON_NAME", "HTML_NAME", "BatchReport", "sort_key", "write_atomic"]
+__all__ = [
+    "REPORT_FORMAT", "JSON_NAME", "HTML_NAME", "BatchReport", "shift_distribution", "sort_key", "write_atomic"
+]
 
 REPORT_FORMAT = "crossfield.batch-report/1"
 JSON_NAME = "batch-report.json"
@@ -61,6 +64,31 @@ def sort_key(entry: Mapping[str, Any]) -> tuple[int, int, float]:
         default=0.0,
     )
     return (0 if _changes_decision(entry) else 1, order.get(entry.get("verdict", ""), 5), -largest)
+
+
+def shift_distribution(entries: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Per characteristic over the archive: how many sessions have a shift, how many change
+    their decision, and the min / median / max / RMS of ``shift_mm`` (mm) and ``shift_over_U``."""
+    import numpy as np
+
+    rows: dict[str, list[Mapping[str, Any]]] = {}
+    for entry in entries:
+        for r in entry.get("characteristics") or ():
+            if "shift_mm" in r:
+                rows.setdefault(r["name"], []).append(r)
+    out: dict[str, dict[str, Any]] = {}
+    for name, found in rows.items():
+        stats: dict[str, Any] = {
+            "sessions": len(found), "decision_changes": sum(1 for r in found if r["decision_changed"])
+        }
+        for key in ("shift_mm", "shift_over_U"):
+            v = np.array([r[key] for r in found if r.get(key) is not None], dtype=float)
+            stats[key] = None if v.size == 0 else {
+                "min": float(v.min()), "median": float(np.median(v)), "max": float(v.max()),
+                "rms": float(np.sqrt(np.mean(v**2))),
+            }
+        out[name] = stats
+    return out
 
 
 class BatchReport:
@@ -135,6 +163,7 @@ class BatchReport:
                 "report.json gives one, else 2 x uncertainty_mm (k = 2); per row: U_source"
             )
             doc["decision_changes"] = sum(1 for e in sessions if _changes_decision(e))
+            doc["distribution"] = shift_distribution(sessions)
         return doc
 
     def write_json(self) -> None:
@@ -179,6 +208,21 @@ class BatchReport:
             if svg:
                 parts.append(f"<figure>{svg}<figcaption>Shift of each measured value over the session's U, "
                              "per characteristic, over the archive.</figcaption></figure>")
+        if doc.get("distribution"):
+            parts.append(
+                "<table><tr><th>characteristic</th><th>sessions</th><th>decision changes</th>"
+                "<th>shift mm (min / median / max)</th><th>shift / U (min / median / max)</th></tr>"
+            )
+            for name, st in sorted(doc["distribution"].items()):
+                cells = [
+                    "n/a" if st[k] is None else f"{st[k]['min']:+.4g} / {st[k]['median']:+.4g} / {st[k]['max']:+.4g}"
+                    for k in ("shift_mm", "shift_over_U")
+                ]
+                parts.append(
+                    f"<tr><td>{esc(name)}</td><td>{st['sessions']}</td><td>{st['decision_changes']}</td>"
+                    f"<td>{cells[0]}</td><td>{cells[1]}</td></tr>"
+                )
+            parts.append("</table><p></p>")
         parts.append("<table><tr><th>session</th><th>verdict</th><th>reason</th><th>characteristics</th></tr>")
         for entry in sorted(doc["sessions"], key=sort_key):
             rows = []

@@ -38,6 +38,8 @@ from crossfield.errors import CrossfieldError
 __all__ = [
     "VERDICTS",
     "KINDS",
+    "warm_up",
+    "noop",
     "task_folder_name",
     "run_task",
     "audit_entry",
@@ -64,6 +66,21 @@ def _plugin_manager() -> Any:
     from crossfield.registry import make_plugin_manager
 
     return make_plugin_manager(entry_points=True)
+
+
+def warm_up() -> None:
+    """Import what a task needs and build this process's plugin manager (a worker does it
+    on its first task; ``Client.run(warm_up)`` does it ahead, e.g. before timing)."""
+    import crossfield.audit  # noqa: F401
+    import crossfield.compare  # noqa: F401
+    import crossfield.replay  # noqa: F401
+
+    _plugin_manager()
+
+
+def noop(*args: Any) -> None:
+    """A task that does nothing: the engine's own cost per task (bench/bench_batch.py)."""
+    return None
 
 
 def task_folder_name(index: int, path: str) -> str:
