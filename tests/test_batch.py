@@ -34,15 +34,16 @@ def free_port() -> int:
 
 
 @pytest.fixture(scope="module")
-def archive(tmp_path_factory):
-    """Three simulator sessions (2 stereo pairs each; two recorded, one copied), a tampered copy (bytes changed inside an
-    image message, rewritten with valid CRCs by the real mcap writer), a truncated copy and a
-    file that is not MCAP."""
+def archive(dask_processes, tmp_path_factory):
+    """Three simulator sessions (2 stereo pairs; one recorded, two copies of its folder: a copy
+    is as valid as its original), a tampered copy (bytes changed inside an image message,
+    rewritten with valid CRCs by the real mcap writer), a truncated copy and a file that is not
+    MCAP. (Recorded while the Dask processes of ``dask_processes`` start.)"""
     root = tmp_path_factory.mktemp("archive")
-    for i, name in enumerate(GOOD[:2]):
-        args = ["run", "--scenario", "table3", "--frames", "2", "--no-rerun", "-o", str(root), "--name", name]
-        assert main([*args, "--seed", str(10 + i), "-q"]) in (0, 1)
-    shutil.copytree(root / "s1", root / "s2")  # a third session: a copy is as valid as its original
+    args = ["run", "--scenario", "table3", "--frames", "2", "--no-rerun", "-o", str(root), "--name", GOOD[0]]
+    assert main([*args, "--seed", "10", "-q"]) in (0, 1)
+    for name in GOOD[1:]:
+        shutil.copytree(root / GOOD[0], root / name)
     source = root / "s0" / "session.mcap"
 
     def tamper(msgs: list[Msg]) -> list[Msg]:
@@ -63,9 +64,20 @@ def archive(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def cluster():
+def cluster(dask_processes):
+    """The cluster of ``dask_processes`` once both workers are connected: (address, {name: Popen})."""
+    from dask.distributed import Client
+
+    address, workers = dask_processes
+    with Client(address, timeout=60) as c:
+        c.wait_for_workers(2, timeout=90)
+    return address, workers
+
+
+@pytest.fixture(scope="module")
+def dask_processes():
     """``dask scheduler`` and two ``dask worker`` processes (no nanny, one thread each) on
-    127.0.0.1 at random free ports; yields (address, {name: Popen})."""
+    127.0.0.1 at random free ports, started (not waited for); yields (address, {name: Popen})."""
     port = free_port()
     address = f"tcp://127.0.0.1:{port}"
     quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL}
@@ -76,17 +88,7 @@ def cluster():
     ]
     workers = {}
     try:
-        from dask.distributed import Client
-
-        deadline = time.monotonic() + 60
-        while True:  # the scheduler listening
-            try:
-                socket.create_connection(("127.0.0.1", port), timeout=1).close()
-                break
-            except OSError:
-                assert time.monotonic() < deadline and procs[0].poll() is None, "the scheduler did not start"
-                time.sleep(0.1)
-        for name in ("w0", "w1"):
+        for name in ("w0", "w1"):  # a worker waits for its scheduler to listen
             workers[name] = subprocess.Popen(
                 [
                     str(BIN / "dask"), "worker", address, "--nthreads", "1", "--no-nanny", "--name", name,
@@ -95,8 +97,6 @@ def cluster():
                 **quiet,
             )
             procs.append(workers[name])
-        with Client(address, timeout=30) as c:
-            c.wait_for_workers(2, timeout=60)
         yield address, workers
     finally:
         for p in reversed(procs):
@@ -141,18 +141,18 @@ def one_entry_per_input(report: dict, given: list[str]) -> dict[str, dict]:
 def test_batch_compare_matches_per_session_replay_and_compare(archive, cluster, tmp_path, capsys):
     address, _ = cluster
     out = tmp_path / "cmp"
-    given = [str(archive / "s0"), str(archive / "s1"), str(archive / "truncated.mcap"), str(archive / "junk.mcap")]
+    given = [str(archive / "s0"), str(archive / "truncated.mcap"), str(archive / "junk.mcap")]
     code = main(["batch", "compare", *given, "--centroid", "ellipse", "-o", str(out), "--scheduler", address])
     assert code == 1  # not every session PASSes (truncated, junk)
     report = report_of(out)
     assert report["complete"] and report["kind"] == "compare" and report["plugins"] == {"centroid": "ellipse"}
     entries = one_entry_per_input(report, given)
-    assert entries[mcap(given[3])]["verdict"] == "ERROR" and "not an MCAP file" in entries[mcap(given[3])]["reason"]
-    assert entries[mcap(given[2])]["verdict"] == "INCOMPLETE"
+    assert entries[mcap(given[2])]["verdict"] == "ERROR" and "not an MCAP file" in entries[mcap(given[2])]["reason"]
+    assert entries[mcap(given[1])]["verdict"] == "INCOMPLETE"
     # s0 against the per-session commands: crossfield replay --centroid ellipse, then crossfield compare
     own = tmp_path / "own.mcap"
     assert main(["replay", mcap(given[0]), "--centroid", "ellipse", "-o", str(own), "--no-rerun", "-q"]) in (0, 1)
-    for path in given[:2]:
+    for path in given[:1]:
         entry = entries[mcap(path)]
         assert entry["verdict"] in ("PASS", "FAIL") and Path(entry["replay"]).is_file()
         code, result = cli_json(capsys, ["compare", mcap(path), entry["replay"], "--json"])
@@ -170,11 +170,11 @@ def test_batch_compare_matches_per_session_replay_and_compare(archive, cluster, 
     _, same = cli_json(capsys, ["compare", str(own), entries[mcap(given[0])]["replay"], "--json"])
     assert [d for d in same["differences"] if d["path"].startswith("characteristics.")] == []
     for name, stats in report["distribution"].items():  # over the archive: the sessions' own shifts
-        shifts = [r["shift_mm"] for e in entries.values() for r in e["characteristics"] if r["name"] == name]
-        assert stats["sessions"] == len(shifts) == 2
+        shifts = [r["shift_mm"] for e in entries.values() for r in e.get("characteristics", []) if r["name"] == name]
+        assert stats["sessions"] == len(shifts) == 1
         assert (stats["shift_mm"]["min"], stats["shift_mm"]["max"]) == (min(shifts), max(shifts))
     html = (out / "batch-report.html").read_text()
-    assert "<svg" in html and "ellipse" in html and "s1" in html
+    assert "<svg" in html and "ellipse" in html and "s0" in html
 
 
 # ---- interrupted client: a partial report marked incomplete -----------------------------
@@ -183,7 +183,7 @@ def test_batch_compare_matches_per_session_replay_and_compare(archive, cluster, 
 def test_interrupted_batch_leaves_a_partial_report(archive, cluster, tmp_path):
     address, _ = cluster
     out = tmp_path / "int"
-    given = [str(archive / n) for n in GOOD] * 1 + [str(archive / "tampered.mcap"), str(archive / "junk.mcap")]
+    given = [str(archive / n) for n in GOOD] + [str(archive / "junk.mcap")]
     proc = subprocess.Popen(
         [str(BIN / "crossfield"), "batch", "audit", *given, "-o", str(out), "--scheduler", address, "-q"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -210,6 +210,14 @@ def test_interrupted_batch_leaves_a_partial_report(archive, cluster, tmp_path):
     assert {e["path"] for e in doc["sessions"]}.isdisjoint(doc["not_finished"])
     assert len(doc["sessions"]) + len(doc["not_finished"]) == len(given) == doc["inputs"]
     assert any(e["verdict"] == "PASS" for e in doc["sessions"])
+    # the same command again finishes the rest; what finished is not recomputed
+    done = {Path(e["folder"]): (Path(e["folder"]) / "entry.json").stat().st_mtime_ns for e in doc["sessions"] if "folder" in e}
+    assert main(["batch", "audit", *given, "-o", str(out), "--scheduler", address, "-q"]) == 1  # junk: ERROR
+    again = report_of(out)
+    assert again["complete"] and again["counts"] == {"PASS": 3, "FAIL": 0, "INCOMPLETE": 0, "ERROR": 1}
+    assert {f: (f / "entry.json").stat().st_mtime_ns for f in done} == done
+    assert len(list((out / "sessions").iterdir())) == len(GOOD)
+    assert main(["batch", "compare", *given, "-o", str(out), "--scheduler", address, "-q"]) == 2  # another batch
 
 
 # ---- audit with a worker killed mid-task --------------------------------------------------
@@ -269,7 +277,7 @@ def test_batch_audit_survives_a_killed_worker_and_matches_crossfield_audit(archi
 
 def test_embedded_cluster_replay_reproduces_the_recorded_results(archive, tmp_path, capsys):
     out = tmp_path / "emb"
-    code = main(["batch", "replay", str(archive / "s2"), "-o", str(out)])
+    code = main(["batch", "replay", str(archive / "s2"), "-o", str(out), "--workers", "1"])  # no --scheduler
     text = capsys.readouterr().out
     assert "Dask scheduler tcp://127.0.0.1:" in text and "worker(s)" in text
     report = report_of(out)

@@ -3,6 +3,7 @@ written as each finishes (``crossfield batch audit | replay | compare``)."""
 
 from __future__ import annotations
 
+import json
 import shutil
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -11,7 +12,7 @@ from typing import Any
 
 from crossfield.batch import engine
 from crossfield.batch.inputs import expand_inputs
-from crossfield.batch.report import BatchReport
+from crossfield.batch.report import JSON_NAME, BatchReport
 from crossfield.batch.tasks import KINDS, run_task
 from crossfield.errors import ConfigError
 from crossfield.runner import new_session_dir
@@ -30,6 +31,24 @@ def remove_attempts(folder: Path) -> None:
     whose worker was lost before they could rename them."""
     for tmp in folder.glob(".*.tmp-*") if folder.is_dir() else ():
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _refuse_other_batch(out: Path, kind: str, plugins: Mapping[str, Any], options: Sequence[str]) -> None:
+    """``out`` may hold an earlier run of the same batch (its finished sessions are reused,
+    :func:`crossfield.batch.tasks.in_own_folder`), never another kind or other plugin flags."""
+    previous = out / JSON_NAME
+    if not previous.exists():
+        return
+    try:
+        doc = json.loads(previous.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"{previous}: not a batch report ({exc}); use another -o DIR") from None
+    wanted = {k: v for k, v in plugins.items() if v}
+    if (doc.get("kind"), doc.get("plugins") or {}, doc.get("options") or []) != (kind, wanted, list(options)):
+        raise ConfigError(
+            f"{previous}: the report of another batch (batch {doc.get('kind')} with plugins "
+            f"{doc.get('plugins')} and options {doc.get('options')}); use another -o DIR"
+        )
 
 
 def run_batch(
@@ -62,6 +81,7 @@ def run_batch(
         raise ConfigError("batch: no session given (session folders, MCAP files or globs)")
     out = Path(out_dir) if out_dir is not None else default_output(kind)
     out = out.resolve()
+    _refuse_other_batch(out, kind, plugins or {}, options)
     report = BatchReport(out, kind, inputs, plugins=plugins, options=options)
     plugins = dict(plugins or {})
     for i, item in enumerate(inputs):
