@@ -275,6 +275,7 @@ def test_batch_audit_survives_a_killed_worker_and_matches_crossfield_audit(archi
 # ---- the embedded default -----------------------------------------------------------------
 
 
+@pytest.mark.filterwarnings("ignore:Port 8787 is already in use")  # another cluster's dashboard (shared machine)
 def test_embedded_cluster_replay_reproduces_the_recorded_results(archive, tmp_path, capsys):
     out = tmp_path / "emb"
     code = main(["batch", "replay", str(archive / "s2"), "-o", str(out), "--workers", "1"])  # no --scheduler

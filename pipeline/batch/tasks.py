@@ -141,7 +141,8 @@ def run_task(
     """The Dask task: ``kind`` (audit, replay, compare) of the session at ``path`` (absolute),
     written into ``<out_dir>/sessions/<index>-<name>/``. Returns the report entry
     (with ``index``); an exception of the session is an ERROR entry."""
-    work = {"audit": audit_entry, "replay": replay_entry, "compare": compare_entry}[kind]
+    if kind not in KINDS:
+        raise ValueError(f"batch task {kind!r}: one of {', '.join(KINDS)}")
     name = task_folder_name(index, path)
     root = Path(out_dir) / "sessions"
 
@@ -149,6 +150,7 @@ def run_task(
         try:
             if kind == "audit":
                 return audit_entry(path, tmp)
+            work = replay_entry if kind == "replay" else compare_entry
             return work(path, tmp, final, plugins or {}, options)
         except (CrossfieldError, OSError, ValueError, KeyError) as exc:  # a bad session, not a bad batch
             return _error_entry(path, exc)
