@@ -10,14 +10,15 @@ then times, in one run:
 * sequential: :func:`crossfield.batch.tasks.run_task` called in this process for each
   session, one after the other (the baseline);
 * 1 worker, 2 workers: an embedded ``LocalCluster`` of that many worker processes
-  (one thread each; started and warmed up outside the timing: imports and plugin manager,
-  :func:`crossfield.batch.tasks.warm_up`), the same tasks through
+  (one thread each; started and warmed up outside the timing: imports, plugin manager and
+  one audit, :func:`crossfield.batch.tasks.warm_up`; the sequential loop is warmed the same way), the same tasks through
   :func:`crossfield.batch.engine.run_each` (submit, as_completed);
 
 each in sessions per second and as a ratio to the sequential loop. Then the engine's
 overhead per task: ``--noops`` tasks that do nothing (:func:`crossfield.batch.tasks.noop`)
 through ``run_each`` on 1 worker (ms per task), and (1-worker time - sequential time) /
-sessions on the sessions themselves. The machine is shared: read the ratios.
+sessions on the sessions themselves, and the seconds spent inside the tasks (where they ran)
+against the sequential loop's. The machine is shared: read the ratios.
 """
 
 from __future__ import annotations
@@ -55,16 +56,25 @@ def record(root: Path, n: int, frames: int) -> list[str]:
     return paths
 
 
-def on_dask(workers: int, kind: str, paths: list[str], out: Path) -> float:
-    """Seconds for the tasks of ``paths`` on an embedded cluster of ``workers`` (warm)."""
+def timed_task(*args: object) -> float:
+    """run_task, returning the seconds it took where it ran (pickled by value to the workers)."""
+    t = time.perf_counter()
+    run_task(*args)
+    return time.perf_counter() - t
+
+
+def on_dask(workers: int, kind: str, paths: list[str], out: Path) -> tuple[float, float]:
+    """(wall seconds, sum of the seconds inside the tasks) for the tasks of ``paths`` on an
+    embedded cluster of ``workers`` (warm)."""
+    inside: list[float] = []
     with engine.client(None, workers, dashboard_address=":0") as c:
-        c.run(warm_up)
+        c.run(warm_up, paths[0])
         t = time.perf_counter()
         engine.run_each(
-            c, run_task, [(kind, i, p, str(out), {}, []) for i, p in enumerate(paths)],
-            lambda k, result, error: None, progress=False,
+            c, timed_task, [(kind, i, p, str(out), {}, []) for i, p in enumerate(paths)],
+            lambda k, result, error: inside.append(result), progress=False,
         )
-        return time.perf_counter() - t
+        return time.perf_counter() - t, sum(inside)
 
 
 def main() -> int:
@@ -80,7 +90,7 @@ def main() -> int:
         paths = record(work / "archive", args.sessions, args.frames)
         n = len(paths)
         print(f"{n} sessions of {args.frames} stereo pair(s), batch {args.kind}, {os.cpu_count()} core(s)")
-        warm_up()
+        warm_up(paths[0])
         t = time.perf_counter()
         for i, p in enumerate(paths):
             run_task(args.kind, i, p, str(work / "seq"), {}, [])
@@ -88,9 +98,12 @@ def main() -> int:
         print(f"  sequential loop   {n / sequential:7.3f} sessions/s   1.00 x")
         one = None
         for workers in (1, 2):
-            s = on_dask(workers, args.kind, paths, work / f"dask{workers}")
+            s, inside = on_dask(workers, args.kind, paths, work / f"dask{workers}")
             one = s if workers == 1 else one
-            print(f"  {workers} worker(s)       {n / s:7.3f} sessions/s   {sequential / s:4.2f} x the sequential loop")
+            print(
+                f"  {workers} worker(s)       {n / s:7.3f} sessions/s   {sequential / s:4.2f} x the sequential loop"
+                f"   (inside the tasks: {inside / n * 1e3:.0f} ms per session, sequential {sequential / n * 1e3:.0f})"
+            )
         with engine.client(None, 1, dashboard_address=":0") as c:
             c.run(warm_up)
             t = time.perf_counter()

@@ -68,14 +68,21 @@ def _plugin_manager() -> Any:
     return make_plugin_manager(entry_points=True)
 
 
-def warm_up() -> None:
+def warm_up(path: str | None = None) -> None:
     """Import what a task needs and build this process's plugin manager (a worker does it
-    on its first task; ``Client.run(warm_up)`` does it ahead, e.g. before timing)."""
+    on its first task; ``Client.run(warm_up)`` does it ahead, e.g. before timing); with
+    ``path``, also audit that session once into a temporary folder (what the first
+    replay in a process initialises: plugin modules, caches)."""
+    import tempfile
+
     import crossfield.audit  # noqa: F401
     import crossfield.compare  # noqa: F401
     import crossfield.replay  # noqa: F401
 
     _plugin_manager()
+    if path is not None:
+        with tempfile.TemporaryDirectory(prefix="crossfield-warm-") as tmp:
+            audit_entry(path, Path(tmp))
 
 
 def noop(*args: Any) -> None:
