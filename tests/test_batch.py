@@ -60,6 +60,7 @@ def archive(dask_processes, tmp_path_factory):
     data = source.read_bytes()
     (root / "truncated.mcap").write_bytes(data[: int(len(data) * 0.6)])
     (root / "junk.mcap").write_text("not a recording\n")
+    (root / "garbled.mcap").write_bytes(b"\x89MCAP0\r\n" + bytes(range(256)) * 8)  # MCAP magic, then damage
     return root
 
 
@@ -111,7 +112,8 @@ def dask_processes():
 
 
 def inputs(archive: Path) -> list[str]:
-    return [str(archive / n) for n in GOOD] + [str(archive / f) for f in ("tampered.mcap", "truncated.mcap", "junk.mcap")]
+    damaged = ("tampered.mcap", "truncated.mcap", "junk.mcap", "garbled.mcap")
+    return [str(archive / n) for n in GOOD] + [str(archive / f) for f in damaged]
 
 
 def mcap(path: str) -> str:
@@ -270,6 +272,8 @@ def test_batch_audit_survives_a_killed_worker_and_matches_crossfield_audit(archi
     assert entries[mcap(given[3])]["verdict"] == "FAIL" and "integrity:" in entries[mcap(given[3])]["reason"]
     assert entries[mcap(given[4])]["verdict"] == "INCOMPLETE"
     assert [entries[mcap(p)]["verdict"] for p in given[:3]] == ["PASS"] * 3
+    garbled = entries[mcap(given[6])]  # submitted (it starts as MCAP does); the worker names the damage
+    assert garbled["verdict"] == "ERROR" and "garbled.mcap" in garbled["reason"] and garbled["folder"]
 
 
 # ---- the embedded default -----------------------------------------------------------------
