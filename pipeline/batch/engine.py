@@ -90,6 +90,13 @@ def client(
             c.close()
         return
     n = workers or os.cpu_count() or 1
+    try:
+        from dask.utils import parse_bytes
+
+        if isinstance(memory_limit, str) and memory_limit != "auto":
+            parse_bytes(memory_limit)
+    except ValueError:
+        raise ConfigError(f"--memory-limit {memory_limit!r}: a size such as 2GiB or 500MB, or auto") from None
     cluster = LocalCluster(
         n_workers=n,
         threads_per_worker=1,
