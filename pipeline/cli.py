@@ -9,7 +9,7 @@ import logging
 import os
 import signal
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Sequence
 
@@ -30,6 +30,12 @@ def _add_stage_flags(parser: argparse.ArgumentParser) -> None:
         "--option", action="append", default=[], metavar="STAGE.KEY=VALUE",
         help="set a stage option, e.g. centroid.threshold_sigma=8 (repeatable)",
     )
+
+
+def stage_choices(args: argparse.Namespace) -> tuple[dict[str, str | None], list[str]]:
+    """The flags of :func:`_add_stage_flags` as read by ``replay`` and ``batch``:
+    (stage -> implementation name or None, the ``--option`` texts)."""
+    return {stage: getattr(args, stage) for stage in STAGES}, list(args.option)
 
 
 def _verbosity_flags() -> argparse.ArgumentParser:
@@ -156,6 +162,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--image-every", type=int, metavar="N", help="MCAP input: show the images of every N-th pair (default: "
         "the recorded session's rerun_image_every)",
     )
+
+    add_batch_commands(command, verbosity)
 
     plugins = command("plugins", help="list every stage's registered implementations")
     plugins.add_argument("--json", action="store_true", help="machine-readable output")
@@ -284,11 +292,12 @@ def cmd_replay(args: argparse.Namespace) -> int:
         info = recorded.recording.topics().get(IMAGE_TOPICS[0])
         total = info.message_count if info else None
     observers = [] if args.quiet else [Progress(total=total)]
+    plugins, options = stage_choices(args)
     summary = replay_session(
         args.recording,
         pm,
-        plugins={stage: getattr(args, stage) for stage in STAGES},
-        options=args.option,
+        plugins=plugins,
+        options=options,
         output=args.output,
         record=not args.no_record,
         rerun=False if args.no_rerun else None,
@@ -372,9 +381,71 @@ def cmd_view(args: argparse.Namespace) -> int:
     )
 
 
+# ---- crossfield batch (docs/batch.md) ------------------------------------------------
+
+
+def add_batch_commands(
+    command: Callable[..., argparse.ArgumentParser], verbosity: argparse.ArgumentParser
+) -> None:
+    """``crossfield batch audit | replay | compare PATHS...`` over an archive, on Dask."""
+    from crossfield.batch.engine import add_engine_flags
+
+    batch = command(
+        "batch",
+        help="audit, replay or compare many recorded sessions on Dask (see docs/batch.md)",
+        description="Audit, replay, or replay with other plugins and compare, every session named by PATHS "
+        "(session folders, MCAP files, globs), one Dask task per session, on an embedded LocalCluster or "
+        "--scheduler. Writes batch-report.json and batch-report.html to -o DIR as sessions finish. "
+        "Exit status 0 if every session's verdict is PASS, 1 if not.",
+    )
+    kinds = batch.add_subparsers(dest="batch_kind", required=True, metavar="KIND")
+    helps = {
+        "audit": "audit every session (as crossfield audit)",
+        "replay": "replay every session, optionally with other plugins (as crossfield replay)",
+        "compare": "replay every session with other plugins and compare it with its original",
+    }
+    for kind, text in helps.items():
+        p = kinds.add_parser(kind, help=text, parents=[verbosity])
+        p.add_argument("paths", nargs="+", metavar="PATH", help="session folder, MCAP file or glob (quoted)")
+        p.add_argument(
+            "-o", "--output-dir", metavar="DIR",
+            help="where the report and the per-session folders are written (default: a new folder under recordings/)",
+        )
+        add_engine_flags(p)
+        if kind != "audit":
+            _add_stage_flags(p)
+
+
+def cmd_batch(args: argparse.Namespace) -> int:
+    from crossfield.batch.run import run_batch
+
+    plugins, options = stage_choices(args) if args.batch_kind != "audit" else ({}, [])
+    report = run_batch(
+        args.batch_kind,
+        args.paths,
+        out_dir=args.output_dir,
+        plugins=plugins,
+        options=options,
+        scheduler=args.scheduler,
+        workers=args.workers,
+        memory_limit=args.memory_limit,
+        progress=not args.quiet and sys.stdout.isatty(),
+        echo=(lambda text: None) if args.quiet else print,
+    )
+    doc = report.to_json()
+    print(", ".join(f"{v} {n}" for v, n in doc["counts"].items()) + f" of {doc['inputs']} session(s)")
+    for entry in doc["sessions"]:
+        if entry["verdict"] != "PASS":
+            where = "" if entry["reason"].startswith(entry["path"]) else f"{entry['path']}: "
+            print(f"  {entry['verdict']:<10} {where}{entry['reason']}")
+    print(f"report: {report.json_path}")
+    print(f"        {report.html_path}")
+    return 0 if doc["counts"]["PASS"] == doc["inputs"] else 1
+
+
 COMMANDS = {
     "run": cmd_run, "replay": cmd_replay, "compare": cmd_compare, "audit": cmd_audit, "keygen": cmd_keygen, "plugins": cmd_plugins,
-    "view": cmd_view,
+    "view": cmd_view, "batch": cmd_batch,
 }
 
 

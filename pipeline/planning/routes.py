@@ -265,7 +265,6 @@ def simulate_sessions(
     model = model or camera_model(station)
     T, F = len(station.target_ids), station.frames
     C = len(station.control_ids)
-    Xg_true = station.to_global(model.X)
     sigma = station.cmm_sigma_mm
     w = 1.0 / np.maximum(np.trace(model.cov[T:], axis1=1, axis2=2) / 3 + sigma**2, 1e-12)  # runner's weights
     truth = np.array([true_value(station, c) for c in station.characteristics])

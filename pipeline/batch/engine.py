@@ -1,0 +1,181 @@
+"""Where batch work runs: a Dask client (``dask.distributed``) and one task per item.
+
+:func:`client` is the one place a crossfield command gets its Dask cluster: an embedded
+``LocalCluster`` (one worker process per core, one thread per worker) unless
+``scheduler`` names an existing one (``tcp://HOST:PORT``). The batch commands, the Monte
+Carlo uncertainty check and the layout planner's sweeps take the same ``--scheduler`` /
+``--workers`` options (:func:`add_engine_flags`) and call it.
+
+:func:`run_each` submits one task per item and hands each result to the caller as it
+completes (``distributed.as_completed``), so a report can be written incrementally. A
+task whose worker is lost is rescheduled by the Dask scheduler on another worker (up to
+``distributed.scheduler.allowed-failures`` times, then the future fails with
+``KilledWorker``: reported as an ERROR result).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import logging
+import os
+import sys
+import threading
+import uuid
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from typing import TYPE_CHECKING, Any
+
+from crossfield.errors import ConfigError
+
+if TYPE_CHECKING:
+    from dask.distributed import Client
+
+__all__ = ["add_engine_flags", "client", "dashboard_text", "run_each", "task_error"]
+
+logger = logging.getLogger(__name__)
+
+#: The memory limit of each embedded worker ("auto": the machine's memory shared out
+#: equally); a worker over 95 % of it is restarted by its nanny (Dask worker memory management).
+DEFAULT_MEMORY_LIMIT = "auto"
+
+
+def add_engine_flags(parser: argparse.ArgumentParser) -> None:
+    """``--scheduler``, ``--workers`` and ``--memory-limit`` on ``parser`` (batch, Monte Carlo, sweeps)."""
+    parser.add_argument(
+        "--scheduler", metavar="tcp://HOST:PORT",
+        help="an existing Dask scheduler (default: an embedded LocalCluster on this machine)",
+    )
+    parser.add_argument(
+        "--workers", type=int, metavar="N",
+        help="embedded cluster: N worker processes (default: one per core); "
+        "with --scheduler: wait until N workers are connected",
+    )
+    parser.add_argument(
+        "--memory-limit", default=DEFAULT_MEMORY_LIMIT, metavar="BYTES",
+        help="embedded cluster: memory limit per worker, e.g. 2GiB (default: auto, the memory shared out)",
+    )
+
+
+@contextlib.contextmanager
+def client(
+    scheduler: str | None = None,
+    workers: int | None = None,
+    *,
+    memory_limit: str | int | None = DEFAULT_MEMORY_LIMIT,
+    dashboard_address: str = ":8787",
+    timeout_s: float = 60.0,
+) -> Iterator["Client"]:
+    """A connected ``dask.distributed.Client``, closed (and an embedded cluster shut down) on exit.
+
+    scheduler: ``tcp://HOST:PORT`` of a running scheduler, or None for an embedded
+    ``LocalCluster`` of ``workers`` processes (default ``os.cpu_count()``), one thread
+    each, ``memory_limit`` each. With a scheduler, ``workers`` is how many workers to wait
+    for (``Client.wait_for_workers``, at most ``timeout_s`` s). A scheduler that cannot be
+    reached is a :class:`ConfigError` naming it.
+    """
+    from dask.distributed import Client, LocalCluster
+
+    if workers is not None and workers < 1:
+        raise ConfigError(f"--workers {workers}: at least 1 worker")
+    if scheduler:
+        try:
+            c = Client(scheduler, timeout=timeout_s)
+        except (OSError, TimeoutError) as exc:
+            raise ConfigError(f"--scheduler {scheduler}: cannot connect ({exc})") from None
+        try:
+            if workers:
+                c.wait_for_workers(workers, timeout=timeout_s)
+            yield c
+        finally:
+            c.close()
+        return
+    n = workers or os.cpu_count() or 1
+    try:
+        from dask.utils import parse_bytes
+
+        if isinstance(memory_limit, str) and memory_limit != "auto":
+            parse_bytes(memory_limit)
+    except ValueError:
+        raise ConfigError(f"--memory-limit {memory_limit!r}: a size such as 2GiB or 500MB, or auto") from None
+    cluster = LocalCluster(
+        n_workers=n,
+        threads_per_worker=1,
+        processes=True,
+        memory_limit=memory_limit,
+        dashboard_address=dashboard_address,
+        host="127.0.0.1",
+    )
+    try:
+        with Client(cluster) as c:
+            yield c
+    finally:
+        cluster.close()
+
+
+def dashboard_text(c: "Client") -> str:
+    """One line: the scheduler, the workers and the dashboard address (or why there is none)."""
+    info = c.scheduler_info()
+    link = c.dashboard_link if "dashboard" in info.get("services", {}) else None
+    return (
+        f"Dask scheduler {c.scheduler.address}, {len(info.get('workers', {}))} worker(s); "
+        + (f"dashboard {link}" if link else "the scheduler serves no dashboard")
+    )
+
+
+def task_error(exc: BaseException) -> str:
+    """The reason of a failed task's future (a lost worker too often, or a task exception)."""
+    from distributed.scheduler import KilledWorker
+
+    if isinstance(exc, KilledWorker):
+        return f"the task's worker was lost too often, the session was not finished ({exc})"
+    return f"the task failed: {type(exc).__name__}: {exc}"
+
+
+def _progress(futures: Sequence[Any], scheduler: str) -> None:
+    from distributed.diagnostics.progressbar import TextProgressBar
+
+    with contextlib.suppress(Exception):  # the bar is a display: it never stops the batch
+        TextProgressBar(futures, scheduler=scheduler, complete=True)
+
+
+def run_each(
+    c: "Client",
+    function: Callable[..., Any],
+    items: Iterable[Sequence[Any]],
+    on_result: Callable[[int, Any, str | None], None],
+    *,
+    prefix: str = "crossfield",
+    progress: bool = True,
+) -> None:
+    """Submit ``function(*item)`` once per item (one task each, ``pure=False``: a task is
+    never merged with another) and call ``on_result(position, result, error)`` as each
+    completes, in completion order: ``error`` is None, or the reason the task failed
+    (:func:`task_error`). ``progress``: Dask's text progress bar on stdout."""
+    from dask.distributed import as_completed
+
+    run = uuid.uuid4().hex[:8]
+    futures = [
+        c.submit(function, *item, key=f"{prefix}-{run}-{i:05d}", pure=False) for i, item in enumerate(items)
+    ]
+    if not futures:
+        return
+    position = {f.key: i for i, f in enumerate(futures)}
+    bar = None
+    if progress:
+        bar = threading.Thread(target=_progress, args=(futures, c.scheduler.address), daemon=True)
+        bar.start()
+    try:
+        for future in as_completed(futures):
+            i = position[future.key]
+            if future.status == "error":
+                on_result(i, None, task_error(future.exception()))
+            else:
+                on_result(i, future.result(), None)
+    except BaseException:
+        c.cancel(futures)
+        raise
+    finally:
+        if bar is not None:
+            bar.join(timeout=2.0)
+            sys.stdout.write("\n")
+            sys.stdout.flush()
