@@ -52,6 +52,20 @@ def verdict(passed: bool) -> str:
     return "PASS" if passed else "FAIL"
 
 
+#: How a decision (ISO 14253-1) reads in tables.
+DECISION_TEXT = {"conforms": "conforms", "does_not_conform": "does not conform", "not_proven": "not proven"}
+
+
+def tolerance_text(c: Mapping[str, Any], decimals: int) -> str:
+    """``±0.1000`` for a symmetric zone, ``+0.1000/-0.0500`` otherwise (mm)."""
+    upper, lower = c.get("upper_tol_mm"), c.get("lower_tol_mm")
+    if upper is None or lower is None:
+        return "\u00b1" + fixed(c.get("tolerance_mm"), decimals)
+    if upper == lower:
+        return "\u00b1" + fixed(upper, decimals)
+    return f"{fixed(upper, decimals, True)}/{fixed(-lower, decimals, True)}"
+
+
 def _write_atomic(path: Path, text: str) -> None:
     """Write ``text`` (UTF-8) to ``path`` via a temporary file and rename."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
@@ -84,7 +98,8 @@ h2 { font-size: 16px; margin: 30px 0 8px; color: var(--accent); border-bottom: 1
            white-space: nowrap; }
 .verdict.pass, td.pass { color: var(--pass); background: var(--pass-bg); border-color: var(--pass); }
 .verdict.fail, td.fail { color: var(--fail); background: var(--fail-bg); border-color: var(--fail); }
-td.pass, td.fail { font-weight: 700; text-align: center; white-space: nowrap; }
+td.pass, td.fail, td.open { font-weight: 700; text-align: center; white-space: nowrap; }
+td.open { color: #8a5a00; background: #fff4d6; }
 .fail-text { color: var(--fail); font-weight: 700; }
 dl.facts { display: grid; grid-template-columns: max-content 1fr max-content 1fr; gap: 4px 18px; margin: 0; }
 dl.facts dt { color: var(--muted); }
@@ -103,6 +118,7 @@ table.wide th, table.wide td { padding: 4px 7px; }
 table.wide { width: 100%; }
 tfoot td { border: none; color: var(--muted); font-size: 12.5px; }
 .note { color: var(--muted); font-size: 12.5px; margin: 4px 0 0; }
+.warning { color: var(--fail); background: var(--fail-bg); border-left: 4px solid var(--fail); padding: 6px 10px; }
 ul.problems li { margin: 2px 0; }
 .ok { color: var(--pass); }
 pre { background: var(--band); border: 1px solid var(--rule); padding: 10px; overflow-x: auto;
@@ -131,6 +147,45 @@ def _result_cell(passed: bool) -> str:
     return _td("&#10003; PASS" if passed else "&#10007; FAIL", "pass" if passed else "fail")
 
 
+def _decision_cell(c: Mapping[str, Any]) -> str:
+    decision = c.get("decision", "conforms" if c["passed"] else "does_not_conform")
+    text = DECISION_TEXT.get(decision, decision)
+    cls = {"conforms": "pass", "does_not_conform": "fail"}.get(decision, "open")
+    mark = {"pass": "&#10003; ", "fail": "&#10007; "}.get(cls, "? ")
+    accepted = "" if c["passed"] == (decision == "conforms") else (" (accepted)" if c["passed"] else "")
+    return _td(f"{mark}{esc(text)}{accepted}", cls)
+
+
+def _budget_table(report: Mapping[str, Any], decimals: int) -> str:
+    """Per characteristic, each source's contribution u_mm (mm), u_c and U."""
+    chars = report["characteristics"]
+    sources = [s for s in report["uncertainty"]["sources"] if any(
+        t["source"] == s for c in chars for t in c["budget"])]
+    head = "".join(f"<th>{esc(s.replace('_', ' '))}</th>" for s in sources)
+    rows = []
+    for c in chars:
+        by = {t["source"]: t for t in c["budget"]}
+        cells = [_td(esc(c["name"]))]
+        cells += [_num(by[s]["u_mm"] if s in by else None, decimals + 1) for s in sources]
+        cells += [_num(c["uncertainty_mm"], decimals + 1), _num(c["expanded_uncertainty_mm"], decimals)]
+        rows.append(_row(cells))
+    k = chars[0]["coverage_factor"] if chars else 2.0
+    legend = "".join(
+        f"<li><strong>{esc(s.replace('_', ' '))}</strong>: {esc(report['uncertainty']['sources'][s])}</li>"
+        for s in sources
+    )
+    return (
+        '<table id="budget" class="wide">'
+        "<caption>Uncertainty budget: contribution of each source (mm, standard uncertainties)</caption>"
+        f"<thead><tr><th>Characteristic</th>{head}<th>u<sub>c</sub></th><th>U (k={k:g})</th></tr></thead>"
+        f"<tbody>{''.join(rows)}</tbody>"
+        f'<tfoot><tr><td colspan="{len(sources) + 3}">u<sub>c</sub> = root sum of squares of the contributions '
+        "(the shared registration's correlations are inside each source's contribution); "
+        f"U = k u<sub>c</sub>. report.json holds each term's input u and sensitivity.</td></tr></tfoot></table>"
+        f'<ul class="note">{legend}</ul>'
+    )
+
+
 def _table1(reg: Mapping[str, Any] | None, decimals: int) -> str:
     if reg is None:
         return '<p id="table1-rotation">No frame was registered: no rotation matrix.</p>'
@@ -139,9 +194,17 @@ def _table1(reg: Mapping[str, Any] | None, decimals: int) -> str:
         '<table id="table1-rotation" class="matrix">'
         "<caption>Table 1. Rotation matrix R<sub>global&#8592;camera</sub></caption>"
         f"<tbody>{rows}</tbody>"
-        f'<tfoot><tr><td colspan="3">det R = {esc(fixed(reg["det_R"], 6))}; '
+        f'<tfoot><tr><td colspan="3">det R = {esc(fixed(reg["det_R"], 6))}; {_rotation_u(reg)}'
         f"{esc(_aggregate_note(reg))}</td></tr></tfoot></table>"
     )
+
+
+def _rotation_u(reg: Mapping[str, Any]) -> str:
+    cov = reg.get("covariance")
+    if not cov:
+        return ""
+    urad = ", ".join(f"{v * 1e6:.1f}" for v in cov["rotation_u_rad"])
+    return f"u of the rotation vector (x, y, z) = ({esc(urad)}) &#181;rad; "
 
 
 def _aggregate_note(reg: Mapping[str, Any]) -> str:
@@ -152,16 +215,18 @@ def _aggregate_note(reg: Mapping[str, Any]) -> str:
 def _table2(reg: Mapping[str, Any] | None, decimals: int) -> str:
     if reg is None:
         return '<p id="table2-translation">No frame was registered: no translation vector.</p>'
+    cov = reg.get("covariance")
+    t_u = cov["t_u_mm"] if cov else [None, None, None]
     rows = "".join(
-        _row([f"<th>{axis}</th>", _num(v, decimals), _num(s, decimals)])
-        for axis, v, s in zip("xyz", reg["t_global_camera_mm"], reg["t_std_mm"])
+        _row([f"<th>{axis}</th>", _num(v, decimals), _num(u, decimals), _num(s, decimals)])
+        for axis, v, u, s in zip("xyz", reg["t_global_camera_mm"], t_u, reg["t_std_mm"])
     )
     return (
         '<table id="table2-translation" class="matrix">'
         "<caption>Table 2. Translation vector t<sub>global&#8592;camera</sub> (mm)</caption>"
-        '<thead><tr><th></th><th>t (mm)</th><th>std over frames (mm)</th></tr></thead>'
+        '<thead><tr><th></th><th>t (mm)</th><th>u (mm)</th><th>std over frames (mm)</th></tr></thead>'
         f"<tbody>{rows}</tbody>"
-        f'<tfoot><tr><td colspan="3">p<sub>global</sub> = R p<sub>camera</sub> + t; '
+        f'<tfoot><tr><td colspan="4">p<sub>global</sub> = R p<sub>camera</sub> + t; u from the stated sigmas; '
         f"{esc(_aggregate_note(reg))}</td></tr></tfoot></table>"
     )
 
@@ -172,7 +237,8 @@ def _table3(report: Mapping[str, Any], decimals: int) -> str:
     head = ["No.", "Characteristic", "Elements", "Frames", "Measured", "Std", "u"]
     if truth:
         head += ["Actual", "Error"]
-    head += ["Nominal", "Tol. &#177;", "Deviation", "Result"]
+    k = chars[0]["coverage_factor"] if chars else 2.0
+    head += ["Nominal", "Tolerance", "Deviation", f"U (k={k:g})", "Decision"]
     rows = []
     for c in chars:
         kind = KIND_LABELS.get(c["kind"], c["kind"])
@@ -189,9 +255,10 @@ def _table3(report: Mapping[str, Any], decimals: int) -> str:
             cells += [_num(c.get("actual_mm"), decimals), _num(c.get("error_mm"), decimals, signed=True)]
         cells += [
             _num(c["nominal_mm"], decimals),
-            _num(c["tolerance_mm"], decimals),
+            _td(esc(tolerance_text(c, decimals)), "num"),
             _num(c["deviation_mm"], decimals, signed=True),
-            _result_cell(c["passed"]),
+            _num(c["expanded_uncertainty_mm"], decimals),
+            _decision_cell(c),
         ]
         rows.append(_row(cells))
     if not rows:
@@ -211,6 +278,20 @@ def _table3(report: Mapping[str, Any], decimals: int) -> str:
     )
 
 
+def _consistency_html(report: Mapping[str, Any]) -> str:
+    check = report["uncertainty"]["consistency"]
+    if check is None:
+        return '<p class="note">No registration residuals to test against the stated sigmas.</p>'
+    text = (
+        f"Chi-square test of the registration residuals against the stated sigmas: "
+        f"chi2 = {check['chi2']:.1f} for {check['dof']} degrees of freedom, p = {check['p_value']:.3g}, "
+        f"Birge ratio {check['birge_ratio']:.2f}."
+    )
+    if check["warning"]:
+        return f'<p class="warning" id="consistency-warning"><strong>Warning:</strong> {esc(check["warning"])}.</p>'
+    return f'<p class="note" id="consistency">{esc(text)} Consistent at alpha = {check["alpha"]:g}.</p>'
+
+
 def _residual_table(reg: Mapping[str, Any] | None, decimals: int) -> str:
     if reg is None:
         return "<p>No registration.</p>"
@@ -222,6 +303,7 @@ def _residual_table(reg: Mapping[str, Any] | None, decimals: int) -> str:
                 _num(cp["residual_norm_mm"], decimals),
                 _num(cp["rms_norm_mm"], decimals),
                 _num(cp["max_norm_mm"], decimals),
+                _num(cp.get("expected_rms_mm"), decimals),
                 _td(esc(cp["n_frames"]), "num"),
             ]
         )
@@ -231,10 +313,11 @@ def _residual_table(reg: Mapping[str, Any] | None, decimals: int) -> str:
         '<table id="residuals" class="wide">'
         "<caption>Per common control point: residual R p + t &#8722; q of the registration (mm)</caption>"
         "<thead><tr><th>Control</th><th>dx</th><th>dy</th><th>dz</th><th>|mean|</th>"
-        "<th>RMS |r|</th><th>max |r|</th><th>Frames</th></tr></thead>"
+        "<th>RMS |r|</th><th>max |r|</th><th>expected RMS |r|</th><th>Frames</th></tr></thead>"
         f"<tbody>{''.join(rows)}</tbody>"
-        '<tfoot><tr><td colspan="8">dx, dy, dz: mean over frames of each frame\'s own fit residual, '
-        "global frame; RMS |r| and max |r| over frames.</td></tr></tfoot></table>"
+        '<tfoot><tr><td colspan="9">dx, dy, dz: mean over frames of each frame\'s own fit residual, '
+        "global frame; RMS |r| and max |r| over frames; expected RMS |r|: what the stated camera and CMM "
+        "sigmas predict, sqrt((1 - 2/n) tr S).</td></tr></tfoot></table>"
     )
 
 
@@ -391,6 +474,11 @@ def render_html(report: Mapping[str, Any], decimals: int = 4) -> str:
 {rms_line}
 </section>
 <section>
+<h2>Uncertainty budget</h2>
+{_budget_table(report, decimals)}
+{_consistency_html(report)}
+</section>
+<section>
 <h2>Registration residuals</h2>
 {_residual_table(reg, decimals)}
 </section>
@@ -446,18 +534,23 @@ def render_text(report: Mapping[str, Any], decimals: int = 4) -> str:
     chars = report["characteristics"]
     width = max([len("Characteristic")] + [len(_printable(c["name"])) for c in chars])
     truth = report["ground_truth_known"]
-    header = f"{'No.':>3}  {'Characteristic':<{width}}  {'Measured':>10}"
+    k = chars[0]["coverage_factor"] if chars else 2.0
+    u_head = f"U(k={k:g})"
+    lines.append(f"Lengths in mm; U = expanded uncertainty; rule: {report['uncertainty']['decision_rule']}")
+    header = f"{'No.':>3}  {'Characteristic':<{width}}  {'Measured':>10}  {u_head:>8}"
     if truth:
         header += f"  {'Actual':>10}  {'Error':>8}"
-    header += f"  {'Nominal':>10}  {'Dev':>8}  Result"
+    tol_w = max([len("Tolerance")] + [len(tolerance_text(c, decimals)) for c in chars])
+    header += f"  {'Nominal':>10}  {'Tolerance':>{tol_w}}  {'Dev':>8}  Decision"
     lines.append(header)
     for c in chars:
         line = f"{c['no']:>3}  {_printable(c['name']):<{width}}  {fixed(c['measured_mm'], decimals):>10}"
+        line += f"  {fixed(c['expanded_uncertainty_mm'], decimals):>8}"
         if truth:
             actual, error = fixed(c.get("actual_mm"), decimals), fixed(c.get("error_mm"), decimals, True)
             line += f"  {actual:>10}  {error:>8}"
-        line += f"  {fixed(c['nominal_mm'], decimals):>10}  {fixed(c['deviation_mm'], decimals, True):>8}"
-        line += f"  {verdict(c['passed'])}"
+        line += f"  {fixed(c['nominal_mm'], decimals):>10}  {tolerance_text(c, decimals):>{tol_w}}"
+        line += f"  {fixed(c['deviation_mm'], decimals, True):>8}  {DECISION_TEXT.get(c['decision'], c['decision'])}"
         lines.append(line)
     if report["rms_error_mm"] is not None:
         lines.append(f"RMS error vs ground truth: {fixed(report['rms_error_mm'], decimals)} mm")

@@ -362,7 +362,7 @@ def test_pass_fail(report):
 
 def test_provenance(summary, report):
     info = summary.info
-    assert report["format"] == "crossfield-report/1"
+    assert report["format"] == "crossfield-report/2"
     assert report["session"]["id"] == info.session_id
     assert report["session"]["start_time_ns"] == info.start_time_ns
     assert report["session"]["start_time_utc"] == "2026-01-01T12:00:00.123456+00:00"
