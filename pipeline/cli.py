@@ -141,6 +141,16 @@ def build_parser() -> argparse.ArgumentParser:
         "the recorded session's rerun_image_every)",
     )
 
+    # -- export (docs/user-guide.md, "Exporting results") ------------------------------------
+    export = command(
+        "export",
+        help="export a session's characteristics (CSV: nominal, measured, deviation, tolerances, U, k, decision)",
+        description="Write one row per characteristic of a session (its folder or report.json) for SPC or "
+        "QMS software: name, nominal, measured, deviation, tolerances, u, U, k, decision (mm, unrounded).",
+    )
+    export.add_argument("session", metavar="SESSION", help="session folder or its report.json")
+    export.add_argument("--csv", metavar="FILE", required=True, help="the CSV file to write ('-' = stdout)")
+
     plugins = command("plugins", help="list every stage's registered implementations")
     plugins.add_argument("--json", action="store_true", help="machine-readable output")
     return parser
@@ -319,9 +329,19 @@ def cmd_view(args: argparse.Namespace) -> int:
     )
 
 
+def cmd_export(args: argparse.Namespace) -> int:
+    from crossfield.export import characteristic_rows, load_report, to_csv, write_csv
+
+    if args.csv == "-":
+        sys.stdout.write(to_csv(characteristic_rows(load_report(args.session))))
+    else:
+        print(f"wrote {write_csv(args.session, args.csv)}")
+    return 0
+
+
 COMMANDS = {
     "run": cmd_run, "replay": cmd_replay, "compare": cmd_compare, "audit": cmd_audit, "plugins": cmd_plugins,
-    "view": cmd_view,
+    "view": cmd_view, "export": cmd_export,
 }
 
 

@@ -513,7 +513,10 @@ def test_html_table2_translation(report, page):
     rows = parse_tables(page).tables["table2-translation"]
     t = report["registration"]["t_global_camera_mm"]
     s = report["registration"]["t_std_mm"]
-    assert rows[1:4] == [[axis, f"{v:.4f}", f"{e:.4f}"] for axis, v, e in zip("xyz", t, s)]
+    cov = report["registration"]["covariance"]
+    u = cov["t_u_mm"] if cov else [None] * 3
+    fmt = lambda v: "\u2014" if v is None else f"{v:.4f}"  # noqa: E731
+    assert rows[1:4] == [[axis, f"{v:.4f}", fmt(w), f"{e:.4f}"] for axis, v, w, e in zip("xyz", t, u, s)]
 
 
 def test_html_table3_lengths(report, page):
@@ -521,7 +524,7 @@ def test_html_table3_lengths(report, page):
     header = rows[0]
     assert header == [
         "No.", "Characteristic", "Elements", "Frames", "Measured", "Std", "u", "Actual", "Error",
-        "Nominal", "Tol. ±", "Deviation", "Result",
+        "Nominal", "Tolerance", "Deviation", "U (k=2)", "Decision",
     ]
     table = body_rows(rows, header)
     assert len(table) == 3
@@ -529,10 +532,14 @@ def test_html_table3_lengths(report, page):
         assert row["No."] == str(c["no"])
         assert row["Characteristic"].startswith(c["name"])
         assert float(row["Measured"]) == round(c["measured_mm"], 4)
+        assert float(row["u"]) == round(c["uncertainty_mm"], 4)
+        assert float(row["U (k=2)"]) == round(c["expanded_uncertainty_mm"], 4)
         assert float(row["Nominal"]) == round(c["nominal_mm"], 4)
-        assert float(row["Tol. ±"]) == round(c["tolerance_mm"], 4)
+        assert row["Tolerance"] == f"\u00b1{c['tolerance_mm']:.4f}"
         assert float(row["Deviation"]) == round(c["deviation_mm"], 4)
-        assert row["Result"] == ("✓ PASS" if c["passed"] else "✗ FAIL")
+        text = {"conforms": "\u2713 conforms", "does_not_conform": "\u2717 does not conform"}
+        assert row["Decision"] == text.get(c["decision"], "? not proven")
+        assert c["decision"] == ("conforms" if c["passed"] else "does_not_conform")  # simple rule
         if "actual_mm" in c:
             assert float(row["Actual"]) == round(c["actual_mm"], 4)
             assert float(row["Error"]) == round(c["error_mm"], 4)
@@ -576,7 +583,9 @@ def test_summary_text(summary, written, report):
         assert f"{c['measured_mm']:.4f}" in line
         if "actual_mm" in c:
             assert f"{c['actual_mm']:.4f}" in line and f"{c['error_mm']:+.4f}" in line
-        assert line.rstrip().endswith("PASS" if c["passed"] else "FAIL")
+        assert line.rstrip().endswith("conforms" if c["passed"] else "does not conform")
+        assert f"{c['expanded_uncertainty_mm']:.4f}" in line and f"\u00b1{c['tolerance_mm']:.4f}" in line
+    assert "Lengths in mm" in text and "U(k=2)" in text
     assert f"RMS error vs ground truth: {report['rms_error_mm']:.4f} mm" in text
     assert text.splitlines()[-1] == "Result: FAIL"
     assert "4 processed, 1 failed" in text
