@@ -17,9 +17,12 @@ import os
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
+from markupsafe import Markup
+
 from crossfield.hookspecs import hookimpl
 from crossfield.session import SessionSummary
 
+from crossfield import report as _report_package
 from crossfield.report import document as doc
 
 KIND_LABELS = {
@@ -29,6 +32,9 @@ KIND_LABELS = {
 }
 
 DASH = "\u2014"
+
+#: crossfield's own report templates (Jinja2) and style sheet.
+TEMPLATE_DIR = Path(_report_package.__file__).resolve().parent / "templates"
 
 
 # --------------------------------------------------------------------------
@@ -81,53 +87,6 @@ def _write_atomic(path: Path, text: str) -> None:
 # HTML
 # --------------------------------------------------------------------------
 
-CSS = """
-:root { --ink:#1d2733; --muted:#5b6b7b; --rule:#c9d2dc; --band:#f3f6f9; --pass:#1b7a3a; --pass-bg:#e3f4e8;
-        --fail:#b3261e; --fail-bg:#fbe5e3; --accent:#234e77; }
-* { box-sizing: border-box; }
-body { margin: 0; color: var(--ink); background: #fff;
-       font: 14px/1.45 "Segoe UI", "Helvetica Neue", Helvetica, Arial, sans-serif; }
-main { max-width: 1120px; margin: 0 auto; padding: 28px 32px 48px; }
-header.report { border-bottom: 3px solid var(--accent); padding-bottom: 14px; margin-bottom: 18px;
-                display: flex; justify-content: space-between; align-items: flex-start; gap: 24px; }
-h1 { font-size: 22px; margin: 0 0 4px; letter-spacing: .01em; }
-h2 { font-size: 16px; margin: 30px 0 8px; color: var(--accent); border-bottom: 1px solid var(--rule);
-     padding-bottom: 4px; }
-.subtitle { color: var(--muted); margin: 0; }
-.verdict { font-weight: 700; font-size: 20px; padding: 8px 18px; border-radius: 6px; border: 2px solid;
-           white-space: nowrap; }
-.verdict.pass, td.pass { color: var(--pass); background: var(--pass-bg); border-color: var(--pass); }
-.verdict.fail, td.fail { color: var(--fail); background: var(--fail-bg); border-color: var(--fail); }
-td.pass, td.fail, td.open { font-weight: 700; text-align: center; white-space: nowrap; }
-td.open { color: #8a5a00; background: #fff4d6; }
-.fail-text { color: var(--fail); font-weight: 700; }
-dl.facts { display: grid; grid-template-columns: max-content 1fr max-content 1fr; gap: 4px 18px; margin: 0; }
-dl.facts dt { color: var(--muted); }
-dl.facts dd { margin: 0; font-variant-numeric: tabular-nums; }
-table { border-collapse: collapse; margin: 6px 0 4px; font-variant-numeric: tabular-nums; }
-caption { caption-side: top; text-align: left; font-weight: 600; padding: 0 0 6px; }
-th, td { padding: 4px 10px; border-bottom: 1px solid var(--rule); vertical-align: top; }
-thead th { background: var(--band); border-top: 2px solid var(--ink); border-bottom: 1px solid var(--ink);
-           font-weight: 600; text-align: center; }
-tbody tr:last-child td, tbody tr:last-child th { border-bottom: 2px solid var(--ink); }
-td.num, th.num { text-align: right; font-family: "DejaVu Sans Mono", Consolas, Menlo, monospace; }
-table.matrix td { min-width: 90px; }
-#table1-rotation tbody tr:first-child td { border-top: 2px solid var(--ink); }
-thead th { white-space: nowrap; }
-table.wide th, table.wide td { padding: 4px 7px; }
-table.wide { width: 100%; }
-tfoot td { border: none; color: var(--muted); font-size: 12.5px; }
-.note { color: var(--muted); font-size: 12.5px; margin: 4px 0 0; }
-.warning { color: var(--fail); background: var(--fail-bg); border-left: 4px solid var(--fail); padding: 6px 10px; }
-ul.problems li { margin: 2px 0; }
-.ok { color: var(--pass); }
-pre { background: var(--band); border: 1px solid var(--rule); padding: 10px; overflow-x: auto;
-      font-size: 12px; }
-code { font-family: "DejaVu Sans Mono", Consolas, Menlo, monospace; font-size: 12.5px; }
-footer { margin-top: 36px; color: var(--muted); font-size: 12px; border-top: 1px solid var(--rule);
-         padding-top: 8px; }
-@media print { main { padding: 0; } h2 { break-after: avoid; } table { break-inside: avoid; } }
-"""
 
 
 def _row(cells: Iterable[str]) -> str:
@@ -399,8 +358,18 @@ def _provenance(report: Mapping[str, Any]) -> str:
     )
 
 
-def render_html(report: Mapping[str, Any], decimals: int = 4) -> str:
-    """report.html for a :func:`crossfield.report.document.build_report` result."""
+def render_html(
+    report: Mapping[str, Any],
+    decimals: int = 4,
+    *,
+    figures: Mapping[str, str] | None = None,
+    templates: str | Path | None = None,
+) -> str:
+    """report.html for a :func:`crossfield.report.document.build_report` result.
+
+    figures: name -> inline SVG (:func:`report_figures`; none drawn when None).
+    templates: a folder whose ``report.html.j2`` / ``report.css`` replace crossfield's
+    (Jinja2; ``docs/report.md``, "Templates")."""
     reg = report["registration"]
     passed = report["passed"]
     n_frames, n_failed = report["frames_processed"], report["frames_failed"]
@@ -441,65 +410,74 @@ def render_html(report: Mapping[str, Any], decimals: int = 4) -> str:
         )
     cls = "pass" if passed else "fail"
     title = f"Cross-field measurement report {DASH} {report['plan']['name']}"
-    return f"""<!DOCTYPE html>
-<html lang="en">
-<head>
-<meta charset="utf-8">
-<meta name="viewport" content="width=device-width, initial-scale=1">
-<title>{esc(title)}</title>
-<style>{CSS}</style>
-</head>
-<body>
-<main>
-<header class="report">
-<div>
-<h1>Cross-field measurement report</h1>
-<p class="subtitle">Plan <strong>{esc(report["plan"]["name"])}</strong>
-&middot; session <code>{esc(report["session"]["id"])}</code>
-&middot; {esc(report["session"]["start_time_utc"] or "start time not recorded")}</p>
-</div>
-<div class="verdict {cls}" id="verdict">{"&#10003;" if passed else "&#10007;"} {verdict(passed)}</div>
-</header>
-<section>
-{_dl(summary_facts)}
-</section>
-<section>
-<h2>Registration: camera to global (CMM) frame</h2>
-{_table1(reg, decimals)}
-{_table2(reg, decimals)}
-</section>
-<section>
-<h2>Cross-field characteristics</h2>
-{_table3(report, decimals)}
-{rms_line}
-</section>
-<section>
-<h2>Uncertainty budget</h2>
-{_budget_table(report, decimals)}
-{_consistency_html(report)}
-</section>
-<section>
-<h2>Registration residuals</h2>
-{_residual_table(reg, decimals)}
-</section>
-<section>
-<h2>Frames</h2>
-{_frames_table(report, decimals)}
-</section>
-<section>
-<h2>Problems</h2>
-{problem_html}
-</section>
-<section>
-<h2>Provenance</h2>
-{_provenance(report)}
-</section>
-<footer>Written by crossfield. Lengths in mm, rotation unitless; tables rounded to {decimals} decimals,
-report.json beside this file holds every number unrounded.</footer>
-</main>
-</body>
-</html>
-"""
+    context = {
+        "report": report,
+        "title": title,
+        "decimals": decimals,
+        "verdict_class": cls,
+        "verdict_text": Markup(f'{"&#10003;" if passed else "&#10007;"} {verdict(passed)}'),
+        "job": Markup(_job_html(report)),
+        "summary_facts": Markup(_dl(summary_facts)),
+        "table1": Markup(_table1(reg, decimals)),
+        "table2": Markup(_table2(reg, decimals)),
+        "table3": Markup(_table3(report, decimals)),
+        "rms_line": Markup(rms_line),
+        "budget": Markup(_budget_table(report, decimals)),
+        "consistency": Markup(_consistency_html(report)),
+        "residuals": Markup(_residual_table(reg, decimals)),
+        "frames": Markup(_frames_table(report, decimals)),
+        "problems": Markup(problem_html),
+        "provenance": Markup(_provenance(report)),
+        "figures": {
+            name: Markup((figures or {}).get(name, ""))
+            for name in ("deviations", "residuals", "trends", *(figures or {}))
+        },
+    }
+    return _environment(templates).get_template("report.html.j2").render(context)
+
+
+def _environment(templates: str | Path | None):
+    """Jinja2 environment: the lab's template folder first (when given), then crossfield's."""
+    import jinja2
+
+    folders = [str(templates)] if templates else []
+    loader = jinja2.FileSystemLoader([*folders, str(TEMPLATE_DIR)])
+    return jinja2.Environment(loader=loader, autoescape=True, undefined=jinja2.StrictUndefined,
+                              keep_trailing_newline=True)
+
+
+def _job_html(report: Mapping[str, Any]) -> str:
+    job = report.get("job") or {}
+    pairs = [
+        ("Part", esc(job.get("part") or DASH)),
+        ("Serial number", esc(job.get("serial") or DASH)),
+        ("Operator", esc(job.get("operator") or DASH)),
+        ("Order", esc(job.get("order") or DASH)),
+    ]
+    instruments = job.get("instruments") or []
+    rows = "".join(
+        _row([_td(esc(i["id"])), _td(esc(i["kind"] or DASH)), _td(esc(i["calibrated"] or DASH)),
+              _td(esc(i["due"] or DASH))])
+        for i in instruments
+    )
+    table = (
+        '<table id="instruments"><caption>Instruments</caption><thead><tr><th>Id</th><th>Kind</th>'
+        f"<th>Calibrated</th><th>Calibration due</th></tr></thead><tbody>{rows}</tbody></table>"
+        if instruments
+        else '<p class="note">No instruments stated in the plan ([[job.instrument]]).</p>'
+    )
+    return '<dl class="facts job" id="job">' + "".join(f"<dt>{k}</dt><dd>{v}</dd>" for k, v in pairs) + "</dl>" + table
+
+
+def report_figures(report: Mapping[str, Any], positions: Mapping[str, Any] | None = None) -> dict[str, str]:
+    """The report's inline SVG pictures (:mod:`crossfield.report.figures`)."""
+    from crossfield.report import figures
+
+    return {
+        "deviations": figures.deviation_chart(report),
+        "residuals": figures.residual_chart(report, positions or {}),
+        "trends": figures.trend_chart(report),
+    }
 
 
 # --------------------------------------------------------------------------
@@ -592,11 +570,27 @@ class JsonReport:
 
 
 class HtmlReport(JsonReport):
-    """report.json plus a self-contained report.html with the paper's Tables 1-3.
+    """report.json plus a self-contained report.html: the paper's Tables 1-3, the
+    uncertainty budget, decisions, pictures (inline SVG), job header, provenance.
 
     decimals: decimals shown in the HTML tables and the terminal summary
     (the paper prints 4); report.json is never rounded.
+    templates: a folder with the lab's ``report.html.j2`` and/or ``report.css``
+    (Jinja2), used in place of crossfield's (``docs/report.md``, "Templates");
+    "" = crossfield's.
+    figures: draw the pictures (matplotlib; default true).
     """
+
+    def __init__(self, *, decimals: int = 4, templates: str = "", figures: bool = True):
+        super().__init__(decimals=decimals)
+        if not isinstance(templates, str):
+            raise ValueError(f"option 'templates' must be a folder path (string), got {templates!r}")
+        if templates and not Path(templates).is_dir():
+            raise ValueError(f"option 'templates': {templates!r} is not a folder")
+        if not isinstance(figures, bool):
+            raise ValueError(f"option 'figures' must be true or false, got {figures!r}")
+        self.templates = templates
+        self.figures = figures
 
     def write(self, summary: SessionSummary, out_dir: Path) -> list[Path]:
         """Write report.json and report.html into ``out_dir`` (created if missing)."""
@@ -605,7 +599,9 @@ class HtmlReport(JsonReport):
         report = doc.build_report(summary)
         json_path = self._write_json(report, out_dir)
         html_path = out_dir / "report.html"
-        _write_atomic(html_path, render_html(report, self.decimals))
+        positions = {p.label: tuple(float(v) for v in p.xyz) for p in summary.reference.points}
+        figures = report_figures(report, positions) if self.figures else None
+        _write_atomic(html_path, render_html(report, self.decimals, figures=figures, templates=self.templates or None))
         return [json_path, html_path]
 
 

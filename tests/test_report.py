@@ -8,6 +8,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import json
+import re
 import math
 from html.parser import HTMLParser
 from pathlib import Path
@@ -490,8 +491,11 @@ def test_html_is_self_contained(page):
     assert {"script", "link", "img", "iframe", "object", "embed"}.isdisjoint(parsed.tags)
     assert {"src", "href"}.isdisjoint(parsed.attributes)
     assert not any(a.startswith("on") for a in parsed.attributes)  # no event handlers
-    assert "url(" not in page and "@import" not in page
+    # inline SVG refers to its own parts only (url(#id), xlink:href="#id")
+    assert not re.search(r"url\((?!#)", page) and "@import" not in page
+    assert all(ref.startswith("#") for ref in re.findall(r'href="([^"]*)"', page))
     assert page.startswith("<!DOCTYPE html>") and "<style>" in page
+    assert page.count("<svg") >= 2  # the deviation chart, the residual vectors (and trends)
 
 
 def test_html_escapes_every_string(page):
