@@ -26,6 +26,7 @@ frame results again (a replay) reproduces every float bit for bit.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -269,7 +270,9 @@ class SessionAggregate:
     in order of first miss. consistency: the chi-square test of the
     registration residuals (None without data). calibration_scale_u: the
     relative scale uncertainty of the calibration used in the budgets, and
-    where it came from.
+    where it came from. sample_frame: the first frame registered and measured,
+    with its camera points (one frame, for the Monte Carlo check,
+    :mod:`crossfield.uncertainty.montecarlo`).
     """
 
     frames_processed: int
@@ -281,6 +284,7 @@ class SessionAggregate:
     consistency: ConsistencyCheck | None = None
     calibration_scale_u: float = DEFAULT_SCALE_U
     calibration_uncertainty_source: str = "stated default"
+    sample_frame: FrameResult | None = None
 
     @property
     def frame_errors_omitted(self) -> int:
@@ -539,6 +543,7 @@ class SessionAccumulator:
         self._characteristics = {spec.name: _CharacteristicRun() for spec in plan.characteristics}
         self._registration = _RegistrationRun()
         self._consistency = ConsistencyRun()
+        self._sample: FrameResult | None = None
         stated = plan.uncertainty.calibration_scale_u
         self._calibration = calibration_uncertainty(
             calibration_source, DEFAULT_SCALE_U if stated is None else stated
@@ -562,6 +567,8 @@ class SessionAccumulator:
                 )
         if result.registration is not None:
             self._registration.add(result.registration)
+            if self._sample is None and result.points is not None and result.measurement is not None:
+                self._sample = dataclasses.replace(result, centroids=None)
         measurement = result.measurement
         if measurement is None:
             return
@@ -596,6 +603,7 @@ class SessionAccumulator:
             consistency=check,
             calibration_scale_u=self._calibration.scale_u,
             calibration_uncertainty_source=self._calibration.source,
+            sample_frame=self._sample,
         )
 
 

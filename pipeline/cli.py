@@ -76,6 +76,11 @@ def build_parser() -> argparse.ArgumentParser:
         "(rerun+http://HOST:PORT/proxy); see docs/visualisation.md",
     )
     _add_stage_flags(run)
+    run.add_argument(
+        "--monte-carlo", type=int, metavar="N",
+        help="also check the uncertainty budget by a GUM Supplement 1 Monte Carlo of N draws through the "
+        "session's register and measure implementations (= --option report.monte_carlo=N; docs/uncertainty.md)",
+    )
 
     sub.add_parser(
         "romer-sim", add_help=False,
@@ -170,7 +175,7 @@ def resolve_run_config(args: argparse.Namespace) -> Config:
             "record": False if args.no_record else None,
             "rerun": False if args.no_rerun else None,
         },
-        option_texts=args.option,
+        option_texts=[*args.option, *([f"report.monte_carlo={args.monte_carlo}"] if getattr(args, "monte_carlo", None) else [])],
         spell=lambda key: f"--{key}",
     )
 

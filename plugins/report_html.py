@@ -251,6 +251,29 @@ def _consistency_html(report: Mapping[str, Any]) -> str:
     return f'<p class="note" id="consistency">{esc(text)} Consistent at alpha = {check["alpha"]:g}.</p>'
 
 
+def _monte_carlo_html(report: Mapping[str, Any], decimals: int) -> str:
+    mc = report.get("monte_carlo")
+    if not mc:
+        return ""
+    rows = "".join(
+        _row([
+            _td(esc(c["name"])), _num(c["U_linear_mm"], decimals + 1), _num(c["U_mc_mm"], decimals + 1),
+            _td(esc(f"[{fixed(c['interval_mm'][0], decimals + 1, True)}, {fixed(c['interval_mm'][1], decimals + 1, True)}]"), "num"),
+            _td(esc(DASH if c["agreement"] is None else f"{c['agreement']:+.1%}"), "num"),
+            _td("agrees" if c["agreed"] else "differs", "pass" if c["agreed"] else "fail"),
+        ])
+        for c in mc["characteristics"]
+    )
+    return (
+        '<table id="monte-carlo" class="wide">'
+        f"<caption>GUM Supplement 1 check: Monte Carlo ({esc(mc['n_draws'])} draws) beside the linear U (mm)</caption>"
+        "<thead><tr><th>Characteristic</th><th>U linear</th><th>U Monte Carlo</th><th>95 % interval about the mean</th>"
+        "<th>U<sub>MC</sub> / U &#8722; 1</th><th>Within " + esc(f"{mc['tolerance']:.0%}") + "</th></tr></thead>"
+        f"<tbody>{rows}</tbody>"
+        f'<tfoot><tr><td colspan="6">{esc(mc["method"])}.</td></tr></tfoot></table>'
+    )
+
+
 def _residual_table(reg: Mapping[str, Any] | None, decimals: int) -> str:
     if reg is None:
         return "<p>No registration.</p>"
@@ -424,6 +447,7 @@ def render_html(
         "rms_line": Markup(rms_line),
         "budget": Markup(_budget_table(report, decimals)),
         "consistency": Markup(_consistency_html(report)),
+        "monte_carlo": Markup(_monte_carlo_html(report, decimals)),
         "residuals": Markup(_residual_table(reg, decimals)),
         "frames": Markup(_frames_table(report, decimals)),
         "problems": Markup(problem_html),
@@ -532,6 +556,15 @@ def render_text(report: Mapping[str, Any], decimals: int = 4) -> str:
         lines.append(line)
     if report["rms_error_mm"] is not None:
         lines.append(f"RMS error vs ground truth: {fixed(report['rms_error_mm'], decimals)} mm")
+    mc = report.get("monte_carlo")
+    if mc:
+        agreed = sum(c["agreed"] for c in mc["characteristics"])
+        worst = max((abs(c["agreement"]) for c in mc["characteristics"] if c["agreement"] is not None), default=0.0)
+        lines.append(
+            f"Monte Carlo (GUM-S1, {mc['n_draws']} draws): U_MC within {mc['tolerance']:.0%} of U for "
+            f"{agreed} of {len(mc['characteristics'])} characteristics (largest difference {worst:.1%})"
+        )
+
     for problem in report["problems"][:5]:
         lines.append(f"! {_printable(problem)}")
     if len(report["problems"]) > 5:
@@ -549,24 +582,46 @@ def render_text(report: Mapping[str, Any], decimals: int = 4) -> str:
 class JsonReport:
     """report.json only: every number unrounded, for audits and scripts."""
 
-    def __init__(self, *, decimals: int = 4):
+    def __init__(self, *, decimals: int = 4, monte_carlo: int = 0):
         if isinstance(decimals, bool) or not isinstance(decimals, int) or not 0 <= decimals <= 12:
             raise ValueError(f"option 'decimals' must be an integer 0..12, got {decimals!r}")
+        if isinstance(monte_carlo, bool) or not isinstance(monte_carlo, int) or monte_carlo < 0 or monte_carlo == 1:
+            raise ValueError(f"option 'monte_carlo' must be 0 (off) or a number of draws >= 2, got {monte_carlo!r}")
         self.decimals = decimals
+        self.monte_carlo = monte_carlo
+
+    def document(self, summary: SessionSummary) -> dict[str, Any]:
+        """report.json's content, with the Monte Carlo check when ``monte_carlo`` > 0."""
+        report = doc.build_report(summary)
+        if self.monte_carlo:
+            from crossfield.uncertainty.montecarlo import session_monte_carlo
+
+            results = session_monte_carlo(summary, self.monte_carlo)
+            report["monte_carlo"] = doc.monte_carlo_section(results, self.monte_carlo)
+        return report
 
     def _write_json(self, report: Mapping[str, Any], out_dir: Path) -> Path:
         path = out_dir / "report.json"
         _write_atomic(path, doc.dumps(report))
+        self._last = report
         return path
 
     def write(self, summary: SessionSummary, out_dir: Path) -> list[Path]:
         """Write report.json into ``out_dir`` (created if missing)."""
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
-        return [self._write_json(doc.build_report(summary), out_dir)]
+        return [self._write_json(self.document(summary), out_dir)]
 
     def summary_text(self, summary: SessionSummary) -> str:
-        return summary_text(summary, self.decimals)
+        report = getattr(self, "_last", None)
+        if report is None or report["session"]["id"] != summary.info.session_id:
+            report = doc.build_report(summary)
+            written = Path(summary.info.out_dir) / "report.json"
+            if self.monte_carlo and written.is_file():  # the writer's document holds the Monte Carlo check
+                on_disk = json.loads(written.read_text(encoding="utf-8"))
+                if on_disk.get("session", {}).get("id") == summary.info.session_id and "monte_carlo" in on_disk:
+                    report["monte_carlo"] = on_disk["monte_carlo"]
+        return render_text(report, self.decimals)
 
 
 class HtmlReport(JsonReport):
@@ -581,8 +636,8 @@ class HtmlReport(JsonReport):
     figures: draw the pictures (matplotlib; default true).
     """
 
-    def __init__(self, *, decimals: int = 4, templates: str = "", figures: bool = True):
-        super().__init__(decimals=decimals)
+    def __init__(self, *, decimals: int = 4, templates: str = "", figures: bool = True, monte_carlo: int = 0):
+        super().__init__(decimals=decimals, monte_carlo=monte_carlo)
         if not isinstance(templates, str):
             raise ValueError(f"option 'templates' must be a folder path (string), got {templates!r}")
         if templates and not Path(templates).is_dir():
@@ -596,7 +651,8 @@ class HtmlReport(JsonReport):
         """Write report.json and report.html into ``out_dir`` (created if missing)."""
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
-        report = doc.build_report(summary)
+        report = self.document(summary)
+        self._last = report
         json_path = self._write_json(report, out_dir)
         html_path = out_dir / "report.html"
         positions = {p.label: tuple(float(v) for v in p.xyz) for p in summary.reference.points}

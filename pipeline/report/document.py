@@ -35,6 +35,7 @@ __all__ = [
     "dumps",
     "frames_note",
     "load_schema",
+    "monte_carlo_section",
     "problems",
     "utc_time",
     "validate",
@@ -391,6 +392,30 @@ def build_report(summary: SessionSummary) -> dict[str, Any]:
         "incomplete": summary.incomplete is not None,
         "incomplete_reason": summary.incomplete,
         "problems": problems(summary),
+    }
+
+
+def monte_carlo_section(results, n_draws: int, tolerance: float = 0.10) -> dict[str, Any]:
+    """The ``monte_carlo`` section: the GUM-S1 check beside the linear U
+    (:mod:`crossfield.uncertainty.montecarlo`); agreed: |U_MC / U - 1| <= tolerance."""
+    return {
+        "method": "GUM Supplement 1 (JCGM 101:2008): the session's register and measure implementations on its "
+        "first measured frame, inputs drawn from the budget's distributions; 95 % probabilistically symmetric "
+        "interval",
+        "n_draws": int(n_draws),
+        "tolerance": real(tolerance),
+        "characteristics": [
+            {
+                "name": r.name,
+                "u_mc_mm": real(r.u_mc_mm),
+                "interval_mm": [real(r.interval_mm[0]), real(r.interval_mm[1])],
+                "U_mc_mm": real(r.U_mc_mm),
+                "U_linear_mm": real(r.U_linear_mm),
+                "agreement": real(r.agreement),
+                "agreed": r.agreement is not None and abs(r.agreement) <= tolerance,
+            }
+            for r in results
+        ],
     }
 
 
