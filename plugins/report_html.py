@@ -22,7 +22,6 @@ from markupsafe import Markup
 from crossfield.hookspecs import hookimpl
 from crossfield.session import SessionSummary
 
-from crossfield import report as _report_package
 from crossfield.report import document as doc
 
 KIND_LABELS = {
@@ -34,7 +33,7 @@ KIND_LABELS = {
 DASH = "\u2014"
 
 #: crossfield's own report templates (Jinja2) and style sheet.
-TEMPLATE_DIR = Path(_report_package.__file__).resolve().parent / "templates"
+TEMPLATE_DIR = doc.TEMPLATE_DIR
 
 
 # --------------------------------------------------------------------------

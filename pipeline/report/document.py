@@ -18,6 +18,7 @@ from __future__ import annotations
 import datetime as _dt
 import json
 from importlib import resources
+from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
@@ -31,6 +32,7 @@ __all__ = [
     "REGISTRATION_AGGREGATE",
     "REGISTRATION_AGGREGATE_TEXT",
     "REPORT_FORMAT",
+    "TEMPLATE_DIR",
     "build_report",
     "dumps",
     "frames_note",
@@ -40,6 +42,9 @@ __all__ = [
     "utc_time",
     "validate",
 ]
+
+#: The report page's Jinja2 templates and style sheet (``docs/report.md``, "Templates").
+TEMPLATE_DIR = Path(__file__).resolve().parent / "templates"
 
 #: Identifies the layout of report.json; bump on incompatible changes.
 REPORT_FORMAT = "crossfield-report/2"

@@ -32,7 +32,7 @@ import numpy as np
 
 from crossfield.types import CameraPoints, ReferenceData, Registration
 
-__all__ = ["MonteCarloResult", "monte_carlo"]
+__all__ = ["MonteCarloResult", "monte_carlo", "session_monte_carlo"]
 
 
 @dataclass(frozen=True)
