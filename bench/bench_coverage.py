@@ -47,7 +47,9 @@ def one_session(out: Path, scenario: str, seed: int, frames: int, arm_sigma: flo
                 plan: str = "") -> dict:
     config = parse_config(
         {
-            "session": {"output_dir": str(out), "name": f"s{seed}", "record": False, "rerun": False, "plan": plan},
+            "session": {
+                "output_dir": str(out), "name": f"s{seed}", "record": False, "rerun": False, "plan": plan,
+            },
             "acquire": {"plugin": "simulator", "scenario": scenario, "frames": frames, "seed": seed,
                         "arm_sigma_mm": arm_sigma},
             "reference": {"plugin": "romer-serial", "port": "simulator", "sigma_mm": stated},
@@ -72,8 +74,11 @@ def table(lines: list[dict]) -> str:
     for line in lines:
         key = (line["scenario"], line["arm_sigma"], line["stated_sigma"], line.get("target_radius", 0.0))
         groups.setdefault(key, []).append(line)
-    out = ["| scenario | arm sigma (mm) | stated sigma (mm) | eccentricity r (mm) | sessions | lengths | within u | within U (k=2) "
-           "| worst abs(e)/u | chi-square warnings |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    out = [
+        "| scenario | arm sigma (mm) | stated sigma (mm) | eccentricity r (mm) | sessions | lengths | within u "
+        "| within U (k=2) | worst abs(e)/u | chi-square warnings |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
     for (scenario, arm, stated, radius), sessions in groups.items():
         rows = [r for s in sessions for r in s["rows"]]
         n = len(rows)

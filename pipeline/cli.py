@@ -175,9 +175,15 @@ def resolve_run_config(args: argparse.Namespace) -> Config:
             "record": False if args.no_record else None,
             "rerun": False if args.no_rerun else None,
         },
-        option_texts=[*args.option, *([f"report.monte_carlo={args.monte_carlo}"] if getattr(args, "monte_carlo", None) else [])],
+        option_texts=[*args.option, *_monte_carlo_option(args)],
         spell=lambda key: f"--{key}",
     )
+
+
+def _monte_carlo_option(args: argparse.Namespace) -> list[str]:
+    """``--monte-carlo N`` as the report option it stands for."""
+    n = getattr(args, "monte_carlo", None)
+    return [f"report.monte_carlo={n}"] if n else []
 
 
 def plugin_manager() -> "pluggy.PluginManager":

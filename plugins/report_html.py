@@ -257,7 +257,7 @@ def _monte_carlo_html(report: Mapping[str, Any], decimals: int) -> str:
     rows = "".join(
         _row([
             _td(esc(c["name"])), _num(c["U_linear_mm"], decimals + 1), _num(c["U_mc_mm"], decimals + 1),
-            _td(esc(f"[{fixed(c['interval_mm'][0], decimals + 1, True)}, {fixed(c['interval_mm'][1], decimals + 1, True)}]"), "num"),
+            _td(esc("[" + ", ".join(fixed(v, decimals + 1, True) for v in c["interval_mm"]) + "]"), "num"),
             _td(esc(DASH if c["agreement"] is None else f"{c['agreement']:+.1%}"), "num"),
             _td("agrees" if c["agreed"] else "differs", "pass" if c["agreed"] else "fail"),
         ])
