@@ -281,3 +281,30 @@ def test_temperature_correction_analytic():
     # first order of the exact L_20 = L (1 + a_r dT_r) / (1 + a_p dT_p)
     exact = 300.0 * (1 + 0.0) / (1 + 11.5e-6 * 1.5) - 300.0
     assert dL == pytest.approx(exact, rel=2e-5)
+
+
+# --------------------------------------------------------------------------
+# Calibration uncertainty from the calibration file
+# --------------------------------------------------------------------------
+
+
+def test_calibration_scale_u_from_the_file_std_keys(tmp_path):
+    import cv2
+
+    from crossfield.uncertainty.calibration import DEFAULT_SCALE_U, calibration_uncertainty
+
+    path = tmp_path / "stereo.yml"
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    fs.write("M1", np.array([[3636.0, 0, 812], [0, 3636.0, 617], [0, 0, 1]]))
+    fs.write("M2", np.array([[3636.0, 0, 812], [0, 3636.0, 617], [0, 0, 1]]))
+    fs.write("T", np.array([[0.0], [-50.0], [0.0]]))
+    fs.write("std_T", np.array([[0.01], [0.02], [0.01]]))
+    fs.write("std_M1", np.array([[1.2, 1.1, 0.5, 0.5]]))
+    fs.write("std_M2", np.array([[0.9, 0.9, 0.5, 0.5]]))
+    fs.release()
+    got = calibration_uncertainty(str(path))
+    # u(|T|) = 0.02 (T along y), u_f / f over both cameras: sqrt(1.2^2 + 0.9^2) / sqrt(2) / 3636
+    expected = math.sqrt((0.02 / 50.0) ** 2 + (1.2 / 3636 / math.sqrt(2)) ** 2 + (0.9 / 3636 / math.sqrt(2)) ** 2)
+    assert got.scale_u == pytest.approx(expected, rel=1e-9) and "std_" in got.source
+    assert calibration_uncertainty("<simulator>").scale_u == DEFAULT_SCALE_U
+    assert calibration_uncertainty("<simulator>", 3e-5).scale_u == 3e-5

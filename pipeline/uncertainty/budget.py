@@ -37,7 +37,7 @@ SOURCE_TEXT: dict[str, str] = {
     "eccentricity": "perspective eccentricity of circle centres (projected centre of a tilted circle is "
     "not the projection of its centre), uniform over the stated tilt range",
     "calibration": "the stereo calibration's parameter uncertainty, as a relative scale of camera-frame "
-    "distances (from the calibration file's *_std keys, else the stated default)",
+    "distances (from the calibration file's std_* keys, else the stated default)",
     "control_cmm": "CMM coordinates of the common control points, through the shared registration",
     "reference_cmm": "CMM coordinates of the reference points and of the probes of fitted reference lines",
     "repeatability": "scatter over the frames beyond the modelled per-frame noise: "

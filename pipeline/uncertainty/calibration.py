@@ -8,10 +8,10 @@ controls cannot absorb a scale, so a camera point p moves by ``s (p - g_bar)``
 
     u(s)^2 = (u(|T|) / |T|)^2 + (u(f) / f)^2 ,
 
-u(|T|) from the calibration file's ``T_std`` (mm, per component) and u(f)
-from ``M1_std`` / ``M2_std`` (px, the camera matrices' standard deviations:
-fx at [0][0]), the keys the calibration tool writes when OpenCV's
-``stereoCalibrateExtended`` / ``calibrateCameraExtended`` gives them. Without
+u(|T|) from the calibration file's ``std_T`` (mm, per component) and u(f)
+from ``std_M1`` / ``std_M2`` (px, standard deviations of fx fy cx cy: fx
+first), the keys ``crossfield calibrate`` writes (``T_std``, ``M1_std``,
+``M2_std`` are read as well). Without
 them the stated default :data:`DEFAULT_SCALE_U` is used.
 """
 
@@ -48,12 +48,16 @@ def _read_std(path: Path) -> dict[str, np.ndarray]:
     try:
         if not fs.isOpened():
             return found
-        for key in ("T_std", "M1_std", "M2_std", "T", "M1", "M2"):
-            node = fs.getNode(key)
-            if not node.empty():
-                value = node.mat()
-                if value is not None:
-                    found[key] = np.asarray(value, dtype=np.float64)
+        # ``std_T`` etc. as ``crossfield calibrate`` writes them (crossfield.camera.calib_file);
+        # ``T_std`` etc. accepted as well
+        for key, names in (("T_std", ("std_T", "T_std")), ("M1_std", ("std_M1", "M1_std")),
+                           ("M2_std", ("std_M2", "M2_std")), ("T", ("T",)), ("M1", ("M1",)), ("M2", ("M2",))):
+            for name in names:
+                node = fs.getNode(name)
+                if not node.empty():
+                    value = node.mat()
+                    if value is not None:
+                        found.setdefault(key, np.asarray(value, dtype=np.float64))
     finally:
         fs.release()
     return found
@@ -61,7 +65,7 @@ def _read_std(path: Path) -> dict[str, np.ndarray]:
 
 def calibration_uncertainty(source: str, default: float = DEFAULT_SCALE_U) -> CalibrationUncertainty:
     """The relative scale uncertainty of the calibration in file(s) ``source``
-    (paths separated by ``", "``), or ``default`` when they state no ``*_std`` key."""
+    (paths separated by ``", "``), or ``default`` when they state no standard deviations."""
     keys: dict[str, np.ndarray] = {}
     for part in str(source or "").split(", "):
         path = Path(part)
@@ -84,4 +88,4 @@ def calibration_uncertainty(source: str, default: float = DEFAULT_SCALE_U) -> Ca
                 terms.append(u_f / f / math.sqrt(2.0))  # two cameras, averaged in the disparity
     if not terms:
         return CalibrationUncertainty(default, "stated default")
-    return CalibrationUncertainty(math.sqrt(sum(t * t for t in terms)), "calibration file *_std keys")
+    return CalibrationUncertainty(math.sqrt(sum(t * t for t in terms)), "calibration file std_* keys")
