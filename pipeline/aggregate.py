@@ -26,6 +26,7 @@ frame results again (a replay) reproduces every float bit for bit.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -35,7 +36,12 @@ import numpy as np
 
 from crossfield.plan import CharacteristicSpec, MeasurementPlan
 from crossfield.rigid import chord_to_angle, project_to_rotation, rotation_angle
-from crossfield.types import CharacteristicResult, Registration, frozen_array
+from crossfield.types import BudgetTerm, CharacteristicResult, Registration, RegistrationConsistency, frozen_array
+from crossfield.uncertainty import budget as _budget
+from crossfield.uncertainty.calibration import DEFAULT_SCALE_U, calibration_uncertainty
+from crossfield.uncertainty.consistency import ConsistencyCheck, ConsistencyRun
+from crossfield.uncertainty.decision import decide
+from crossfield.uncertainty.temperature import LENGTH_KINDS, correction
 
 if TYPE_CHECKING:  # session.py imports this module
     from crossfield.session import FrameResult
@@ -109,13 +115,20 @@ class RunningStats:
 class CharacteristicSummary:
     """One characteristic over all frames of a session (mm).
 
-    measured_mm: mean over the n frames that measured it; std_mm: their
-    sample standard deviation (repeatability, 0 for n = 1);
-    uncertainty_mm: standard uncertainty of the mean, the larger of
-    std/sqrt(n) and the mean per-frame propagated uncertainty. The latter is
-    *not* divided by sqrt(n): most of it comes from the CMM data (control
-    points, reference fits), imported once and shared by every frame, so it
-    does not average down. This is conservative for the camera part.
+    measured_mm: mean over the n frames that measured it, corrected to 20 degC
+    (``temperature_correction_mm`` added; ``measured_raw_mm`` before it);
+    std_mm: their sample standard deviation (repeatability, 0 for n = 1);
+    uncertainty_mm: combined standard uncertainty u_c of measured_mm, the root
+    sum of squares of ``budget`` (``docs/uncertainty.md``): per source, the
+    per-frame propagated contribution (RMS over frames, *not* divided by
+    sqrt(n): most of it comes from the CMM data, imported once and shared by
+    every frame; conservative for the camera part), the CMM terms inflated
+    when the registration residuals contradict the stated sigma, a
+    repeatability term for scatter beyond the model, the temperature term.
+    expanded_uncertainty_mm: U = k u_c, k = coverage_factor. decision: ISO
+    14253-1 verdict under ``decision_rule`` (conforms / does_not_conform /
+    not_proven); passed: accepted under that rule. Zone: ``[nominal -
+    lower_tol_mm, nominal + upper_tol_mm]``.
     """
 
     name: str
@@ -131,6 +144,15 @@ class CharacteristicSummary:
     passed: bool
     actual_mm: float | None = None
     error_mm: float | None = None
+    expanded_uncertainty_mm: float | None = None
+    coverage_factor: float = 2.0
+    budget: tuple[BudgetTerm, ...] = ()
+    decision: str = "not_proven"
+    decision_rule: str = "simple"
+    upper_tol_mm: float | None = None
+    lower_tol_mm: float | None = None
+    measured_raw_mm: float | None = None
+    temperature_correction_mm: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -148,7 +170,8 @@ class ControlResidual:
     that matched it (global frame, mm).
 
     residual_mm: (3,) mean over frames; rms_norm_mm: sqrt(mean |r|^2);
-    max_norm_mm: max |r|.
+    max_norm_mm: max |r|; expected_rms_mm: the RMS |r| the stated sigmas
+    predict, ``sqrt((1 - 2/n) tr S_k)`` (None when not evaluated).
     """
 
     id: str
@@ -156,6 +179,7 @@ class ControlResidual:
     residual_mm: np.ndarray
     rms_norm_mm: float
     max_norm_mm: float
+    expected_rms_mm: float | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "residual_mm", frozen_array(self.residual_mm, shape=(3,)))
@@ -176,6 +200,10 @@ class RegistrationAggregate:
     rotation_spread_rad: the largest angle between ``R_mean`` and the rotation
     of a frame in the kept rows (every frame when none was left out; None when
     no kept row is registered). controls: per control point, in order of first match.
+    pose_covariance: (6, 6) covariance of (small rotation vector of R in the
+    global frame, rad; t_global_camera, mm) from the stated sigmas (mean over
+    frames, not divided by their number; the CMM part inflated as the budget's),
+    None when not evaluated.
     """
 
     n_frames: int
@@ -189,8 +217,11 @@ class RegistrationAggregate:
     rotation_rms_rad: float
     rotation_spread_rad: float | None
     controls: tuple[ControlResidual, ...]
+    pose_covariance: np.ndarray | None = None
 
     def __post_init__(self) -> None:
+        if self.pose_covariance is not None:
+            object.__setattr__(self, "pose_covariance", frozen_array(self.pose_covariance, shape=(6, 6)))
         object.__setattr__(self, "R_global_camera", frozen_array(self.R_global_camera, shape=(3, 3)))
         object.__setattr__(self, "t_global_camera_mm", frozen_array(self.t_global_camera_mm, shape=(3,)))
         object.__setattr__(self, "t_std_mm", frozen_array(self.t_std_mm, shape=(3,)))
@@ -206,7 +237,12 @@ class SessionAggregate:
     :class:`CharacteristicSummary`; only finite per-frame values count).
     registration: None when no frame was registered.
     missing_targets: (target id, number of frames in which it was not found),
-    in order of first miss.
+    in order of first miss. consistency: the chi-square test of the
+    registration residuals (None without data). calibration_scale_u: the
+    relative scale uncertainty of the calibration used in the budgets, and
+    where it came from. sample_frame: the first frame registered and measured,
+    with its camera points (one frame, for the Monte Carlo check,
+    :mod:`crossfield.uncertainty.montecarlo`).
     """
 
     frames_processed: int
@@ -215,6 +251,10 @@ class SessionAggregate:
     characteristics: tuple[CharacteristicSummary, ...]
     registration: RegistrationAggregate | None
     missing_targets: tuple[tuple[str, int], ...] = ()
+    consistency: ConsistencyCheck | None = None
+    calibration_scale_u: float = DEFAULT_SCALE_U
+    calibration_uncertainty_source: str = "stated default"
+    sample_frame: FrameResult | None = None
 
     @property
     def frame_errors_omitted(self) -> int:
@@ -227,14 +267,24 @@ class SessionAggregate:
 # --------------------------------------------------------------------------
 
 
+@dataclass(frozen=True)
+class _SessionContext:
+    """What the session-level uncertainty evaluation of every characteristic shares."""
+
+    plan: MeasurementPlan
+    cmm_inflation: float
+    calibration_ratio: float  # session calibration u / the per-frame one
+
+
 class _CharacteristicRun:
     """Running values of one characteristic (finite per-frame values only)."""
 
-    __slots__ = ("actual_mm", "elements", "uncertainty", "values")
+    __slots__ = ("actual_mm", "budget", "elements", "uncertainty", "values")
 
     def __init__(self) -> None:
         self.values = RunningStats()
         self.uncertainty = RunningStats()
+        self.budget: dict[str, tuple[RunningStats, RunningStats, str]] = {}
         self.elements: tuple[str, ...] = ()
         self.actual_mm: float | None = None
 
@@ -244,9 +294,43 @@ class _CharacteristicRun:
         self.values.add(c.measured_mm)
         if c.uncertainty_mm is not None:
             self.uncertainty.add(c.uncertainty_mm)
+        for t in c.budget:
+            run = self.budget.get(t.source)
+            if run is None:
+                run = self.budget[t.source] = (RunningStats(), RunningStats(), t.unit)
+            run[0].add(t.u)
+            run[1].add(t.u_mm * t.u_mm)
 
-    def summary(self, spec: CharacteristicSpec) -> CharacteristicSummary:
+    def _budget(self, spec: CharacteristicSpec, mean: float, std: float, ctx: _SessionContext):
+        """The session budget (see :class:`CharacteristicSummary`) and the temperature correction."""
         n = self.values.n
+        terms: list[BudgetTerm] = []
+        for source in _budget.SOURCES:
+            if source not in self.budget:
+                continue
+            u_run, var_run, unit = self.budget[source]
+            t = _budget.term(source, u_run.mean, unit, math.sqrt(max(var_run.mean, 0.0)))
+            if source in ("control_cmm", "reference_cmm"):
+                t = _budget.scaled(t, ctx.cmm_inflation)
+            elif source == "calibration":
+                t = _budget.scaled(t, ctx.calibration_ratio)
+            terms.append(t)
+        if not terms and self.uncertainty.n:  # a measurer without a budget: its u as one term
+            terms.append(_budget.term("camera", 0.0, "mm", self.uncertainty.mean))
+        model = _budget.combined(terms)
+        type_a = std / math.sqrt(n) if n > 1 else 0.0
+        # u_c^2 = max(s^2 / n, u_model^2): the observed scatter where it exceeds the model.
+        terms.append(_budget.term("repeatability", type_a, "mm", math.sqrt(max(0.0, type_a**2 - model**2))))
+        temp = ctx.plan.temperature
+        dL, u_temp = correction(mean, temp) if spec.kind in LENGTH_KINDS else (0.0, 0.0)
+        terms.append(_budget.term("temperature", u_temp / abs(mean) if mean else 0.0, "1", u_temp))
+        terms.sort(key=lambda t: _budget.SOURCES.index(t.source))
+        return tuple(terms), dL
+
+    def summary(self, spec: CharacteristicSpec, ctx: _SessionContext) -> CharacteristicSummary:
+        n = self.values.n
+        rule = ctx.plan.uncertainty.decision_rule
+        k = ctx.plan.uncertainty.coverage_factor
         if n == 0:
             elements = (spec.a,) + ((spec.b,) if spec.b else ())
             return CharacteristicSummary(
@@ -261,13 +345,20 @@ class _CharacteristicRun:
                 spec.tolerance_mm,
                 math.nan,
                 False,
+                coverage_factor=k,
+                decision="not_proven",
+                decision_rule=rule,
+                upper_tol_mm=spec.upper_tol_mm,
+                lower_tol_mm=spec.lower_tol_mm,
             )
-        mean = self.values.mean
+        raw = self.values.mean
         std = math.sqrt(self.values.variance()) if n > 1 else 0.0
-        candidates = [std / math.sqrt(n)] if n > 1 else []
-        if self.uncertainty.n:
-            candidates.append(self.uncertainty.mean)
+        budget, dL = self._budget(spec, raw, std, ctx)
+        mean = raw + dL
+        u_c = _budget.combined(budget)
+        U = _budget.expanded(u_c, k)
         deviation = mean - spec.nominal_mm
+        verdict = decide(deviation, spec.lower_tol_mm, spec.upper_tol_mm, U, rule)
         actual = self.actual_mm
         return CharacteristicSummary(
             name=spec.name,
@@ -276,13 +367,22 @@ class _CharacteristicRun:
             n=n,
             measured_mm=mean,
             std_mm=std,
-            uncertainty_mm=max(candidates) if candidates else None,
+            uncertainty_mm=u_c,
             nominal_mm=spec.nominal_mm,
             tolerance_mm=spec.tolerance_mm,
             deviation_mm=deviation,
-            passed=abs(deviation) <= spec.tolerance_mm,
+            passed=verdict.accepted,
             actual_mm=actual,
             error_mm=None if actual is None else mean - actual,
+            expanded_uncertainty_mm=U,
+            coverage_factor=k,
+            budget=budget,
+            decision=verdict.verdict,
+            decision_rule=rule,
+            upper_tol_mm=spec.upper_tol_mm,
+            lower_tol_mm=spec.lower_tol_mm,
+            measured_raw_mm=raw,
+            temperature_correction_mm=dL,
         )
 
 
@@ -303,9 +403,10 @@ class _ControlRun:
         self.norm_sq.add(norm_sq)
         self.max_norm = max(self.max_norm, math.sqrt(norm_sq))
 
-    def summary(self, control_id: str) -> ControlResidual:
+    def summary(self, control_id: str, expected_rms_mm: float | None = None) -> ControlResidual:
         return ControlResidual(
-            control_id, self.residual.n, self.residual.mean, math.sqrt(self.norm_sq.mean), self.max_norm
+            control_id, self.residual.n, self.residual.mean, math.sqrt(self.norm_sq.mean), self.max_norm,
+            expected_rms_mm,
         )
 
 
@@ -320,6 +421,17 @@ class _RegistrationRun:
         self.rms_sq = RunningStats()
         self.rms_max = -math.inf
         self.controls: dict[str, _ControlRun] = {}
+        self.expected_sq: dict[str, RunningStats] = {}
+        self.pose_camera = RunningStats((6, 6))
+        self.pose_cmm = RunningStats((6, 6))
+
+    def add_consistency(self, c: RegistrationConsistency) -> None:
+        """The stated sigmas' view of one frame's registration (from its measurement)."""
+        for control_id, expected in c.expected_residual_mm.items():
+            self.expected_sq.setdefault(control_id, RunningStats()).add(expected * expected)
+        if c.pose_cov_camera is not None and c.pose_cov_cmm is not None:
+            self.pose_camera.add(c.pose_cov_camera)
+            self.pose_cmm.add(c.pose_cov_cmm)
 
     def add(self, registration: Registration) -> None:
         fit = registration.fit
@@ -336,7 +448,7 @@ class _RegistrationRun:
                 run = self.controls[control_id] = _ControlRun()
             run.add(residual)
 
-    def summary(self, kept: Iterable[Registration]) -> RegistrationAggregate | None:
+    def summary(self, kept: Iterable[Registration], cmm_inflation: float = 1.0) -> RegistrationAggregate | None:
         n = self.R.n
         if n == 0:
             return None
@@ -357,8 +469,19 @@ class _RegistrationRun:
             rms_max_mm=self.rms_max,
             rotation_rms_rad=chord_to_angle(math.sqrt(max(chord_sq, 0.0) / n)),
             rotation_spread_rad=max(spread) if spread else None,
-            controls=tuple(run.summary(cid) for cid, run in self.controls.items()),
+            controls=tuple(
+                run.summary(cid, self._expected(cid, cmm_inflation)) for cid, run in self.controls.items()
+            ),
+            pose_covariance=None
+            if self.pose_camera.n == 0
+            else self.pose_camera.mean + cmm_inflation**2 * self.pose_cmm.mean,
         )
+
+    def _expected(self, control_id: str, cmm_inflation: float) -> float | None:
+        run = self.expected_sq.get(control_id)
+        # The CMM part of the expectation is not kept apart per control: the
+        # stated (uninflated) expectation is reported, the one the test compares with.
+        return None if run is None or run.n == 0 else math.sqrt(run.mean)
 
 
 class SessionAccumulator:
@@ -375,6 +498,7 @@ class SessionAccumulator:
         *,
         rows_kept: int = FRAME_ROWS_KEPT,
         errors_kept: int = FRAME_ERRORS_KEPT,
+        calibration_source: str = "",
     ) -> None:
         if rows_kept < 0 or errors_kept < 0:
             raise ValueError(f"rows_kept and errors_kept must be >= 0, got {rows_kept}, {errors_kept}")
@@ -388,6 +512,12 @@ class SessionAccumulator:
         self._missing: dict[str, int] = {}
         self._characteristics = {spec.name: _CharacteristicRun() for spec in plan.characteristics}
         self._registration = _RegistrationRun()
+        self._consistency = ConsistencyRun()
+        self._sample: FrameResult | None = None
+        stated = plan.uncertainty.calibration_scale_u
+        self._calibration = calibration_uncertainty(
+            calibration_source, DEFAULT_SCALE_U if stated is None else stated
+        )
 
     @property
     def rows(self) -> tuple[FrameResult, ...]:
@@ -407,9 +537,14 @@ class SessionAccumulator:
                 )
         if result.registration is not None:
             self._registration.add(result.registration)
+            if self._sample is None and result.points is not None and result.measurement is not None:
+                self._sample = dataclasses.replace(result, centroids=None)
         measurement = result.measurement
         if measurement is None:
             return
+        if measurement.consistency is not None:
+            self._consistency.add(measurement.consistency)
+            self._registration.add_consistency(measurement.consistency)
         for target in dict.fromkeys(measurement.missing_targets):
             self._missing[target] = self._missing.get(target, 0) + 1
         for c in measurement.characteristics:
@@ -420,15 +555,25 @@ class SessionAccumulator:
     def result(self) -> SessionAggregate:
         """The aggregates of every frame added so far."""
         kept = [f.registration for f in self._rows if f.registration is not None]
+        check = self._consistency.result(self.plan.uncertainty.consistency_alpha)
+        inflation = 1.0 if check is None else check.cmm_inflation
+        stated = self.plan.uncertainty.calibration_scale_u
+        per_frame = DEFAULT_SCALE_U if stated is None else stated  # what the measurer used
+        ratio = self._calibration.scale_u / per_frame if per_frame > 0 else 1.0
+        ctx = _SessionContext(self.plan, inflation, ratio)
         return SessionAggregate(
             frames_processed=self.frames_processed,
             frames_failed=self.frames_failed,
             frame_errors=tuple(self._errors),
             characteristics=tuple(
-                self._characteristics[s.name].summary(s) for s in self.plan.characteristics
+                self._characteristics[s.name].summary(s, ctx) for s in self.plan.characteristics
             ),
-            registration=self._registration.summary(kept),
+            registration=self._registration.summary(kept, inflation),
             missing_targets=tuple(self._missing.items()),
+            consistency=check,
+            calibration_scale_u=self._calibration.scale_u,
+            calibration_uncertainty_source=self._calibration.source,
+            sample_frame=self._sample,
         )
 
 

@@ -83,6 +83,11 @@ def build_parser() -> argparse.ArgumentParser:
         "(rerun+http://HOST:PORT/proxy); see docs/visualisation.md",
     )
     _add_stage_flags(run)
+    run.add_argument(
+        "--monte-carlo", type=int, metavar="N",
+        help="also check the uncertainty budget by a GUM Supplement 1 Monte Carlo of N draws through the "
+        "session's register and measure implementations (= --option report.monte_carlo=N; docs/uncertainty.md)",
+    )
 
     sub.add_parser(
         "romer-sim", add_help=False,
@@ -164,6 +169,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
 
     add_batch_commands(command, verbosity)
+    # -- export (docs/user-guide.md, "Exporting results") ------------------------------------
+    export = command(
+        "export",
+        help="export a session's characteristics (CSV: nominal, measured, deviation, tolerances, U, k, decision)",
+        description="Write one row per characteristic of a session (its folder or report.json) for SPC or "
+        "QMS software: name, nominal, measured, deviation, tolerances, u, U, k, decision (mm, unrounded).",
+    )
+    export.add_argument("session", metavar="SESSION", help="session folder or its report.json")
+    export.add_argument("--csv", metavar="FILE", required=True, help="the CSV file to write ('-' = stdout)")
 
     plugins = command("plugins", help="list every stage's registered implementations")
     plugins.add_argument("--json", action="store_true", help="machine-readable output")
@@ -193,9 +207,15 @@ def resolve_run_config(args: argparse.Namespace) -> Config:
             "record": False if args.no_record else None,
             "rerun": False if args.no_rerun else None,
         },
-        option_texts=args.option,
+        option_texts=[*args.option, *_monte_carlo_option(args)],
         spell=lambda key: f"--{key}",
     )
+
+
+def _monte_carlo_option(args: argparse.Namespace) -> list[str]:
+    """``--monte-carlo N`` as the report option it stands for."""
+    n = getattr(args, "monte_carlo", None)
+    return [f"report.monte_carlo={n}"] if n else []
 
 
 def plugin_manager() -> "pluggy.PluginManager":
@@ -443,9 +463,19 @@ def cmd_batch(args: argparse.Namespace) -> int:
     return 0 if doc["counts"]["PASS"] == doc["inputs"] else 1
 
 
+def cmd_export(args: argparse.Namespace) -> int:
+    from crossfield.export import characteristic_rows, load_report, to_csv, write_csv
+
+    if args.csv == "-":
+        sys.stdout.write(to_csv(characteristic_rows(load_report(args.session))))
+    else:
+        print(f"wrote {write_csv(args.session, args.csv)}")
+    return 0
+
+
 COMMANDS = {
     "run": cmd_run, "replay": cmd_replay, "compare": cmd_compare, "audit": cmd_audit, "keygen": cmd_keygen, "plugins": cmd_plugins,
-    "view": cmd_view, "batch": cmd_batch,
+    "view": cmd_view, "batch": cmd_batch, "export": cmd_export,
 }
 
 

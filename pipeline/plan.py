@@ -27,7 +27,17 @@ A plan is a TOML file (format in ``docs/plan.md``)::
     a = "P1"
     b = "L3"
     nominal = 308.35            # mm
-    tolerance = 0.1             # mm, symmetric
+    tolerance = 0.1             # mm, symmetric (or upper_tol / lower_tol)
+
+    [uncertainty]               # optional (docs/uncertainty.md)
+    coverage_factor = 2.0       # k of U = k u_c
+    decision_rule = "simple"    # simple | guarded_acceptance | guarded_rejection
+
+    [temperature]               # optional: correction to 20 degC (ISO 1)
+    part = 21.5                 # degC, with u_part (K), part_alpha (1/K), ...
+
+    [job]                       # optional: the report's job header
+    part = "Housing 4711"
 
 The CMM arm probes the elements in ``probing_order`` (default: controls,
 then reference points, then reference lines), one button press per point;
@@ -46,8 +56,13 @@ import numpy as np
 
 from crossfield.errors import ConfigError
 from crossfield.types import frozen_array
+from crossfield.uncertainty.decision import RULES
+from crossfield.uncertainty.temperature import Temperature
 
 __all__ = [
+    "Instrument",
+    "JobHeader",
+    "UncertaintySpec",
     "KINDS",
     "LINE_FITS",
     "CharacteristicSpec",
@@ -84,7 +99,9 @@ class ReferenceLineSpec:
 @dataclass(frozen=True)
 class CharacteristicSpec:
     """kind: point_point (|a-b|), point_line (distance of point a to line b),
-    depth (global Z of point a). nominal and tolerance in mm."""
+    depth (global Z of point a). nominal and tolerances in mm: the zone is
+    ``[nominal - lower_tol, nominal + upper_tol]``; tolerance_mm is the
+    symmetric tolerance (the larger of the two when they differ)."""
 
     name: str
     kind: str
@@ -92,6 +109,64 @@ class CharacteristicSpec:
     b: str | None
     nominal_mm: float
     tolerance_mm: float
+    upper_tol_mm: float | None = None
+    lower_tol_mm: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.upper_tol_mm is None:
+            object.__setattr__(self, "upper_tol_mm", self.tolerance_mm)
+        if self.lower_tol_mm is None:
+            object.__setattr__(self, "lower_tol_mm", self.tolerance_mm)
+
+
+@dataclass(frozen=True)
+class UncertaintySpec:
+    """How uncertainties are stated and decisions made (``docs/uncertainty.md``).
+
+    coverage_factor: k of U = k u_c. decision_rule: ISO 14253-1 rule
+    (:data:`crossfield.uncertainty.decision.RULES`). calibration_scale_u:
+    relative scale uncertainty of the calibration when its file states none
+    (None = :data:`crossfield.uncertainty.calibration.DEFAULT_SCALE_U`).
+    target_radius_mm, max_tilt_deg: circle targets' radius (mm) and largest
+    tilt to the line of sight (deg) for the eccentricity term (0 = no term).
+    eccentricity_corrected: the centroids are corrected for eccentricity; the
+    term is then the residual fraction ``eccentricity_residual`` of the bias.
+    consistency_alpha: level of the residual chi-square test.
+    """
+
+    coverage_factor: float = 2.0
+    decision_rule: str = "simple"
+    calibration_scale_u: float | None = None
+    target_radius_mm: float = 0.0
+    max_tilt_deg: float = 0.0
+    eccentricity_corrected: bool = False
+    eccentricity_residual: float = 0.1
+    consistency_alpha: float = 0.05
+
+
+@dataclass(frozen=True)
+class Instrument:
+    """An instrument of the job header: id, kind (e.g. "CMM arm"), calibration date and due date (text)."""
+
+    id: str
+    kind: str = ""
+    calibrated: str = ""
+    due: str = ""
+
+
+@dataclass(frozen=True)
+class JobHeader:
+    """The report's job header: part, serial number, operator, order, instruments."""
+
+    part: str = ""
+    serial: str = ""
+    operator: str = ""
+    order: str = ""
+    instruments: tuple[Instrument, ...] = ()
+
+    @property
+    def stated(self) -> bool:
+        return bool(self.part or self.serial or self.operator or self.order or self.instruments)
 
 
 @dataclass(frozen=True)
@@ -105,6 +180,9 @@ class MeasurementPlan:
     order: tuple[str, ...]
     source: str = ""
     text: str = ""
+    uncertainty: UncertaintySpec = UncertaintySpec()
+    temperature: Temperature = Temperature()
+    job: JobHeader = JobHeader()
 
     def probing_order(self) -> list[str]:
         """Labels of the CMM points in the order the arm takes them."""
@@ -128,9 +206,19 @@ _TABLE_KEYS = {
     "target": ({"id", "nominal", "search_radius"}, {"description"}),
     "reference_point": ({"id"}, {"description"}),
     "reference_line": ({"id", "probes"}, {"fit", "description"}),
-    "characteristic": ({"name", "kind", "a", "nominal", "tolerance"}, {"b", "description"}),
+    "characteristic": ({"name", "kind", "a", "nominal"}, {"b", "description", "tolerance", "upper_tol", "lower_tol"}),
+    "uncertainty": (set(), {
+        "coverage_factor", "decision_rule", "calibration_scale_u", "target_radius", "max_tilt_deg",
+        "eccentricity_corrected", "eccentricity_residual", "consistency_alpha",
+    }),
+    "temperature": (set(), {
+        "part", "u_part", "part_alpha", "u_part_alpha", "reference", "u_reference", "reference_alpha",
+        "u_reference_alpha",
+    }),
+    "job": (set(), {"part", "serial", "operator", "order", "instrument"}),
+    "instrument": ({"id"}, {"kind", "calibrated", "due"}),
 }
-_TOP_KEYS = set(_TABLE_KEYS) | {"probing_order"}
+_TOP_KEYS = (set(_TABLE_KEYS) - {"instrument"}) | {"probing_order"}
 
 
 def _check_keys(entry: Any, table: str, where: str) -> dict[str, Any]:
@@ -244,6 +332,18 @@ def parse_plan(text: str, source: str = "<plan>") -> MeasurementPlan:
             raise ConfigError(f"{where}: key 'b' names {b!r}, which is no reference line of this plan")
         if kind == "depth" and b is not None:
             raise ConfigError(f"{where}: key 'b' is not used by kind 'depth'")
+        tolerance = None if "tolerance" not in e else _number(e["tolerance"], where, "tolerance", positive=True)
+        upper = None if "upper_tol" not in e else _number(e["upper_tol"], where, "upper_tol")
+        lower = None if "lower_tol" not in e else _number(e["lower_tol"], where, "lower_tol")
+        if tolerance is None and (upper is None or lower is None):
+            raise ConfigError(f"{where}: give key 'tolerance' (symmetric) or both 'upper_tol' and 'lower_tol'")
+        upper = tolerance if upper is None else upper
+        lower = tolerance if lower is None else lower
+        if not upper + lower > 0:
+            raise ConfigError(
+                f"{where}: the zone [nominal - lower_tol, nominal + upper_tol] is empty "
+                f"(upper_tol {upper!r}, lower_tol {lower!r})"
+            )
         characteristics.append(
             CharacteristicSpec(
                 name,
@@ -251,7 +351,9 @@ def parse_plan(text: str, source: str = "<plan>") -> MeasurementPlan:
                 a,
                 b,
                 _number(e["nominal"], where, "nominal"),
-                _number(e["tolerance"], where, "tolerance", positive=True),
+                tolerance if tolerance is not None else max(upper, lower),
+                upper,
+                lower,
             )
         )
 
@@ -265,6 +367,9 @@ def parse_plan(text: str, source: str = "<plan>") -> MeasurementPlan:
     if len(controls) < 3:
         raise ConfigError(f"{source}: [[control]] needs at least 3 control points, got {len(controls)}")
     return MeasurementPlan(
+        uncertainty=_uncertainty(data.get("uncertainty", {}), source),
+        temperature=_temperature(data.get("temperature", {}), source),
+        job=_job(data.get("job", {}), source),
         name=str(head.get("name", Path(source).stem)),
         control_ids=controls,
         targets=tuple(targets),
@@ -274,6 +379,85 @@ def parse_plan(text: str, source: str = "<plan>") -> MeasurementPlan:
         order=tuple(order),
         source=source,
         text=text,
+    )
+
+
+def _uncertainty(entry: Any, source: str) -> UncertaintySpec:
+    where = f"{source}: [uncertainty]"
+    e = _check_keys(entry, "uncertainty", where)
+    spec = UncertaintySpec()
+    rule = e.get("decision_rule", spec.decision_rule)
+    if rule not in RULES:
+        raise ConfigError(f"{where}: key 'decision_rule' must be one of {', '.join(RULES)}, got {rule!r}")
+    corrected = e.get("eccentricity_corrected", False)
+    if not isinstance(corrected, bool):
+        raise ConfigError(f"{where}: key 'eccentricity_corrected' must be true or false, got {corrected!r}")
+    alpha = _number(e.get("consistency_alpha", spec.consistency_alpha), where, "consistency_alpha", True)
+    if not alpha < 1:
+        raise ConfigError(f"{where}: key 'consistency_alpha' must be in (0, 1), got {alpha!r}")
+    cal = e.get("calibration_scale_u")
+    return UncertaintySpec(
+        coverage_factor=_number(e.get("coverage_factor", 2.0), where, "coverage_factor", positive=True),
+        decision_rule=rule,
+        calibration_scale_u=None if cal is None else _non_negative(cal, where, "calibration_scale_u"),
+        target_radius_mm=_non_negative(e.get("target_radius", 0.0), where, "target_radius"),
+        max_tilt_deg=_non_negative(e.get("max_tilt_deg", 0.0), where, "max_tilt_deg"),
+        eccentricity_corrected=corrected,
+        eccentricity_residual=_non_negative(e.get("eccentricity_residual", 0.1), where, "eccentricity_residual"),
+        consistency_alpha=alpha,
+    )
+
+
+def _non_negative(value: Any, where: str, key: str) -> float:
+    number = _number(value, where, key)
+    if number < 0:
+        raise ConfigError(f"{where}: key {key!r} must be >= 0, got {value!r}")
+    return number
+
+
+def _temperature(entry: Any, source: str) -> Temperature:
+    where = f"{source}: [temperature]"
+    e = _check_keys(entry, "temperature", where)
+    if not e:
+        return Temperature()
+    d = Temperature()
+    return Temperature(
+        part_c=_number(e.get("part", d.part_c), where, "part"),
+        u_part_k=_non_negative(e.get("u_part", d.u_part_k), where, "u_part"),
+        part_alpha_per_k=_non_negative(e.get("part_alpha", d.part_alpha_per_k), where, "part_alpha"),
+        u_part_alpha_per_k=_non_negative(e.get("u_part_alpha", d.u_part_alpha_per_k), where, "u_part_alpha"),
+        reference_c=_number(e.get("reference", d.reference_c), where, "reference"),
+        u_reference_k=_non_negative(e.get("u_reference", d.u_reference_k), where, "u_reference"),
+        reference_alpha_per_k=_non_negative(
+            e.get("reference_alpha", d.reference_alpha_per_k), where, "reference_alpha"
+        ),
+        u_reference_alpha_per_k=_non_negative(
+            e.get("u_reference_alpha", d.u_reference_alpha_per_k), where, "u_reference_alpha"
+        ),
+        stated=True,
+    )
+
+
+def _string(value: Any, where: str, key: str) -> str:
+    if not isinstance(value, str):
+        raise ConfigError(f"{where}: key {key!r} must be a string, got {value!r}")
+    return value
+
+
+def _job(entry: Any, source: str) -> JobHeader:
+    where = f"{source}: [job]"
+    e = _check_keys(entry, "job", where)
+    instruments = e.get("instrument", [])
+    if not isinstance(instruments, list):
+        raise ConfigError(f"{where}: [[job.instrument]] must be an array of tables")
+    items = []
+    for i, entry_i in enumerate(instruments):
+        w = f"{source}: [[job.instrument]] #{i + 1}"
+        x = _check_keys(entry_i, "instrument", w)
+        items.append(Instrument(*(_string(x.get(k, ""), w, k) for k in ("id", "kind", "calibrated", "due"))))
+    return JobHeader(
+        *(_string(e.get(k, ""), where, k) for k in ("part", "serial", "operator", "order")),
+        instruments=tuple(items),
     )
 
 

@@ -544,7 +544,7 @@ def run_pipeline(
     hook.on_reference(reference=reference)
     # Aggregated frame by frame: memory does not grow with the session's length
     # (the first rows are kept for the report; the recording has every frame).
-    accumulator = SessionAccumulator(info.plan)
+    accumulator = SessionAccumulator(info.plan, calibration_source=info.calibration.source)
     session_pose = SessionPoseAccumulator()
     for frame in frames:
         hook.on_frame(frame=frame)

@@ -25,6 +25,7 @@ import numpy as np
 __all__ = [
     "CAMERAS",
     "CameraIntrinsics",
+    "BudgetTerm",
     "CameraPoints",
     "CentroidSet",
     "CharacteristicResult",
@@ -36,6 +37,7 @@ __all__ = [
     "ReferenceData",
     "Registration",
     "RejectedBlob",
+    "RegistrationConsistency",
     "RigidFit",
     "StereoCalibration",
     "StereoCentroids",
@@ -399,6 +401,52 @@ class Registration:
 
 
 @dataclass(frozen=True)
+class BudgetTerm:
+    """One line of an uncertainty budget (GUM 5.1.3, JCGM 100 eq. (10)).
+
+    source: what the input is (``crossfield.uncertainty.budget.SOURCES``).
+    u: the input's standard uncertainty in ``unit`` (mm, K, 1 for a relative
+    scale). sensitivity: the characteristic's change per unit of the input
+    (mm per ``unit``; for a source made of several correlated inputs, such as
+    the control points through the shared registration, the effective one,
+    ``u_mm / u``). u_mm: the contribution ``|sensitivity| * u`` (mm); the
+    contributions of the sources add in quadrature to the combined standard
+    uncertainty (the sources are independent of each other).
+    """
+
+    source: str
+    u: float
+    unit: str
+    sensitivity: float
+    u_mm: float
+
+
+@dataclass(frozen=True, eq=False)
+class RegistrationConsistency:
+    """What one frame's registration residuals say about the stated sigmas, and the
+    pose covariance those sigmas give.
+
+    observed_ss_mm2: ``sum_k |r_k|^2`` of the fit residuals (mm^2);
+    expected_camera_ss_mm2 / expected_cmm_ss_mm2: its expectation under the
+    stated camera and CMM sigmas, ``(1 - 6 / 3n) sum_k tr S_k`` split by
+    source (mm^2); dof: ``3n - 6`` for n matched controls.
+    expected_residual_mm: control id -> expected RMS of |r_k| (mm),
+    ``sqrt((1 - 2 / n) tr S_k)``.
+    pose_cov_camera / pose_cov_cmm: (6, 6) covariance of the pose's small
+    rotation (rad, rotation vector in the global frame) and of the translation
+    t_global_camera (mm), from the camera-side and the CMM sigmas.
+    """
+
+    observed_ss_mm2: float
+    expected_camera_ss_mm2: float
+    expected_cmm_ss_mm2: float
+    dof: int
+    expected_residual_mm: Mapping[str, float] = field(default_factory=dict)
+    pose_cov_camera: np.ndarray | None = None
+    pose_cov_cmm: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
 class CharacteristicResult:
     """One evaluated characteristic of the measurement plan.
 
@@ -407,6 +455,8 @@ class CharacteristicResult:
     (simulator): error_mm = measured_mm - actual_mm.
     uncertainty_mm: standard uncertainty of measured_mm propagated from the
     camera points and the registration, where the plugin can state one.
+    budget: its per-source split (:class:`BudgetTerm`; the squares of the
+    ``u_mm`` add up to ``uncertainty_mm**2``); empty when not stated.
     """
 
     name: str
@@ -420,6 +470,7 @@ class CharacteristicResult:
     actual_mm: float | None = None
     error_mm: float | None = None
     elements: tuple[str, ...] = ()
+    budget: tuple[BudgetTerm, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -428,12 +479,15 @@ class Measurement:
 
     target_points: plan id -> (3,) global position in mm of each target found.
     missing_targets: plan ids with no camera point within their search radius.
+    consistency: the registration residuals against the stated sigmas
+    (:class:`RegistrationConsistency`), None when not evaluated.
     """
 
     sequence: int
     characteristics: tuple[CharacteristicResult, ...]
     target_points: Mapping[str, tuple[float, float, float]]
     missing_targets: tuple[str, ...] = ()
+    consistency: RegistrationConsistency | None = None
 
 
 # --------------------------------------------------------------------------

@@ -26,13 +26,21 @@ and the covariance of (dtheta, dt) is the linearised least-squares one,
 ``(J^T J)^-1 J^T S J (J^T J)^-1`` with J_k = [-[g_k - g_bar]x, I] and S_k the
 covariance of control k's camera point (rotated) plus its CMM covariance;
 for isotropic errors sigma_f this is Fitzpatrick's ``Cov(dt) = sigma_f^2/n I``,
-``Cov(dtheta) = sigma_f^2 (sum_k |y_k|^2 I - y_k y_k^T)^-1``. When the fit
-residuals exceed what the stated sigmas predict, the covariance is scaled up
-by their ratio. Two camera points share the registration, so its effect is
+``Cov(dtheta) = sigma_f^2 (sum_k |y_k|^2 I - y_k y_k^T)^-1``. The fit
+residuals against the stated sigmas go with each frame's measurement
+(``Measurement.consistency``); the session tests them (chi-square) and
+inflates the CMM sigma when they contradict it (``crossfield.uncertainty``).
+Two camera points share the registration, so its effect is
 propagated through the difference of their Jacobians (it cancels for nearby
 points). CMM points carry ``sigma_mm`` per coordinate; a fitted line carries
 its parameter covariance. The solver's own weights are not modelled (the
 estimate assumes equal weights).
+
+Budget (``docs/uncertainty.md``): the variance is split by independent source
+(camera centroid noise, eccentricity of circle centres, calibration scale,
+control-point CMM, reference CMM); each source's contribution holds the
+correlations of the shared registration, and the squares add up to
+``uncertainty_mm**2``.
 """
 
 from __future__ import annotations
@@ -46,6 +54,8 @@ from crossfield.errors import MeasurementError
 from crossfield.geometry import AxisFit, fit_reference_element, point_line_distance
 from crossfield.hookspecs import hookimpl
 from crossfield.plan import CharacteristicSpec, MeasurementPlan
+from crossfield.uncertainty.budget import combined, merge
+from crossfield.uncertainty.calibration import DEFAULT_SCALE_U
 from crossfield.types import (
     CameraPoints,
     CharacteristicResult,
@@ -53,17 +63,39 @@ from crossfield.types import (
     Measurement,
     ReferenceData,
     Registration,
+    RegistrationConsistency,
 )
+
+
+#: Budget sources of a point's own covariance and of the registration covariance.
+_POINT_SOURCES = ("camera", "eccentricity", "reference_cmm")
+_REGISTRATION_SOURCES = ("camera", "eccentricity", "control_cmm")
 
 
 @dataclass(frozen=True)
 class _Point:
-    """A point of a characteristic, global frame: xyz (3,) mm, own covariance (3, 3) mm^2,
-    and its Jacobian (3, 6) with respect to the registration error (dtheta, dt)."""
+    """A point of a characteristic, global frame: xyz (3,) mm; its own covariance
+    (3, 3) mm^2 per budget source; its Jacobian (3, 6) with respect to the
+    registration error (dtheta, dt); d_cal (3,) mm, how it moves per unit relative
+    scale error of the calibration (``p - g_bar`` for camera points, 0 for CMM points)."""
 
     xyz: np.ndarray
-    cov: np.ndarray
+    cov: dict[str, np.ndarray]
     J_reg: np.ndarray
+    d_cal: np.ndarray
+
+
+def eccentricity_sigma_mm(distance_mm: float, radius_mm: float, max_tilt_deg: float) -> float:
+    """Standard uncertainty (mm, per axis) of a circle target's centre from perspective
+    eccentricity: the projected centre of a circle of radius r tilted by theta at
+    distance Z is off the projected centre by about ``r^2 sin(theta) cos(theta) / Z``
+    in object space (Ahn, Warnecke & Kotowski 1999, Photogramm. Rec. 16(93), eq. (11),
+    referred to the object); theta uniform on [0, max_tilt]: half-width
+    ``r^2 sin(2 theta_max) / (2 Z)``, u = half-width / sqrt(3) (GUM 4.3.7)."""
+    if radius_mm <= 0 or max_tilt_deg <= 0 or distance_mm <= 0:
+        return 0.0
+    theta = np.radians(min(max_tilt_deg, 45.0))
+    return float(radius_mm**2 * np.sin(2 * theta) / (2 * distance_mm) / np.sqrt(3.0))
 
 
 class PlanMeasurer:
@@ -118,12 +150,21 @@ class PlanMeasurer:
         fit = registration.fit
         R = fit.R * fit.scale
         global_xyz = fit.apply(points.xyz)
-        C_reg, g_bar = self._registration_covariance(reference, points, registration)
+        spec_u = plan.uncertainty
+        ecc_factor = spec_u.eccentricity_residual if spec_u.eccentricity_corrected else 1.0
+
+        def ecc_cov(index: int) -> np.ndarray:
+            s_e = ecc_factor * eccentricity_sigma_mm(
+                float(np.linalg.norm(points.xyz[index])), spec_u.target_radius_mm, spec_u.max_tilt_deg
+            )
+            return s_e**2 * np.eye(3)
+
+        C_reg, g_bar, consistency = self._registration_covariance(reference, points, registration, ecc_cov)
 
         def camera_point(index: int) -> _Point:
-            cov = camera_covariance(R, points.sigma_xyz[index])
+            cov = {"camera": camera_covariance(R, points.sigma_xyz[index]), "eccentricity": ecc_cov(index)}
             J = registration_jacobian(global_xyz[index], g_bar)
-            return _Point(global_xyz[index], cov, J)
+            return _Point(global_xyz[index], cov, J, global_xyz[index] - g_bar)
 
         found, missing = self._identify_targets(plan, global_xyz, registration)
         elements: dict[str, _Point] = {tid: camera_point(i) for tid, i in found.items()}
@@ -131,11 +172,19 @@ class PlanMeasurer:
         for pid in list(plan.control_ids) + list(plan.reference_point_ids):
             if pid in by_label:
                 probe = by_label[pid]
-                elements[pid] = _Point(np.array(probe.xyz), probe.sigma_mm**2 * np.eye(3), np.zeros((3, 6)))
+                cov = {"reference_cmm": probe.sigma_mm**2 * np.eye(3)}
+                elements[pid] = _Point(np.array(probe.xyz), cov, np.zeros((3, 6)), np.zeros(3))
+        inputs = {
+            "camera": (float(np.mean(points.sigma_xyz)) if len(points.xyz) else 0.0, "mm"),
+            "eccentricity": (float(np.sqrt(np.mean([ecc_cov(i)[0, 0] for i in range(len(points.xyz))])))
+                             if len(points.xyz) else 0.0, "mm"),
+            "calibration": (self._calibration_u(plan), "1"),
+            "control_cmm": (self._control_sigma(reference, registration), "mm"),
+        }
 
         results = []
         for spec in plan.characteristics:
-            result = self._evaluate(spec, plan, reference, elements, C_reg, ground_truth)
+            result = self._evaluate(spec, plan, reference, elements, C_reg, ground_truth, inputs)
             if result is not None:
                 results.append(result)
         return Measurement(
@@ -143,7 +192,19 @@ class PlanMeasurer:
             characteristics=tuple(results),
             target_points={tid: tuple(float(v) for v in global_xyz[i]) for tid, i in found.items()},
             missing_targets=tuple(missing),
+            consistency=consistency,
         )
+
+    @staticmethod
+    def _calibration_u(plan: MeasurementPlan) -> float:
+        u = plan.uncertainty.calibration_scale_u
+        return DEFAULT_SCALE_U if u is None else u
+
+    @staticmethod
+    def _control_sigma(reference: ReferenceData, registration: Registration) -> float:
+        by_label = reference.by_label()
+        sigmas = [by_label[c].sigma_mm for c in registration.correspondence.control_ids if c in by_label]
+        return float(np.mean(sigmas)) if sigmas else 0.0
 
     @staticmethod
     def _identify_targets(
@@ -169,41 +230,68 @@ class PlanMeasurer:
         return found, missing
 
     def _registration_covariance(
-        self, reference: ReferenceData, points: CameraPoints, registration: Registration
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """(6, 6) covariance of (dtheta, dt) and the control centroid g_bar (3,), global mm."""
+        self, reference: ReferenceData, points: CameraPoints, registration: Registration, ecc_cov
+    ) -> tuple[dict[str, np.ndarray], np.ndarray, RegistrationConsistency | None]:
+        """Per budget source, the (6, 6) covariance of (dtheta, dt); the control centroid
+        g_bar (3,), global mm; the residuals against the stated sigmas."""
         corr = registration.correspondence
         by_label = reference.by_label()
         pairs = [(cid, int(i)) for cid, i in zip(corr.control_ids, corr.camera_index) if cid in by_label]
+        zero = {src: np.zeros((6, 6)) for src in _REGISTRATION_SOURCES}
         if not pairs:
-            return np.zeros((6, 6)), np.zeros(3)
+            return zero, np.zeros(3), None
         G = np.array([by_label[cid].xyz for cid, _ in pairs])
         g_bar = G.mean(axis=0)
-        if not self.registration_uncertainty:
-            return np.zeros((6, 6)), g_bar
         # Linearised least squares (equal weights): the residual of control k moves by
         # J_k xi with J_k = [-[y_k]x, I], xi = (dtheta, dt), y_k = g_k - g_bar, and its
-        # noise e_k has covariance S_k = R Sigma_cam,k R^T + sigma_cmm,k^2 I, so
-        # Cov(xi) = (J^T J)^-1 (J^T S J) (J^T J)^-1 (sandwich form).
+        # noise e_k has covariance S_k = R Sigma_cam,k R^T + Sigma_ecc,k + sigma_cmm,k^2 I,
+        # so Cov(xi) = (J^T J)^-1 (J^T S J) (J^T J)^-1 (sandwich form), linear in S:
+        # one sandwich per independent source.
         R = registration.fit.R * registration.fit.scale
         JtJ = np.zeros((6, 6))
-        JtSJ = np.zeros((6, 6))
-        trace_S = 0.0
+        JtSJ = {src: np.zeros((6, 6)) for src in _REGISTRATION_SOURCES}
+        trace = dict.fromkeys(_REGISTRATION_SOURCES, 0.0)
+        trace_k: dict[str, float] = {}
         for g, (cid, index) in zip(G, pairs):
             J = registration_jacobian(g, g_bar)
-            S = camera_covariance(R, points.sigma_xyz[index]) + by_label[cid].sigma_mm ** 2 * np.eye(3)
+            S = {
+                "camera": camera_covariance(R, points.sigma_xyz[index]),
+                "eccentricity": ecc_cov(index),
+                "control_cmm": by_label[cid].sigma_mm ** 2 * np.eye(3),
+            }
             JtJ += J.T @ J
-            JtSJ += J.T @ S @ J
-            trace_S += float(np.trace(S))
+            for src in _REGISTRATION_SOURCES:
+                JtSJ[src] += J.T @ S[src] @ J
+                trace[src] += float(np.trace(S[src]))
+            trace_k[cid] = float(sum(np.trace(S[src]) for src in _REGISTRATION_SOURCES))
         inverse = np.linalg.pinv(JtJ)
-        cov = inverse @ JtSJ @ inverse
-        # A-posteriori check: when the fit residuals are larger than the stated sigmas
-        # predict (E sum |r_k|^2 ~ (1 - 6 / 3n) sum tr S_k), scale the covariance up.
+        cov = {src: inverse @ JtSJ[src] @ inverse for src in _REGISTRATION_SOURCES}
+        if not self.registration_uncertainty:
+            cov = zero
+        # Residuals against the stated sigmas: E sum |r_k|^2 = (1 - 6 / 3n) sum tr S_k
+        # (3n coordinates, 6 parameters); the test is made over the session
+        # (crossfield.uncertainty.consistency).
         n = len(pairs)
-        if n > 2 and trace_S > 0:
-            observed = float(np.sum(np.asarray(registration.fit.residuals) ** 2))
-            cov *= max(1.0, observed / ((1.0 - 2.0 / n) * trace_S))
-        return cov, g_bar
+        consistency = None
+        if n > 2:
+            residuals = np.asarray(registration.fit.residuals)
+            keep = [k for k, cid in enumerate(corr.control_ids) if cid in by_label]
+            factor = 1.0 - 2.0 / n
+            # The pose (R, t_global_camera): t is where the camera origin goes, a point
+            # moved by J(t) xi (crossfield.covariance.registration_jacobian).
+            J_t = registration_jacobian(registration.fit.t, g_bar)
+            to_pose = np.vstack([np.hstack([np.eye(3), np.zeros((3, 3))]), J_t])
+            camera_side = cov["camera"] + cov["eccentricity"]
+            consistency = RegistrationConsistency(
+                observed_ss_mm2=float(np.sum(residuals[keep] ** 2)),
+                expected_camera_ss_mm2=factor * (trace["camera"] + trace["eccentricity"]),
+                expected_cmm_ss_mm2=factor * trace["control_cmm"],
+                dof=3 * n - 6,
+                expected_residual_mm={cid: float(np.sqrt(factor * t)) for cid, t in trace_k.items()},
+                pose_cov_camera=to_pose @ camera_side @ to_pose.T,
+                pose_cov_cmm=to_pose @ cov["control_cmm"] @ to_pose.T,
+            )
+        return cov, g_bar, consistency
 
     def _evaluate(
         self,
@@ -211,35 +299,39 @@ class PlanMeasurer:
         plan: MeasurementPlan,
         reference: ReferenceData,
         elements: dict[str, _Point],
-        C_reg: np.ndarray,
+        C_reg: dict[str, np.ndarray],
         truth: GroundTruth | None,
+        inputs: dict[str, tuple[float, str]],
     ) -> CharacteristicResult | None:
         if spec.a not in elements or (spec.kind == "point_point" and spec.b not in elements):
             return None  # a target not found or a CMM point not imported: nothing to report
         a = elements[spec.a]
         actual = None
+        line_var = 0.0
+        line_sigma = 0.0
         if spec.kind == "point_point":
             b = elements[spec.b]
             diff = a.xyz - b.xyz
             measured = float(np.linalg.norm(diff))
             u = diff / measured if measured > 0 else np.zeros(3)
-            J = a.J_reg - b.J_reg  # shared registration: correlated, propagate the difference
-            var = u @ (a.cov + b.cov + J @ C_reg @ J.T) @ u
+            gradients = [(a, u), (b, -u)]
             if truth is not None and spec.a in truth.points_global and spec.b in truth.points_global:
                 true_a, true_b = truth.points_global[spec.a], truth.points_global[spec.b]
                 actual = float(np.linalg.norm(np.asarray(true_a) - np.asarray(true_b)))
         elif spec.kind == "point_line":
             line = self.reference_line(plan, reference, spec.b)
-            point_cov = a.cov + a.J_reg @ C_reg @ a.J_reg.T
-            measured, sigma, _ = point_line_distance(a.xyz, line, point_cov)
-            var = sigma**2
+            measured, line_sd, g_p = point_line_distance(a.xyz, line, None)
+            line_var = line_sd**2  # the axis fit's own covariance (its CMM probes)
+            line_sigma = max((p.sigma_mm for p in reference.labelled(spec.b)), default=0.0)
+            gradients = [(a, g_p)]
             if truth is not None and spec.a in truth.points_global and spec.b in truth.lines_global:
                 actual = truth.lines_global[spec.b].distance(truth.points_global[spec.a])
         else:  # depth: global Z of a
             measured = float(a.xyz[2])
-            var = (a.cov + a.J_reg @ C_reg @ a.J_reg.T)[2, 2]
+            gradients = [(a, np.array([0.0, 0.0, 1.0]))]
             if truth is not None and spec.a in truth.points_global:
                 actual = float(truth.points_global[spec.a][2])
+        budget = self._budget(spec, gradients, C_reg, inputs, line_var, line_sigma, elements)
         deviation = measured - spec.nominal_mm
         return CharacteristicResult(
             name=spec.name,
@@ -248,12 +340,50 @@ class PlanMeasurer:
             nominal_mm=spec.nominal_mm,
             tolerance_mm=spec.tolerance_mm,
             deviation_mm=deviation,
-            passed=bool(abs(deviation) <= spec.tolerance_mm),
-            uncertainty_mm=float(np.sqrt(max(float(var), 0.0))),
+            passed=bool(-spec.lower_tol_mm <= deviation <= spec.upper_tol_mm),
+            uncertainty_mm=combined(budget),
             actual_mm=actual,
             error_mm=None if actual is None else measured - actual,
             elements=(spec.a,) + ((spec.b,) if spec.b else ()),
+            budget=budget,
         )
+
+    def _budget(
+        self,
+        spec: CharacteristicSpec,
+        gradients: list[tuple[_Point, np.ndarray]],
+        C_reg: dict[str, np.ndarray],
+        inputs: dict[str, tuple[float, str]],
+        line_var: float,
+        line_sigma: float,
+        elements: dict[str, _Point],
+    ) -> tuple:
+        """Per-source variance of the characteristic y = f(points): with g_j = dy/dp_j,
+        ``var_src = sum_j g_j^T Sigma_src,j g_j + (sum_j g_j^T J_j) C_src (sum_j J_j^T g_j)``
+        (the registration is shared by the points: its effect enters through the sum of
+        their Jacobians, GUM eq. (13)); calibration ``(u_s sum_j g_j . d_cal,j)^2``."""
+        variance = dict.fromkeys(("camera", "eccentricity", "control_cmm", "reference_cmm"), 0.0)
+        variance["reference_cmm"] += line_var
+        J_sum = np.zeros(6)
+        c_cal = 0.0
+        for point, g in gradients:
+            for src, cov in point.cov.items():
+                variance[src] += float(g @ cov @ g)
+            J_sum += g @ point.J_reg
+            c_cal += float(g @ point.d_cal)
+        for src in _REGISTRATION_SOURCES:
+            variance[src] += float(J_sum @ C_reg[src] @ J_sum)
+        cmm_points = [p for p, _ in gradients if "reference_cmm" in p.cov]
+        ref_u = max([float(np.sqrt(p.cov["reference_cmm"][0, 0])) for p in cmm_points] + [line_sigma])
+        u_cal = inputs["calibration"][0]
+        table = {
+            "camera": (*inputs["camera"], variance["camera"]),
+            "eccentricity": (*inputs["eccentricity"], variance["eccentricity"]),
+            "calibration": (u_cal, "1", (c_cal * u_cal) ** 2),
+            "control_cmm": (*inputs["control_cmm"], variance["control_cmm"]),
+            "reference_cmm": (ref_u, "mm", variance["reference_cmm"]),
+        }
+        return merge(table)
 
 
 @hookimpl

@@ -17,6 +17,8 @@ import os
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
+from markupsafe import Markup
+
 from crossfield.hookspecs import hookimpl
 from crossfield.session import SessionSummary
 
@@ -29,6 +31,9 @@ KIND_LABELS = {
 }
 
 DASH = "\u2014"
+
+#: crossfield's own report templates (Jinja2) and style sheet.
+TEMPLATE_DIR = doc.TEMPLATE_DIR
 
 
 # --------------------------------------------------------------------------
@@ -52,6 +57,20 @@ def verdict(passed: bool) -> str:
     return "PASS" if passed else "FAIL"
 
 
+#: How a decision (ISO 14253-1) reads in tables.
+DECISION_TEXT = {"conforms": "conforms", "does_not_conform": "does not conform", "not_proven": "not proven"}
+
+
+def tolerance_text(c: Mapping[str, Any], decimals: int) -> str:
+    """``±0.1000`` for a symmetric zone, ``+0.1000/-0.0500`` otherwise (mm)."""
+    upper, lower = c.get("upper_tol_mm"), c.get("lower_tol_mm")
+    if upper is None or lower is None:
+        return "\u00b1" + fixed(c.get("tolerance_mm"), decimals)
+    if upper == lower:
+        return "\u00b1" + fixed(upper, decimals)
+    return f"{fixed(upper, decimals, True)}/{fixed(-lower, decimals, True)}"
+
+
 def _write_atomic(path: Path, text: str) -> None:
     """Write ``text`` (UTF-8) to ``path`` via a temporary file and rename."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
@@ -67,51 +86,6 @@ def _write_atomic(path: Path, text: str) -> None:
 # HTML
 # --------------------------------------------------------------------------
 
-CSS = """
-:root { --ink:#1d2733; --muted:#5b6b7b; --rule:#c9d2dc; --band:#f3f6f9; --pass:#1b7a3a; --pass-bg:#e3f4e8;
-        --fail:#b3261e; --fail-bg:#fbe5e3; --accent:#234e77; }
-* { box-sizing: border-box; }
-body { margin: 0; color: var(--ink); background: #fff;
-       font: 14px/1.45 "Segoe UI", "Helvetica Neue", Helvetica, Arial, sans-serif; }
-main { max-width: 1120px; margin: 0 auto; padding: 28px 32px 48px; }
-header.report { border-bottom: 3px solid var(--accent); padding-bottom: 14px; margin-bottom: 18px;
-                display: flex; justify-content: space-between; align-items: flex-start; gap: 24px; }
-h1 { font-size: 22px; margin: 0 0 4px; letter-spacing: .01em; }
-h2 { font-size: 16px; margin: 30px 0 8px; color: var(--accent); border-bottom: 1px solid var(--rule);
-     padding-bottom: 4px; }
-.subtitle { color: var(--muted); margin: 0; }
-.verdict { font-weight: 700; font-size: 20px; padding: 8px 18px; border-radius: 6px; border: 2px solid;
-           white-space: nowrap; }
-.verdict.pass, td.pass { color: var(--pass); background: var(--pass-bg); border-color: var(--pass); }
-.verdict.fail, td.fail { color: var(--fail); background: var(--fail-bg); border-color: var(--fail); }
-td.pass, td.fail { font-weight: 700; text-align: center; white-space: nowrap; }
-.fail-text { color: var(--fail); font-weight: 700; }
-dl.facts { display: grid; grid-template-columns: max-content 1fr max-content 1fr; gap: 4px 18px; margin: 0; }
-dl.facts dt { color: var(--muted); }
-dl.facts dd { margin: 0; font-variant-numeric: tabular-nums; }
-table { border-collapse: collapse; margin: 6px 0 4px; font-variant-numeric: tabular-nums; }
-caption { caption-side: top; text-align: left; font-weight: 600; padding: 0 0 6px; }
-th, td { padding: 4px 10px; border-bottom: 1px solid var(--rule); vertical-align: top; }
-thead th { background: var(--band); border-top: 2px solid var(--ink); border-bottom: 1px solid var(--ink);
-           font-weight: 600; text-align: center; }
-tbody tr:last-child td, tbody tr:last-child th { border-bottom: 2px solid var(--ink); }
-td.num, th.num { text-align: right; font-family: "DejaVu Sans Mono", Consolas, Menlo, monospace; }
-table.matrix td { min-width: 90px; }
-#table1-rotation tbody tr:first-child td { border-top: 2px solid var(--ink); }
-thead th { white-space: nowrap; }
-table.wide th, table.wide td { padding: 4px 7px; }
-table.wide { width: 100%; }
-tfoot td { border: none; color: var(--muted); font-size: 12.5px; }
-.note { color: var(--muted); font-size: 12.5px; margin: 4px 0 0; }
-ul.problems li { margin: 2px 0; }
-.ok { color: var(--pass); }
-pre { background: var(--band); border: 1px solid var(--rule); padding: 10px; overflow-x: auto;
-      font-size: 12px; }
-code { font-family: "DejaVu Sans Mono", Consolas, Menlo, monospace; font-size: 12.5px; }
-footer { margin-top: 36px; color: var(--muted); font-size: 12px; border-top: 1px solid var(--rule);
-         padding-top: 8px; }
-@media print { main { padding: 0; } h2 { break-after: avoid; } table { break-inside: avoid; } }
-"""
 
 
 def _row(cells: Iterable[str]) -> str:
@@ -131,6 +105,45 @@ def _result_cell(passed: bool) -> str:
     return _td("&#10003; PASS" if passed else "&#10007; FAIL", "pass" if passed else "fail")
 
 
+def _decision_cell(c: Mapping[str, Any]) -> str:
+    decision = c.get("decision", "conforms" if c["passed"] else "does_not_conform")
+    text = DECISION_TEXT.get(decision, decision)
+    cls = {"conforms": "pass", "does_not_conform": "fail"}.get(decision, "open")
+    mark = {"pass": "&#10003; ", "fail": "&#10007; "}.get(cls, "? ")
+    accepted = "" if c["passed"] == (decision == "conforms") else (" (accepted)" if c["passed"] else "")
+    return _td(f"{mark}{esc(text)}{accepted}", cls)
+
+
+def _budget_table(report: Mapping[str, Any], decimals: int) -> str:
+    """Per characteristic, each source's contribution u_mm (mm), u_c and U."""
+    chars = report["characteristics"]
+    sources = [s for s in report["uncertainty"]["sources"] if any(
+        t["source"] == s for c in chars for t in c["budget"])]
+    head = "".join(f"<th>{esc(s.replace('_', ' '))}</th>" for s in sources)
+    rows = []
+    for c in chars:
+        by = {t["source"]: t for t in c["budget"]}
+        cells = [_td(esc(c["name"]))]
+        cells += [_num(by[s]["u_mm"] if s in by else None, decimals + 1) for s in sources]
+        cells += [_num(c["uncertainty_mm"], decimals + 1), _num(c["expanded_uncertainty_mm"], decimals)]
+        rows.append(_row(cells))
+    k = chars[0]["coverage_factor"] if chars else 2.0
+    legend = "".join(
+        f"<li><strong>{esc(s.replace('_', ' '))}</strong>: {esc(report['uncertainty']['sources'][s])}</li>"
+        for s in sources
+    )
+    return (
+        '<table id="budget" class="wide">'
+        "<caption>Uncertainty budget: contribution of each source (mm, standard uncertainties)</caption>"
+        f"<thead><tr><th>Characteristic</th>{head}<th>u<sub>c</sub></th><th>U (k={k:g})</th></tr></thead>"
+        f"<tbody>{''.join(rows)}</tbody>"
+        f'<tfoot><tr><td colspan="{len(sources) + 3}">u<sub>c</sub> = root sum of squares of the contributions '
+        "(the shared registration's correlations are inside each source's contribution); "
+        f"U = k u<sub>c</sub>. report.json holds each term's input u and sensitivity.</td></tr></tfoot></table>"
+        f'<ul class="note">{legend}</ul>'
+    )
+
+
 def _table1(reg: Mapping[str, Any] | None, decimals: int) -> str:
     if reg is None:
         return '<p id="table1-rotation">No frame was registered: no rotation matrix.</p>'
@@ -139,9 +152,17 @@ def _table1(reg: Mapping[str, Any] | None, decimals: int) -> str:
         '<table id="table1-rotation" class="matrix">'
         "<caption>Table 1. Rotation matrix R<sub>global&#8592;camera</sub></caption>"
         f"<tbody>{rows}</tbody>"
-        f'<tfoot><tr><td colspan="3">det R = {esc(fixed(reg["det_R"], 6))}; '
+        f'<tfoot><tr><td colspan="3">det R = {esc(fixed(reg["det_R"], 6))}; {_rotation_u(reg)}'
         f"{esc(_aggregate_note(reg))}</td></tr></tfoot></table>"
     )
+
+
+def _rotation_u(reg: Mapping[str, Any]) -> str:
+    cov = reg.get("covariance")
+    if not cov:
+        return ""
+    urad = ", ".join(f"{v * 1e6:.1f}" for v in cov["rotation_u_rad"])
+    return f"u of the rotation vector (x, y, z) = ({esc(urad)}) &#181;rad; "
 
 
 def _aggregate_note(reg: Mapping[str, Any]) -> str:
@@ -152,16 +173,18 @@ def _aggregate_note(reg: Mapping[str, Any]) -> str:
 def _table2(reg: Mapping[str, Any] | None, decimals: int) -> str:
     if reg is None:
         return '<p id="table2-translation">No frame was registered: no translation vector.</p>'
+    cov = reg.get("covariance")
+    t_u = cov["t_u_mm"] if cov else [None, None, None]
     rows = "".join(
-        _row([f"<th>{axis}</th>", _num(v, decimals), _num(s, decimals)])
-        for axis, v, s in zip("xyz", reg["t_global_camera_mm"], reg["t_std_mm"])
+        _row([f"<th>{axis}</th>", _num(v, decimals), _num(u, decimals), _num(s, decimals)])
+        for axis, v, u, s in zip("xyz", reg["t_global_camera_mm"], t_u, reg["t_std_mm"])
     )
     return (
         '<table id="table2-translation" class="matrix">'
         "<caption>Table 2. Translation vector t<sub>global&#8592;camera</sub> (mm)</caption>"
-        '<thead><tr><th></th><th>t (mm)</th><th>std over frames (mm)</th></tr></thead>'
+        '<thead><tr><th></th><th>t (mm)</th><th>u (mm)</th><th>std over frames (mm)</th></tr></thead>'
         f"<tbody>{rows}</tbody>"
-        f'<tfoot><tr><td colspan="3">p<sub>global</sub> = R p<sub>camera</sub> + t; '
+        f'<tfoot><tr><td colspan="4">p<sub>global</sub> = R p<sub>camera</sub> + t; u from the stated sigmas; '
         f"{esc(_aggregate_note(reg))}</td></tr></tfoot></table>"
     )
 
@@ -172,7 +195,8 @@ def _table3(report: Mapping[str, Any], decimals: int) -> str:
     head = ["No.", "Characteristic", "Elements", "Frames", "Measured", "Std", "u"]
     if truth:
         head += ["Actual", "Error"]
-    head += ["Nominal", "Tol. &#177;", "Deviation", "Result"]
+    k = chars[0]["coverage_factor"] if chars else 2.0
+    head += ["Nominal", "Tolerance", "Deviation", f"U (k={k:g})", "Decision"]
     rows = []
     for c in chars:
         kind = KIND_LABELS.get(c["kind"], c["kind"])
@@ -189,9 +213,10 @@ def _table3(report: Mapping[str, Any], decimals: int) -> str:
             cells += [_num(c.get("actual_mm"), decimals), _num(c.get("error_mm"), decimals, signed=True)]
         cells += [
             _num(c["nominal_mm"], decimals),
-            _num(c["tolerance_mm"], decimals),
+            _td(esc(tolerance_text(c, decimals)), "num"),
             _num(c["deviation_mm"], decimals, signed=True),
-            _result_cell(c["passed"]),
+            _num(c["expanded_uncertainty_mm"], decimals),
+            _decision_cell(c),
         ]
         rows.append(_row(cells))
     if not rows:
@@ -211,6 +236,43 @@ def _table3(report: Mapping[str, Any], decimals: int) -> str:
     )
 
 
+def _consistency_html(report: Mapping[str, Any]) -> str:
+    check = report["uncertainty"]["consistency"]
+    if check is None:
+        return '<p class="note">No registration residuals to test against the stated sigmas.</p>'
+    text = (
+        f"Chi-square test of the registration residuals against the stated sigmas: "
+        f"chi2 = {check['chi2']:.1f} for {check['dof']} degrees of freedom, p = {check['p_value']:.3g}, "
+        f"Birge ratio {check['birge_ratio']:.2f}."
+    )
+    if check["warning"]:
+        return f'<p class="warning" id="consistency-warning"><strong>Warning:</strong> {esc(check["warning"])}.</p>'
+    return f'<p class="note" id="consistency">{esc(text)} Consistent at alpha = {check["alpha"]:g}.</p>'
+
+
+def _monte_carlo_html(report: Mapping[str, Any], decimals: int) -> str:
+    mc = report.get("monte_carlo")
+    if not mc:
+        return ""
+    rows = "".join(
+        _row([
+            _td(esc(c["name"])), _num(c["U_linear_mm"], decimals + 1), _num(c["U_mc_mm"], decimals + 1),
+            _td(esc("[" + ", ".join(fixed(v, decimals + 1, True) for v in c["interval_mm"]) + "]"), "num"),
+            _td(esc(DASH if c["agreement"] is None else f"{c['agreement']:+.1%}"), "num"),
+            _td("agrees" if c["agreed"] else "differs", "pass" if c["agreed"] else "fail"),
+        ])
+        for c in mc["characteristics"]
+    )
+    return (
+        '<table id="monte-carlo" class="wide">'
+        f"<caption>GUM Supplement 1 check: Monte Carlo ({esc(mc['n_draws'])} draws) beside the linear U (mm)</caption>"
+        "<thead><tr><th>Characteristic</th><th>U linear</th><th>U Monte Carlo</th><th>95 % interval about the mean</th>"
+        "<th>U<sub>MC</sub> / U &#8722; 1</th><th>Within " + esc(f"{mc['tolerance']:.0%}") + "</th></tr></thead>"
+        f"<tbody>{rows}</tbody>"
+        f'<tfoot><tr><td colspan="6">{esc(mc["method"])}.</td></tr></tfoot></table>'
+    )
+
+
 def _residual_table(reg: Mapping[str, Any] | None, decimals: int) -> str:
     if reg is None:
         return "<p>No registration.</p>"
@@ -222,6 +284,7 @@ def _residual_table(reg: Mapping[str, Any] | None, decimals: int) -> str:
                 _num(cp["residual_norm_mm"], decimals),
                 _num(cp["rms_norm_mm"], decimals),
                 _num(cp["max_norm_mm"], decimals),
+                _num(cp.get("expected_rms_mm"), decimals),
                 _td(esc(cp["n_frames"]), "num"),
             ]
         )
@@ -231,10 +294,11 @@ def _residual_table(reg: Mapping[str, Any] | None, decimals: int) -> str:
         '<table id="residuals" class="wide">'
         "<caption>Per common control point: residual R p + t &#8722; q of the registration (mm)</caption>"
         "<thead><tr><th>Control</th><th>dx</th><th>dy</th><th>dz</th><th>|mean|</th>"
-        "<th>RMS |r|</th><th>max |r|</th><th>Frames</th></tr></thead>"
+        "<th>RMS |r|</th><th>max |r|</th><th>expected RMS |r|</th><th>Frames</th></tr></thead>"
         f"<tbody>{''.join(rows)}</tbody>"
-        '<tfoot><tr><td colspan="8">dx, dy, dz: mean over frames of each frame\'s own fit residual, '
-        "global frame; RMS |r| and max |r| over frames.</td></tr></tfoot></table>"
+        '<tfoot><tr><td colspan="9">dx, dy, dz: mean over frames of each frame\'s own fit residual, '
+        "global frame; RMS |r| and max |r| over frames; expected RMS |r|: what the stated camera and CMM "
+        "sigmas predict, sqrt((1 - 2/n) tr S).</td></tr></tfoot></table>"
     )
 
 
@@ -316,8 +380,18 @@ def _provenance(report: Mapping[str, Any]) -> str:
     )
 
 
-def render_html(report: Mapping[str, Any], decimals: int = 4) -> str:
-    """report.html for a :func:`crossfield.report.document.build_report` result."""
+def render_html(
+    report: Mapping[str, Any],
+    decimals: int = 4,
+    *,
+    figures: Mapping[str, str] | None = None,
+    templates: str | Path | None = None,
+) -> str:
+    """report.html for a :func:`crossfield.report.document.build_report` result.
+
+    figures: name -> inline SVG (:func:`report_figures`; none drawn when None).
+    templates: a folder whose ``report.html.j2`` / ``report.css`` replace crossfield's
+    (Jinja2; ``docs/report.md``, "Templates")."""
     reg = report["registration"]
     passed = report["passed"]
     n_frames, n_failed = report["frames_processed"], report["frames_failed"]
@@ -358,60 +432,75 @@ def render_html(report: Mapping[str, Any], decimals: int = 4) -> str:
         )
     cls = "pass" if passed else "fail"
     title = f"Cross-field measurement report {DASH} {report['plan']['name']}"
-    return f"""<!DOCTYPE html>
-<html lang="en">
-<head>
-<meta charset="utf-8">
-<meta name="viewport" content="width=device-width, initial-scale=1">
-<title>{esc(title)}</title>
-<style>{CSS}</style>
-</head>
-<body>
-<main>
-<header class="report">
-<div>
-<h1>Cross-field measurement report</h1>
-<p class="subtitle">Plan <strong>{esc(report["plan"]["name"])}</strong>
-&middot; session <code>{esc(report["session"]["id"])}</code>
-&middot; {esc(report["session"]["start_time_utc"] or "start time not recorded")}</p>
-</div>
-<div class="verdict {cls}" id="verdict">{"&#10003;" if passed else "&#10007;"} {verdict(passed)}</div>
-</header>
-<section>
-{_dl(summary_facts)}
-</section>
-<section>
-<h2>Registration: camera to global (CMM) frame</h2>
-{_table1(reg, decimals)}
-{_table2(reg, decimals)}
-</section>
-<section>
-<h2>Cross-field characteristics</h2>
-{_table3(report, decimals)}
-{rms_line}
-</section>
-<section>
-<h2>Registration residuals</h2>
-{_residual_table(reg, decimals)}
-</section>
-<section>
-<h2>Frames</h2>
-{_frames_table(report, decimals)}
-</section>
-<section>
-<h2>Problems</h2>
-{problem_html}
-</section>
-<section>
-<h2>Provenance</h2>
-{_provenance(report)}
-</section>
-<footer>Written by crossfield. Lengths in mm, rotation unitless; tables rounded to {decimals} decimals,
-report.json beside this file holds every number unrounded.</footer>
-</main>
-</body>
-</html>
-"""
+    context = {
+        "report": report,
+        "title": title,
+        "decimals": decimals,
+        "verdict_class": cls,
+        "verdict_text": Markup(f'{"&#10003;" if passed else "&#10007;"} {verdict(passed)}'),
+        "job": Markup(_job_html(report)),
+        "summary_facts": Markup(_dl(summary_facts)),
+        "table1": Markup(_table1(reg, decimals)),
+        "table2": Markup(_table2(reg, decimals)),
+        "table3": Markup(_table3(report, decimals)),
+        "rms_line": Markup(rms_line),
+        "budget": Markup(_budget_table(report, decimals)),
+        "consistency": Markup(_consistency_html(report)),
+        "monte_carlo": Markup(_monte_carlo_html(report, decimals)),
+        "residuals": Markup(_residual_table(reg, decimals)),
+        "frames": Markup(_frames_table(report, decimals)),
+        "problems": Markup(problem_html),
+        "provenance": Markup(_provenance(report)),
+        "figures": {
+            name: Markup((figures or {}).get(name, ""))
+            for name in ("deviations", "residuals", "trends", *(figures or {}))
+        },
+    }
+    return _environment(templates).get_template("report.html.j2").render(context)
+
+
+def _environment(templates: str | Path | None):
+    """Jinja2 environment: the lab's template folder first (when given), then crossfield's."""
+    import jinja2
+
+    folders = [str(templates)] if templates else []
+    loader = jinja2.FileSystemLoader([*folders, str(TEMPLATE_DIR)])
+    return jinja2.Environment(loader=loader, autoescape=True, undefined=jinja2.StrictUndefined,
+                              keep_trailing_newline=True)
+
+
+def _job_html(report: Mapping[str, Any]) -> str:
+    job = report.get("job") or {}
+    pairs = [
+        ("Part", esc(job.get("part") or DASH)),
+        ("Serial number", esc(job.get("serial") or DASH)),
+        ("Operator", esc(job.get("operator") or DASH)),
+        ("Order", esc(job.get("order") or DASH)),
+    ]
+    instruments = job.get("instruments") or []
+    rows = "".join(
+        _row([_td(esc(i["id"])), _td(esc(i["kind"] or DASH)), _td(esc(i["calibrated"] or DASH)),
+              _td(esc(i["due"] or DASH))])
+        for i in instruments
+    )
+    table = (
+        '<table id="instruments"><caption>Instruments</caption><thead><tr><th>Id</th><th>Kind</th>'
+        f"<th>Calibrated</th><th>Calibration due</th></tr></thead><tbody>{rows}</tbody></table>"
+        if instruments
+        else '<p class="note">No instruments stated in the plan ([[job.instrument]]).</p>'
+    )
+    return '<dl class="facts job" id="job">' + "".join(f"<dt>{k}</dt><dd>{v}</dd>" for k, v in pairs) + "</dl>" + table
+
+
+def report_figures(report: Mapping[str, Any], positions: Mapping[str, Any] | None = None) -> dict[str, str]:
+    """The report's inline SVG pictures (:mod:`crossfield.report.figures`)."""
+    from crossfield.report import figures
+
+    return {
+        "deviations": figures.deviation_chart(report),
+        "residuals": figures.residual_chart(report, positions or {}),
+        "trends": figures.trend_chart(report),
+    }
 
 
 # --------------------------------------------------------------------------
@@ -446,21 +535,35 @@ def render_text(report: Mapping[str, Any], decimals: int = 4) -> str:
     chars = report["characteristics"]
     width = max([len("Characteristic")] + [len(_printable(c["name"])) for c in chars])
     truth = report["ground_truth_known"]
-    header = f"{'No.':>3}  {'Characteristic':<{width}}  {'Measured':>10}"
+    k = chars[0]["coverage_factor"] if chars else 2.0
+    u_head = f"U(k={k:g})"
+    lines.append(f"Lengths in mm; U = expanded uncertainty; rule: {report['uncertainty']['decision_rule']}")
+    header = f"{'No.':>3}  {'Characteristic':<{width}}  {'Measured':>10}  {u_head:>8}"
     if truth:
         header += f"  {'Actual':>10}  {'Error':>8}"
-    header += f"  {'Nominal':>10}  {'Dev':>8}  Result"
+    tol_w = max([len("Tolerance")] + [len(tolerance_text(c, decimals)) for c in chars])
+    header += f"  {'Nominal':>10}  {'Tolerance':>{tol_w}}  {'Dev':>8}  Decision"
     lines.append(header)
     for c in chars:
         line = f"{c['no']:>3}  {_printable(c['name']):<{width}}  {fixed(c['measured_mm'], decimals):>10}"
+        line += f"  {fixed(c['expanded_uncertainty_mm'], decimals):>8}"
         if truth:
             actual, error = fixed(c.get("actual_mm"), decimals), fixed(c.get("error_mm"), decimals, True)
             line += f"  {actual:>10}  {error:>8}"
-        line += f"  {fixed(c['nominal_mm'], decimals):>10}  {fixed(c['deviation_mm'], decimals, True):>8}"
-        line += f"  {verdict(c['passed'])}"
+        line += f"  {fixed(c['nominal_mm'], decimals):>10}  {tolerance_text(c, decimals):>{tol_w}}"
+        line += f"  {fixed(c['deviation_mm'], decimals, True):>8}  {DECISION_TEXT.get(c['decision'], c['decision'])}"
         lines.append(line)
     if report["rms_error_mm"] is not None:
         lines.append(f"RMS error vs ground truth: {fixed(report['rms_error_mm'], decimals)} mm")
+    mc = report.get("monte_carlo")
+    if mc:
+        agreed = sum(c["agreed"] for c in mc["characteristics"])
+        worst = max((abs(c["agreement"]) for c in mc["characteristics"] if c["agreement"] is not None), default=0.0)
+        lines.append(
+            f"Monte Carlo (GUM-S1, {mc['n_draws']} draws): U_MC within {mc['tolerance']:.0%} of U for "
+            f"{agreed} of {len(mc['characteristics'])} characteristics (largest difference {worst:.1%})"
+        )
+
     for problem in report["problems"][:5]:
         lines.append(f"! {_printable(problem)}")
     if len(report["problems"]) > 5:
@@ -478,41 +581,82 @@ def render_text(report: Mapping[str, Any], decimals: int = 4) -> str:
 class JsonReport:
     """report.json only: every number unrounded, for audits and scripts."""
 
-    def __init__(self, *, decimals: int = 4):
+    def __init__(self, *, decimals: int = 4, monte_carlo: int = 0):
         if isinstance(decimals, bool) or not isinstance(decimals, int) or not 0 <= decimals <= 12:
             raise ValueError(f"option 'decimals' must be an integer 0..12, got {decimals!r}")
+        if isinstance(monte_carlo, bool) or not isinstance(monte_carlo, int) or monte_carlo < 0 or monte_carlo == 1:
+            raise ValueError(f"option 'monte_carlo' must be 0 (off) or a number of draws >= 2, got {monte_carlo!r}")
         self.decimals = decimals
+        self.monte_carlo = monte_carlo
+
+    def document(self, summary: SessionSummary) -> dict[str, Any]:
+        """report.json's content, with the Monte Carlo check when ``monte_carlo`` > 0."""
+        report = doc.build_report(summary)
+        if self.monte_carlo:
+            from crossfield.uncertainty.montecarlo import session_monte_carlo
+
+            results = session_monte_carlo(summary, self.monte_carlo)
+            report["monte_carlo"] = doc.monte_carlo_section(results, self.monte_carlo)
+        return report
 
     def _write_json(self, report: Mapping[str, Any], out_dir: Path) -> Path:
         path = out_dir / "report.json"
         _write_atomic(path, doc.dumps(report))
+        self._last = report
         return path
 
     def write(self, summary: SessionSummary, out_dir: Path) -> list[Path]:
         """Write report.json into ``out_dir`` (created if missing)."""
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
-        return [self._write_json(doc.build_report(summary), out_dir)]
+        return [self._write_json(self.document(summary), out_dir)]
 
     def summary_text(self, summary: SessionSummary) -> str:
-        return summary_text(summary, self.decimals)
+        report = getattr(self, "_last", None)
+        if report is None or report["session"]["id"] != summary.info.session_id:
+            report = doc.build_report(summary)
+            written = Path(summary.info.out_dir) / "report.json"
+            if self.monte_carlo and written.is_file():  # the writer's document holds the Monte Carlo check
+                on_disk = json.loads(written.read_text(encoding="utf-8"))
+                if on_disk.get("session", {}).get("id") == summary.info.session_id and "monte_carlo" in on_disk:
+                    report["monte_carlo"] = on_disk["monte_carlo"]
+        return render_text(report, self.decimals)
 
 
 class HtmlReport(JsonReport):
-    """report.json plus a self-contained report.html with the paper's Tables 1-3.
+    """report.json plus a self-contained report.html: the paper's Tables 1-3, the
+    uncertainty budget, decisions, pictures (inline SVG), job header, provenance.
 
     decimals: decimals shown in the HTML tables and the terminal summary
     (the paper prints 4); report.json is never rounded.
+    templates: a folder with the lab's ``report.html.j2`` and/or ``report.css``
+    (Jinja2), used in place of crossfield's (``docs/report.md``, "Templates");
+    "" = crossfield's.
+    figures: draw the pictures (matplotlib; default true).
     """
+
+    def __init__(self, *, decimals: int = 4, templates: str = "", figures: bool = True, monte_carlo: int = 0):
+        super().__init__(decimals=decimals, monte_carlo=monte_carlo)
+        if not isinstance(templates, str):
+            raise ValueError(f"option 'templates' must be a folder path (string), got {templates!r}")
+        if templates and not Path(templates).is_dir():
+            raise ValueError(f"option 'templates': {templates!r} is not a folder")
+        if not isinstance(figures, bool):
+            raise ValueError(f"option 'figures' must be true or false, got {figures!r}")
+        self.templates = templates
+        self.figures = figures
 
     def write(self, summary: SessionSummary, out_dir: Path) -> list[Path]:
         """Write report.json and report.html into ``out_dir`` (created if missing)."""
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
-        report = doc.build_report(summary)
+        report = self.document(summary)
+        self._last = report
         json_path = self._write_json(report, out_dir)
         html_path = out_dir / "report.html"
-        _write_atomic(html_path, render_html(report, self.decimals))
+        positions = {p.label: tuple(float(v) for v in p.xyz) for p in summary.reference.points}
+        figures = report_figures(report, positions) if self.figures else None
+        _write_atomic(html_path, render_html(report, self.decimals, figures=figures, templates=self.templates or None))
         return [json_path, html_path]
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import json
+import re
 import math
 from html.parser import HTMLParser
 from pathlib import Path
@@ -362,7 +363,7 @@ def test_pass_fail(report):
 
 def test_provenance(summary, report):
     info = summary.info
-    assert report["format"] == "crossfield-report/1"
+    assert report["format"] == "crossfield-report/2"
     assert report["session"]["id"] == info.session_id
     assert report["session"]["start_time_ns"] == info.start_time_ns
     assert report["session"]["start_time_utc"] == "2026-01-01T12:00:00.123456+00:00"
@@ -490,8 +491,11 @@ def test_html_is_self_contained(page):
     assert {"script", "link", "img", "iframe", "object", "embed"}.isdisjoint(parsed.tags)
     assert {"src", "href"}.isdisjoint(parsed.attributes)
     assert not any(a.startswith("on") for a in parsed.attributes)  # no event handlers
-    assert "url(" not in page and "@import" not in page
+    # inline SVG refers to its own parts only (url(#id), xlink:href="#id")
+    assert not re.search(r"url\((?!#)", page) and "@import" not in page
+    assert all(ref.startswith("#") for ref in re.findall(r'href="([^"]*)"', page))
     assert page.startswith("<!DOCTYPE html>") and "<style>" in page
+    assert page.count("<svg") >= 2  # the deviation chart, the residual vectors (and trends)
 
 
 def test_html_escapes_every_string(page):
@@ -513,7 +517,10 @@ def test_html_table2_translation(report, page):
     rows = parse_tables(page).tables["table2-translation"]
     t = report["registration"]["t_global_camera_mm"]
     s = report["registration"]["t_std_mm"]
-    assert rows[1:4] == [[axis, f"{v:.4f}", f"{e:.4f}"] for axis, v, e in zip("xyz", t, s)]
+    cov = report["registration"]["covariance"]
+    u = cov["t_u_mm"] if cov else [None] * 3
+    fmt = lambda v: "\u2014" if v is None else f"{v:.4f}"  # noqa: E731
+    assert rows[1:4] == [[axis, f"{v:.4f}", fmt(w), f"{e:.4f}"] for axis, v, w, e in zip("xyz", t, u, s)]
 
 
 def test_html_table3_lengths(report, page):
@@ -521,7 +528,7 @@ def test_html_table3_lengths(report, page):
     header = rows[0]
     assert header == [
         "No.", "Characteristic", "Elements", "Frames", "Measured", "Std", "u", "Actual", "Error",
-        "Nominal", "Tol. ±", "Deviation", "Result",
+        "Nominal", "Tolerance", "Deviation", "U (k=2)", "Decision",
     ]
     table = body_rows(rows, header)
     assert len(table) == 3
@@ -529,10 +536,14 @@ def test_html_table3_lengths(report, page):
         assert row["No."] == str(c["no"])
         assert row["Characteristic"].startswith(c["name"])
         assert float(row["Measured"]) == round(c["measured_mm"], 4)
+        assert float(row["u"]) == round(c["uncertainty_mm"], 4)
+        assert float(row["U (k=2)"]) == round(c["expanded_uncertainty_mm"], 4)
         assert float(row["Nominal"]) == round(c["nominal_mm"], 4)
-        assert float(row["Tol. ±"]) == round(c["tolerance_mm"], 4)
+        assert row["Tolerance"] == f"\u00b1{c['tolerance_mm']:.4f}"
         assert float(row["Deviation"]) == round(c["deviation_mm"], 4)
-        assert row["Result"] == ("✓ PASS" if c["passed"] else "✗ FAIL")
+        text = {"conforms": "\u2713 conforms", "does_not_conform": "\u2717 does not conform"}
+        assert row["Decision"] == text.get(c["decision"], "? not proven")
+        assert c["decision"] == ("conforms" if c["passed"] else "does_not_conform")  # simple rule
         if "actual_mm" in c:
             assert float(row["Actual"]) == round(c["actual_mm"], 4)
             assert float(row["Error"]) == round(c["error_mm"], 4)
@@ -576,7 +587,9 @@ def test_summary_text(summary, written, report):
         assert f"{c['measured_mm']:.4f}" in line
         if "actual_mm" in c:
             assert f"{c['actual_mm']:.4f}" in line and f"{c['error_mm']:+.4f}" in line
-        assert line.rstrip().endswith("PASS" if c["passed"] else "FAIL")
+        assert line.rstrip().endswith("conforms" if c["passed"] else "does not conform")
+        assert f"{c['expanded_uncertainty_mm']:.4f}" in line and f"\u00b1{c['tolerance_mm']:.4f}" in line
+    assert "Lengths in mm" in text and "U(k=2)" in text
     assert f"RMS error vs ground truth: {report['rms_error_mm']:.4f} mm" in text
     assert text.splitlines()[-1] == "Result: FAIL"
     assert "4 processed, 1 failed" in text

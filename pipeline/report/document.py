@@ -10,7 +10,7 @@ become ``null``: JSON has no NaN.
 Units: mm for lengths, radians for angles. Frames: ``R_global_camera``,
 ``t_global_camera`` map upper-camera points into the CMM (global) frame,
 ``p_g = R @ p_c + t``. The format is described in ``docs/report.md`` and
-fixed by ``pipeline/schemas/report.schema.json``.
+fixed by ``pipeline/recording/schemas/report.schema.json``.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ from __future__ import annotations
 import datetime as _dt
 import json
 from importlib import resources
+from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
@@ -25,22 +26,28 @@ import numpy as np
 from crossfield.jsonable import matrix, plain, real, vector
 from crossfield.rigid import rotation_angle
 from crossfield.session import FrameResult, SessionSummary
+from crossfield.uncertainty.budget import SOURCE_TEXT
 
 __all__ = [
     "REGISTRATION_AGGREGATE",
     "REGISTRATION_AGGREGATE_TEXT",
     "REPORT_FORMAT",
+    "TEMPLATE_DIR",
     "build_report",
     "dumps",
     "frames_note",
     "load_schema",
+    "monte_carlo_section",
     "problems",
     "utc_time",
     "validate",
 ]
 
+#: The report page's Jinja2 templates and style sheet (``docs/report.md``, "Templates").
+TEMPLATE_DIR = Path(__file__).resolve().parent / "templates"
+
 #: Identifies the layout of report.json; bump on incompatible changes.
-REPORT_FORMAT = "crossfield-report/1"
+REPORT_FORMAT = "crossfield-report/2"
 
 #: How the session's T_global_camera is formed from the per-frame registrations.
 REGISTRATION_AGGREGATE = "session_mean"
@@ -86,6 +93,7 @@ def _registration_section(summary: SessionSummary) -> dict[str, Any] | None:
             "residual_norm_mm": real(np.linalg.norm(c.residual_mm)),
             "rms_norm_mm": real(c.rms_norm_mm),
             "max_norm_mm": real(c.max_norm_mm),
+            "expected_rms_mm": real(c.expected_rms_mm),
         }
         for c in agg.controls
     ]
@@ -115,6 +123,7 @@ def _registration_section(summary: SessionSummary) -> dict[str, Any] | None:
             for r in summary.registrations
         ],
         "control_points": controls,
+        "covariance": _covariance_section(agg),
         "ground_truth": None,
     }
     truth = summary.info.ground_truth
@@ -131,6 +140,91 @@ def _registration_section(summary: SessionSummary) -> dict[str, Any] | None:
     return section
 
 
+def _covariance_section(agg) -> dict[str, Any] | None:
+    """R and t with their covariance: (6, 6) over (rotation vector rad, t mm) and the
+    standard uncertainties it gives."""
+    C = agg.pose_covariance
+    if C is None:
+        return None
+    sd = np.sqrt(np.clip(np.diagonal(C), 0.0, None))
+    return {
+        "parameters": ["rx_rad", "ry_rad", "rz_rad", "tx_mm", "ty_mm", "tz_mm"],
+        "matrix": [[real(v) for v in row] for row in np.asarray(C)],
+        "rotation_u_rad": vector(sd[:3]),
+        "t_u_mm": vector(sd[3:]),
+        "description": "covariance of a small rotation vector of R_global_camera (global frame, rad) and of "
+        "t_global_camera (mm) from the stated camera and CMM sigmas (mean over frames, not divided by their "
+        "number; the CMM part inflated as the budgets' when the residuals contradict it)",
+    }
+
+
+def _consistency_section(summary: SessionSummary) -> dict[str, Any] | None:
+    check = summary.aggregate.consistency
+    if check is None:
+        return None
+    return {
+        "test": "chi-square of the registration residuals against the stated sigmas (docs/uncertainty.md)",
+        "n_frames": int(check.n_frames),
+        "observed_ss_mm2": real(check.observed_ss_mm2),
+        "expected_camera_ss_mm2": real(check.expected_camera_ss_mm2),
+        "expected_cmm_ss_mm2": real(check.expected_cmm_ss_mm2),
+        "dof": int(check.dof),
+        "chi2": real(check.chi2),
+        "p_value": real(check.p_value),
+        "birge_ratio": real(check.birge_ratio),
+        "alpha": real(check.alpha),
+        "consistent": bool(check.consistent),
+        "cmm_inflation": real(check.cmm_inflation),
+        "rule": "when p < alpha, the CMM standard deviation is multiplied by "
+        "sqrt(max(1, (observed - expected_camera) / expected_cmm)) in every budget",
+        "warning": check.warning,
+    }
+
+
+def _uncertainty_section(summary: SessionSummary) -> dict[str, Any]:
+    plan = summary.info.plan
+    spec, temp = plan.uncertainty, plan.temperature
+    aggregate = summary.aggregate
+    return {
+        "coverage_factor": real(spec.coverage_factor),
+        "decision_rule": spec.decision_rule,
+        "calibration_scale_u": real(aggregate.calibration_scale_u),
+        "calibration_scale_u_source": aggregate.calibration_uncertainty_source,
+        "eccentricity": {
+            "target_radius_mm": real(spec.target_radius_mm),
+            "max_tilt_deg": real(spec.max_tilt_deg),
+            "corrected": bool(spec.eccentricity_corrected),
+            "residual_fraction": real(spec.eccentricity_residual),
+        },
+        "temperature": {
+            "stated": bool(temp.stated),
+            "part_c": real(temp.part_c),
+            "u_part_k": real(temp.u_part_k),
+            "part_alpha_per_k": real(temp.part_alpha_per_k),
+            "u_part_alpha_per_k": real(temp.u_part_alpha_per_k),
+            "reference_c": real(temp.reference_c),
+            "u_reference_k": real(temp.u_reference_k),
+            "reference_alpha_per_k": real(temp.reference_alpha_per_k),
+            "u_reference_alpha_per_k": real(temp.u_reference_alpha_per_k),
+        },
+        "sources": dict(SOURCE_TEXT),
+        "consistency": _consistency_section(summary),
+    }
+
+
+def _job_section(summary: SessionSummary) -> dict[str, Any]:
+    job = summary.info.plan.job
+    return {
+        "part": job.part,
+        "serial": job.serial,
+        "operator": job.operator,
+        "order": job.order,
+        "instruments": [
+            {"id": i.id, "kind": i.kind, "calibrated": i.calibrated, "due": i.due} for i in job.instruments
+        ],
+    }
+
+
 def _characteristic_entry(index: int, c) -> dict[str, Any]:
     entry: dict[str, Any] = {
         "no": index,
@@ -145,6 +239,19 @@ def _characteristic_entry(index: int, c) -> dict[str, Any]:
         "tolerance_mm": real(c.tolerance_mm),
         "deviation_mm": real(c.deviation_mm),
         "passed": bool(c.passed),
+        "upper_tol_mm": real(c.upper_tol_mm if c.upper_tol_mm is not None else c.tolerance_mm),
+        "lower_tol_mm": real(c.lower_tol_mm if c.lower_tol_mm is not None else c.tolerance_mm),
+        "expanded_uncertainty_mm": real(c.expanded_uncertainty_mm),
+        "coverage_factor": real(c.coverage_factor),
+        "budget": [
+            {"source": t.source, "u": real(t.u), "unit": t.unit, "sensitivity": real(t.sensitivity),
+             "u_mm": real(t.u_mm)}
+            for t in c.budget
+        ],
+        "decision": c.decision,
+        "decision_rule": c.decision_rule,
+        "measured_raw_mm": real(c.measured_raw_mm),
+        "temperature_correction_mm": real(c.temperature_correction_mm),
     }
     if c.actual_mm is not None:  # ground truth known (simulator)
         entry["actual_mm"] = real(c.actual_mm)
@@ -196,6 +303,9 @@ def problems(summary: SessionSummary) -> list[str]:
     if summary.incomplete:
         lines.append(f"session incomplete: {summary.incomplete}")
     lines.extend(f"reference import: {p}" for p in summary.reference.problems)
+    check = summary.aggregate.consistency
+    if check is not None and check.warning:
+        lines.append(f"uncertainty: {check.warning}")
     listed = set()
     for frame in summary.frames:
         if frame.error:
@@ -261,6 +371,8 @@ def build_report(summary: SessionSummary) -> dict[str, Any]:
         "acquisition": plain(info.acquisition),
         "calibration": {"source": info.calibration.source},
         "plan": {"name": info.plan.name, "source": info.plan.source, "sha256": info.plan.sha256},
+        "job": _job_section(summary),
+        "uncertainty": _uncertainty_section(summary),
         "reference": {
             "source": summary.reference.source,
             "n_points": len(summary.reference.points),
@@ -285,6 +397,30 @@ def build_report(summary: SessionSummary) -> dict[str, Any]:
         "incomplete": summary.incomplete is not None,
         "incomplete_reason": summary.incomplete,
         "problems": problems(summary),
+    }
+
+
+def monte_carlo_section(results, n_draws: int, tolerance: float = 0.10) -> dict[str, Any]:
+    """The ``monte_carlo`` section: the GUM-S1 check beside the linear U
+    (:mod:`crossfield.uncertainty.montecarlo`); agreed: |U_MC / U - 1| <= tolerance."""
+    return {
+        "method": "GUM Supplement 1 (JCGM 101:2008): the session's register and measure implementations on its "
+        "first measured frame, inputs drawn from the budget's distributions; 95 % probabilistically symmetric "
+        "interval",
+        "n_draws": int(n_draws),
+        "tolerance": real(tolerance),
+        "characteristics": [
+            {
+                "name": r.name,
+                "u_mc_mm": real(r.u_mc_mm),
+                "interval_mm": [real(r.interval_mm[0]), real(r.interval_mm[1])],
+                "U_mc_mm": real(r.U_mc_mm),
+                "U_linear_mm": real(r.U_linear_mm),
+                "agreement": real(r.agreement),
+                "agreed": r.agreement is not None and abs(r.agreement) <= tolerance,
+            }
+            for r in results
+        ],
     }
 
 

@@ -1,0 +1,142 @@
+"""The report's pictures as inline SVG (matplotlib, Agg, no files): the page stays one file.
+
+Each function takes the report.json document (:func:`crossfield.report.document.build_report`)
+and returns an ``<svg>`` element as text, or ``""`` when there is nothing to draw:
+
+* :func:`deviation_chart`: each characteristic's deviation (mm) against its
+  tolerance zone, with the expanded uncertainty U as error bars and, for a
+  guarded rule, the acceptance zone;
+* :func:`residual_chart`: the control points' registration residual vectors
+  (global frame, mean over frames, drawn magnified) in the plane of the two
+  largest spreads of the controls, with circles of the expected RMS;
+* :func:`trend_chart`: per frame (the kept rows) the registration RMS and each
+  characteristic's difference from its session mean.
+
+SVG text stays text (``svg.fonttype = none``), so the page remains searchable;
+matplotlib's SVG carries no script.
+"""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+__all__ = ["deviation_chart", "residual_chart", "svg", "trend_chart"]
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def svg(fig) -> str:
+    """The figure as an inline ``<svg>`` element (no XML prolog, no DOCTYPE)."""
+    plt = _pyplot()
+    out = io.StringIO()
+    with plt.rc_context({"svg.fonttype": "none", "svg.hashsalt": "crossfield"}):
+        fig.savefig(out, format="svg", bbox_inches="tight", metadata={"Date": None, "Creator": None})
+    plt.close(fig)
+    text = out.getvalue()
+    return text[text.index("<svg"):]
+
+
+def deviation_chart(report: Mapping[str, Any]) -> str:
+    """Deviations (mm) with U bars against the zone [-lower_tol, +upper_tol]."""
+    chars = [c for c in report["characteristics"] if c["deviation_mm"] is not None]
+    if not chars:
+        return ""
+    plt = _pyplot()
+    n = len(chars)
+    fig, ax = plt.subplots(figsize=(7.2, 0.42 * n + 1.1))
+    y = np.arange(n)[::-1]
+    rule = report["uncertainty"]["decision_rule"]
+    colours = {"conforms": "#1b7a3a", "does_not_conform": "#b3261e", "not_proven": "#c07a00"}
+    for yi, c in zip(y, chars):
+        lo, hi = -c["lower_tol_mm"], c["upper_tol_mm"]
+        ax.barh(yi, hi - lo, left=lo, height=0.6, color="#e3f4e8", edgecolor="#9cc9a9", linewidth=0.6)
+        U = c["expanded_uncertainty_mm"]
+        if U is not None and rule == "guarded_acceptance" and hi - U > lo + U:
+            ax.barh(yi, (hi - U) - (lo + U), left=lo + U, height=0.6, color="#c3e6cd", linewidth=0)
+        ax.errorbar(
+            c["deviation_mm"], yi, xerr=U if U is not None else None, fmt="o", ms=4, capsize=3,
+            color=colours.get(c["decision"], "#234e77"), ecolor="#1d2733", elinewidth=1,
+        )
+    ax.axvline(0.0, color="#5b6b7b", linewidth=0.8)
+    ax.set_yticks(y, [c["name"] for c in chars])
+    k = chars[0]["coverage_factor"]
+    ax.set_xlabel(f"deviation from nominal (mm); bars: U (k = {k:g}); band: tolerance zone")
+    ax.grid(axis="x", color="#c9d2dc", linewidth=0.5)
+    ax.set_axisbelow(True)
+    return svg(fig)
+
+
+def residual_chart(report: Mapping[str, Any], positions: Mapping[str, Any]) -> str:
+    """Control residual vectors (global mm) at the controls' CMM positions ``positions``
+    (id -> (3,) mm), magnified so that the largest is about a tenth of the spread."""
+    reg = report["registration"]
+    if reg is None:
+        return ""
+    controls = [c for c in reg["control_points"] if c["id"] in positions]
+    if len(controls) < 2:
+        return ""
+    P = np.array([positions[c["id"]] for c in controls], dtype=float)
+    r = np.array([c["residual_mm"] for c in controls], dtype=float)
+    # the plane of the two largest spreads of the controls (principal axes)
+    centred = P - P.mean(axis=0)
+    _, _, Vt = np.linalg.svd(centred, full_matrices=False)
+    axes = Vt[:2]
+    xy, rxy = centred @ axes.T, r @ axes.T
+    spread = float(np.ptp(xy, axis=0).max()) or 1.0
+    largest = float(np.linalg.norm(rxy, axis=1).max()) or 1.0
+    gain = 10 ** np.floor(np.log10(0.12 * spread / largest))
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(5.2, 4.4))
+    ax.scatter(xy[:, 0], xy[:, 1], s=18, color="#234e77", zorder=3)
+    for (x, yv), (dx, dy), c in zip(xy, rxy, controls):
+        ax.annotate("", (x + gain * dx, yv + gain * dy), (x, yv),
+                    arrowprops={"arrowstyle": "->", "color": "#b3261e", "lw": 1.2})
+        if c.get("expected_rms_mm"):
+            ax.add_patch(plt.Circle((x, yv), gain * c["expected_rms_mm"], fill=False, ls=":", color="#5b6b7b"))
+        ax.annotate(c["id"], (x, yv), textcoords="offset points", xytext=(4, 4), fontsize=8)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("principal axis 1 of the controls (mm)")
+    ax.set_ylabel("principal axis 2 (mm)")
+    ax.set_title(f"residual R p + t - q, magnified {gain:g}x; circles: expected RMS", fontsize=9)
+    ax.grid(color="#c9d2dc", linewidth=0.5)
+    return svg(fig)
+
+
+def trend_chart(report: Mapping[str, Any]) -> str:
+    """Per kept frame: registration RMS (mm) and each characteristic minus its mean (mm)."""
+    frames = [f for f in report["frames"] if f["registration_rms_mm"] is not None]
+    if len(frames) < 2:
+        return ""
+    plt = _pyplot()
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(7.2, 4.6), sharex=True)
+    seq = [f["sequence"] for f in frames]
+    top.plot(seq, [f["registration_rms_mm"] for f in frames], "o-", ms=3, color="#234e77")
+    top.set_ylabel("registration\nRMS (mm)")
+    names = [c["name"] for c in report["characteristics"]]
+    for name in names:
+        values = [
+            next((c["measured_mm"] for c in f["characteristics"] if c["name"] == name), None) for f in frames
+        ]
+        pts = [(s, v) for s, v in zip(seq, values) if v is not None]
+        if len(pts) < 2:
+            continue
+        mean = float(np.mean([v for _, v in pts]))
+        bottom.plot([s for s, _ in pts], [v - mean for _, v in pts], ".-", lw=0.8, ms=3, label=name)
+    bottom.set_ylabel("value - session\nmean (mm)")
+    bottom.set_xlabel("frame")
+    if len(names) <= 12:
+        bottom.legend(fontsize=7, ncol=min(5, len(names)), loc="upper center", bbox_to_anchor=(0.5, -0.3))
+    for ax in (top, bottom):
+        ax.grid(color="#c9d2dc", linewidth=0.5)
+    return svg(fig)
