@@ -33,6 +33,11 @@ RECORDED_PACKAGES: tuple[str, ...] = (
     "protobuf",
     "rerun-sdk",
     "pyserial",
+    "cryptography",
+    "matplotlib",
+    "jinja2",
+    "dask",
+    "distributed",
 )
 
 #: The version of a crossfield that runs from a source tree without being installed.
