@@ -1,0 +1,151 @@
+"""Faults end in a named, bounded, truthful outcome (issue 9, classes 9 and 11).
+
+* A disk that fills while the recording is finished (or while frames are
+  recorded) leaves no report saying PASS: the recording is closed and
+  checked before any report is written; when that fails the reports say
+  INCOMPLETE and why, the command exits non-zero, and what was written
+  stays readable (the truncated file replays as INCOMPLETE).
+* Every bad input of the issue's examples ends in one line naming the file
+  or key, exit code 2, no traceback (through the real CLI, in a subprocess).
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import shutil
+import subprocess
+import sys
+import uuid
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from crossfield.errors import RecordingError
+from crossfield.recording import writer as writer_module
+from crossfield.recording.reader import MCAP_MAGIC, open_recording
+from crossfield.recording.seal import sidecar_path
+
+from session_tools import record_session
+
+
+def crossfield(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
+    """The installed console script, as a user runs it."""
+    script = Path(sys.executable).with_name("crossfield")
+    cmd = [str(script)] if script.exists() else [sys.executable, "-m", "crossfield.cli"]
+    return subprocess.run([*cmd, *args], capture_output=True, text=True, cwd=cwd, timeout=600)
+
+
+class _FillsUp:
+    """A real file object on a device with ``budget`` bytes left: a write that
+    does not fit writes what fits, then fails with ENOSPC (as write(2) does)."""
+
+    def __init__(self, f: Any, budget: int) -> None:
+        self._f = f
+        self.left = budget
+
+    def write(self, data: Any) -> int:
+        data = bytes(data)
+        if len(data) > self.left:
+            self._f.write(data[: self.left])
+            self.left = 0
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        self.left -= len(data)
+        return self._f.write(data)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._f, name)
+
+
+def _reports(folder: Path) -> dict[str, Any]:
+    return json.loads((folder / "report.json").read_text(encoding="utf-8"))
+
+
+def test_sealed_report_is_written_after_the_recording_is_closed(tmp_path: Path) -> None:
+    summary = record_session(tmp_path, "ok", frames=2)
+    folder = summary.info.out_dir
+    mcap = folder / "session.mcap"
+    report = _reports(folder)
+    sidecar = json.loads(sidecar_path(mcap).read_text())
+    # The seal in report.json is the one of the finished file on disk.
+    assert report["integrity"]["chain_head"] == sidecar["chain_head"]
+    from crossfield.recording.integrity import file_sha256
+
+    assert report["integrity"]["file_sha256"] == file_sha256(mcap)
+    # Written after the recording: the report is not older than the file's last byte.
+    assert (folder / "report.json").stat().st_mtime_ns >= mcap.stat().st_mtime_ns
+    assert report["passed"] is True and report["incomplete"] is False
+
+
+def test_disk_full_while_finishing_the_recording_gives_incomplete_reports(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    full = record_session(tmp_path, "full-size", frames=2)
+    size = (full.info.out_dir / "session.mcap").stat().st_size
+    # Room for every frame but not for the end of the file (/report, summary, footer).
+    budget = size - 1500
+    real_open = open
+
+    def open_on_full_disk(path: Any, mode: str = "r", *args: Any, **kw: Any) -> Any:
+        return _FillsUp(real_open(path, mode, *args, **kw), budget)
+
+    monkeypatch.setattr(writer_module, "open", open_on_full_disk, raising=False)
+    with pytest.raises(RecordingError, match="No space left on device") as caught:
+        record_session(tmp_path, "cut", frames=2)
+    monkeypatch.undo()
+    assert "INCOMPLETE" in str(caught.value)
+    folder = tmp_path / "cut"
+    mcap = folder / "session.mcap"
+    assert mcap.stat().st_size == budget  # what fitted is on disk, nothing lost
+    report = _reports(folder)
+    assert report["passed"] is False and report["incomplete"] is True
+    assert "No space left on device" in report["incomplete_reason"]
+    assert report["frames_processed"] == 2
+    assert "integrity" not in report and not sidecar_path(mcap).exists()
+    html = (folder / "report.html").read_text(encoding="utf-8")
+    assert "INCOMPLETE" in html and "No space left on device" in html and "PASS</div>" not in html
+    # The truncated file reads back as incomplete and replays / audits as INCOMPLETE.
+    with open_recording(mcap) as rec:
+        assert not rec.complete
+    replay = crossfield("replay", str(mcap), "-o", str(tmp_path / "replayed.mcap"), "-q", "--no-rerun")
+    assert replay.returncode != 0 and "INCOMPLETE" in replay.stdout + replay.stderr
+    assert "Traceback" not in replay.stderr
+    audit = crossfield("audit", str(mcap))
+    assert audit.returncode != 0 and "INCOMPLETE" in audit.stdout + audit.stderr
+    assert "Traceback" not in audit.stderr
+
+
+def _mount_tmpfs(where: Path, size: str) -> bool:
+    if os.geteuid() != 0 or shutil.which("mount") is None:
+        return False
+    where.mkdir()
+    return subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(where)]).returncode == 0
+
+
+def test_real_full_filesystem_during_a_run(tmp_path: Path) -> None:
+    """A real small filesystem (tmpfs, mounted when the tests run as root) that
+    fills with the second stereo pair of a ``crossfield run``."""
+    mnt = tmp_path / f"small-{uuid.uuid4().hex[:6]}"
+    if not _mount_tmpfs(mnt, "12m"):
+        pytest.skip("mounting a small tmpfs needs root (the ENOSPC file test above covers the same path)")
+    try:
+        run = crossfield(
+            "run", "--scenario", "table3", "--frames", "3", "-o", str(mnt), "--name", "s", "--no-rerun", "-q"
+        )
+        kept = tmp_path / "kept.mcap"
+        shutil.copyfile(mnt / "s" / "session.mcap", kept)
+        reports = {p.name: p.read_text(encoding="utf-8", errors="replace") for p in (mnt / "s").glob("report.*")}
+    finally:
+        subprocess.run(["umount", str(mnt)])
+    assert run.returncode == 2, run.stdout + run.stderr
+    lines = run.stderr.strip().splitlines()
+    assert len(lines) == 1 and "No space left on device" in lines[0] and "Traceback" not in run.stderr
+    # No report says PASS: none could be written, or each says INCOMPLETE.
+    for name, text in reports.items():
+        assert "INCOMPLETE" in text or '"incomplete": true' in text, name
+    assert kept.read_bytes()[:8] == MCAP_MAGIC
+    replay = crossfield("replay", str(kept), "-o", str(tmp_path / "replayed.mcap"), "-q", "--no-rerun")
+    assert replay.returncode != 0 and "INCOMPLETE" in replay.stdout + replay.stderr
+    assert "Traceback" not in replay.stderr
