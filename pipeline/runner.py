@@ -227,19 +227,26 @@ def _session_id(config: Config, acquisition_info: Mapping[str, Any]) -> str:
     return f"{stamp}-{re.sub(r'[^A-Za-z0-9._-]+', '_', tag)}"
 
 
-def new_session_dir(base: Path, name: str) -> Path:
+def new_session_dir(base: Path, name: str, what: str = "") -> Path:
     """Create and return ``base/name`` (``base/name-2``, ... if it exists).
 
     ``name`` must be one path component (no separator, not ``.`` or ``..``):
-    the folder is always a direct child of ``base``."""
+    the folder is always a direct child of ``base``. ``what`` names ``base``
+    in errors (e.g. the config key it came from)."""
     if name in ("", ".", "..") or "/" in name or "\\" in name or Path(name).name != name:
         raise ConfigError(f"session folder name {name!r} is not a single folder name")
+    label = f"{what} = {str(base)!r}" if what else str(base)
+    if base.exists() and not base.is_dir():
+        raise ConfigError(f"{label}: not a folder (a file is there); name a folder for the sessions")
     out = base / name
     k = 1
     while out.exists():
         k += 1
         out = base / f"{name}-{k}"
-    out.mkdir(parents=True)
+    try:
+        out.mkdir(parents=True)
+    except OSError as exc:
+        raise ConfigError(f"{label}: cannot create the session folder {out}: {exc.strerror}") from None
     return out
 
 
@@ -411,7 +418,7 @@ def run_session(
             import_reference = _live_reference(config, stages, source, plan, reader)
         else:
             import_reference = _recorded_reference(stages.implementations["reference"].name, reader, cmm_raw, plan)
-        out_dir = new_session_dir(base, name)
+        out_dir = new_session_dir(base, name, "" if mcap_path is not None else f"{config.source}: [session] output_dir")
         info = session_info(config, stages, source, plan, out_dir, parent, description)
         recorded = source if isinstance(source, RecordedAcquisition) else None
         from crossfield.recording.recorder import SessionRecorder
