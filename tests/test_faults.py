@@ -149,3 +149,94 @@ def test_real_full_filesystem_during_a_run(tmp_path: Path) -> None:
     replay = crossfield("replay", str(kept), "-o", str(tmp_path / "replayed.mcap"), "-q", "--no-rerun")
     assert replay.returncode != 0 and "INCOMPLETE" in replay.stdout + replay.stderr
     assert "Traceback" not in replay.stderr
+
+
+# ---- bad input: one line naming the file or key, exit code 2, no traceback ----
+
+
+def _magic_only(d: Path) -> Path:
+    path = d / "magic.mcap"
+    path.write_bytes(MCAP_MAGIC)  # exactly the 8 magic bytes
+    return path
+
+
+def _config(d: Path, text: str) -> Path:
+    path = d / "station.toml"
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def _a_file(d: Path) -> Path:
+    path = d / "not-a-folder"
+    path.write_text("x", encoding="utf-8")
+    return path
+
+
+RUN = ("run", "--frames", "1", "--no-rerun", "-q")
+
+#: (case, command builder (folder -> argv), what the one error line must name)
+BAD_INPUTS: list[tuple[str, Any, list[str]]] = [
+    ("replay of the 8 magic bytes", lambda d: ["replay", str(_magic_only(d)), "-q"], ["magic.mcap"]),
+    ("audit of the 8 magic bytes", lambda d: ["audit", str(_magic_only(d))], ["magic.mcap"]),
+    (
+        "view of the 8 magic bytes",
+        lambda d: ["view", str(_magic_only(d)), "--screenshot", str(d / "shot.png")],
+        ["magic.mcap"],
+    ),
+    ("compare of the 8 magic bytes", lambda d: ["compare", str(_magic_only(d)), str(_magic_only(d))], ["magic.mcap"]),
+    ("replay of an empty file", lambda d: ["replay", str(_config(d, "")), "-q"], ["station.toml"]),
+    ("output_dir naming a file", lambda d: [*RUN, "-o", str(_a_file(d))], ["output_dir", "not-a-folder"]),
+    (
+        "output_dir naming a file, in the config",
+        lambda d: [*RUN, "--config", str(_config(d, f'[session]\noutput_dir = "{_a_file(d)}"\n'))],
+        ["station.toml", "output_dir"],
+    ),
+    (
+        "threshold_sigma a word",
+        lambda d: [*RUN, "-o", str(d), "--config", str(_config(d, '[centroid]\nthreshold_sigma = "eight"\n'))],
+        ["station.toml", "threshold_sigma", "number"],
+    ),
+    (
+        "threshold_sigma a word, on the command line",
+        lambda d: [*RUN, "-o", str(d), "--option", "centroid.threshold_sigma=eight"],
+        ["threshold_sigma", "number"],
+    ),
+    (
+        "threshold_sigma out of range",
+        lambda d: [*RUN, "-o", str(d), "--option", "centroid.threshold_sigma=-3"],
+        ["threshold_sigma", "> 0"],
+    ),
+    (
+        "refine not a bool",
+        lambda d: [*RUN, "-o", str(d), "--config", str(_config(d, '[triangulate]\nrefine = "yes"\n'))],
+        ["station.toml", "refine", "true or false"],
+    ),
+    (
+        "match_tolerance_mm negative",
+        lambda d: [*RUN, "-o", str(d), "--config", str(_config(d, "[session]\nmatch_tolerance_mm = -1\n"))],
+        ["station.toml", "match_tolerance_mm"],
+    ),
+    (
+        "match_tolerance_mm not finite",
+        lambda d: [*RUN, "-o", str(d), "--config", str(_config(d, "[session]\nmatch_tolerance_mm = nan\n"))],
+        ["station.toml", "match_tolerance_mm"],
+    ),
+    (
+        "rerun_image_every negative",
+        lambda d: [*RUN, "-o", str(d), "--config", str(_config(d, "[session]\nrerun_image_every = -2\n"))],
+        ["station.toml", "rerun_image_every"],
+    ),
+]
+
+
+@pytest.mark.parametrize("case, argv, names", BAD_INPUTS, ids=[c[0] for c in BAD_INPUTS])
+def test_bad_input_is_one_line_naming_it(tmp_path: Path, case: str, argv: Any, names: list[str]) -> None:
+    done = crossfield(*argv(tmp_path), cwd=tmp_path)
+    assert done.returncode == 2, (case, done.returncode, done.stdout, done.stderr)
+    assert "Traceback" not in done.stderr + done.stdout
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1, lines
+    for name in names:
+        assert name in lines[0], (name, lines[0])
+    # Nothing was recorded: a refused input leaves no session behind.
+    assert not list(tmp_path.rglob("session.mcap"))
