@@ -627,7 +627,7 @@ def finish_session(
     except OSError as exc:
         where = exc.filename or info.out_dir
         also = f" (and {'; '.join(failures)})" if failures else ""
-        raise RecordingError(f"{where}: cannot write the report: {exc.strerror or exc}{also}") from None
+        raise RecordingError(f"{where}: cannot write the reports: {exc.strerror or exc}{also}") from None
     summary = dataclasses.replace(summary, report_files=tuple(files))
     hook.on_session_end(summary=summary)
     if failures:
