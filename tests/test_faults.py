@@ -19,7 +19,7 @@ import subprocess
 import sys
 import uuid
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, Mapping, Optional
 
 import pytest
 
@@ -240,3 +240,51 @@ def test_bad_input_is_one_line_naming_it(tmp_path: Path, case: str, argv: Any, n
         assert name in lines[0], (name, lines[0])
     # Nothing was recorded: a refused input leaves no session behind.
     assert not list(tmp_path.rglob("session.mcap"))
+
+
+_MADE: list[dict[str, Any]] = []
+
+
+def _probe_factory(
+    *,
+    sigma: float = 1.0,
+    count: int = 3,
+    flag: bool = True,
+    mode: Literal["fast", "exact"] = "fast",
+    limit: Optional[float] = None,
+    names: list[str] | None = None,
+    extra: Mapping[str, Any] | None = None,
+    untyped=0.5,
+    anything: Any = None,
+) -> Any:
+    """A factory whose options carry every kind of annotation the registry checks."""
+    _MADE.append(dict(sigma=sigma, count=count, flag=flag, mode=mode, limit=limit, untyped=untyped))
+    return object()
+
+
+def test_options_are_checked_against_the_declared_types() -> None:
+    from crossfield.errors import ConfigError, PluginError
+    from crossfield.registry import Implementation
+
+    impl = Implementation("centroid", "probe", _probe_factory, "", "test", "test", "0")
+    ok = {"sigma": 2, "count": 4, "flag": False, "mode": "exact", "limit": 0.1, "names": ["a"], "extra": {"k": 1}}
+    # Every value fits: the factory runs (what it makes is no centroid extractor, refused after it).
+    with pytest.raises(PluginError, match="not a centroid implementation"):
+        impl.create({**ok, "untyped": 1, "anything": "x"}, "f.toml: [centroid]")
+    assert _MADE and _MADE[-1]["sigma"] == 2 and _MADE[-1]["mode"] == "exact"
+    bad = [
+        ("sigma", "eight", "a number"),
+        ("sigma", True, "a number"),
+        ("count", 2.5, "an integer"),
+        ("flag", 1, "true or false"),
+        ("mode", "slow", "one of 'fast', 'exact'"),
+        ("limit", "none", "a number or none"),
+        ("names", "a", "a list or none"),
+        ("extra", [1], "a table or none"),
+        ("untyped", "x", "a number"),  # the default's type when there is no annotation
+    ]
+    for key, value, expected in bad:
+        with pytest.raises(ConfigError) as caught:
+            impl.create({key: value}, "f.toml: [centroid]")
+        text = str(caught.value)
+        assert text.startswith("f.toml: [centroid]: option ") and repr(key) in text and expected in text, text
