@@ -103,6 +103,12 @@ class Implementation(Generic[T]):
     def create(self, options: dict[str, Any], where: str = "") -> T:
         """Build the implementation; unknown or missing options name the key.
 
+        Each value is checked against its declared type (:meth:`option_types`):
+        the factory's own ``ValueError`` wins (its message is the most
+        specific); a value of another type that the factory accepts, or that
+        makes it fail with a ``TypeError``, is a :class:`ConfigError` naming
+        the key and the type it must have.
+
         The object built is checked against the stage's protocol: one that
         lacks a method or attribute is a :class:`PluginError` naming the
         implementation, the plugin that registered it and what is missing."""
@@ -119,17 +125,26 @@ class Implementation(Generic[T]):
             if default is inspect.Parameter.empty and key not in options:
                 raise ConfigError(f"{prefix}{self.stage} plugin {self.name!r} needs option {key!r}")
         declared = self.option_types()
-        for key, value in options.items():
-            expected = declared.get(key)
-            if expected is not None and not _is_instance(value, expected):
-                raise ConfigError(
-                    f"{prefix}option {key!r} of {self.stage} plugin {self.name!r} must be "
-                    f"{_describe(expected)}, got {value!r}"
-                )
+        mismatch = next(
+            (
+                f"{prefix}option {key!r} of {self.stage} plugin {self.name!r} must be "
+                f"{_describe(declared[key])}, got {value!r}"
+                for key, value in options.items()
+                if key in declared and not _is_instance(value, declared[key])
+            ),
+            None,
+        )
         try:
             made = self.factory(**options)
-        except (TypeError, ValueError) as exc:
+        except ValueError as exc:  # the plugin's own check: its message is the most specific
             raise ConfigError(f"{prefix}{self.stage} plugin {self.name!r}: {exc}") from None
+        except TypeError as exc:  # e.g. "'>' not supported ...": the declared type says more
+            raise ConfigError(mismatch or f"{prefix}{self.stage} plugin {self.name!r}: {exc}") from None
+        if mismatch is not None:  # accepted by the factory, but not of the declared type: refused
+            close = getattr(made, "close", None)
+            if callable(close):
+                close()
+            raise ConfigError(mismatch)
         who = f"{self.stage} plugin {self.name!r} (registered by {self.plugin}, {self.package} {self.version})"
         return check_implementation(made, self.stage, who)
 
