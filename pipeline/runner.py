@@ -605,10 +605,14 @@ def finish_session(
     from crossfield.recording.recorder import REPORT_JSON, add_seal_to_report
 
     summary = SessionSummary.of_session(info, reference, accumulator, incomplete)
+    # The recording lists the report files to come when the report plugin says
+    # which they are (an optional ``report_files(out_dir)``); it is closed before they exist.
+    planned = getattr(stages.report, "report_files", None)
+    ending = dataclasses.replace(summary, report_files=tuple(planned(info.out_dir))) if callable(planned) else summary
     seals, failures = [], []
     for recording in recordings:
         try:
-            sealed = recording.end_session(summary)
+            sealed = recording.end_session(ending)
         except CrossfieldError as exc:
             failures.append(str(exc))
         else:

@@ -488,6 +488,11 @@ class JsonReport:
         _write_atomic(path, doc.dumps(report))
         return path
 
+    def report_files(self, out_dir: Path) -> list[Path]:
+        """The files :meth:`write` writes into ``out_dir`` (the recording lists
+        them: it is closed before they are written)."""
+        return [Path(out_dir) / "report.json"]
+
     def write(self, summary: SessionSummary, out_dir: Path) -> list[Path]:
         """Write report.json into ``out_dir`` (created if missing)."""
         out_dir = Path(out_dir)
@@ -504,6 +509,9 @@ class HtmlReport(JsonReport):
     decimals: decimals shown in the HTML tables and the terminal summary
     (the paper prints 4); report.json is never rounded.
     """
+
+    def report_files(self, out_dir: Path) -> list[Path]:
+        return [*super().report_files(out_dir), Path(out_dir) / "report.html"]
 
     def write(self, summary: SessionSummary, out_dir: Path) -> list[Path]:
         """Write report.json and report.html into ``out_dir`` (created if missing)."""
