@@ -23,6 +23,7 @@ when the session starts; every error names the file and the key.
 from __future__ import annotations
 
 import copy
+import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -50,6 +51,14 @@ SESSION_DEFAULTS: dict[str, Any] = {
     "rerun_image_every": 5,  # session.rrd: images of every n-th pair (0 = none); docs/visualisation.md
     "match_tolerance_mm": 0.5,  # rigid-distance agreement for control-point matching
     "signing_key": "",  # Ed25519 station key (PEM) that signs the recording's seal; docs/replay-and-audit.md
+}
+
+
+#: [session] key -> a check giving what the value must be when it is out of range (else None).
+_SESSION_CHECKS: dict[str, Callable[[Any], str | None]] = {
+    "match_tolerance_mm": lambda v: None if math.isfinite(v) and v > 0 else "a finite number of mm > 0",
+    "rerun_image_every": lambda v: None if v >= 0 else "an integer >= 0 (0: no images)",
+    "output_dir": lambda v: None if v.strip() else "a folder (not empty)",
 }
 
 
@@ -95,10 +104,13 @@ def parse_config(data: Mapping[str, Any], source: str = "<config>") -> Config:
         want = type(SESSION_DEFAULTS[key])
         if want is float and isinstance(value, int) and not isinstance(value, bool):
             value = float(value)
-        if not isinstance(value, want):
+        if not isinstance(value, want) or (want is not bool and isinstance(value, bool)):
             raise ConfigError(
                 f"{source}: [session] key {key!r} must be a {want.__name__}, got {value!r}"
             )
+        bad = _SESSION_CHECKS.get(key, lambda v: None)(value)
+        if bad:
+            raise ConfigError(f"{source}: [session] key {key!r} must be {bad}, got {value!r}")
         session[key] = value
     stages: dict[str, StageConfig] = {}
     for stage in STAGES:

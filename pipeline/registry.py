@@ -7,12 +7,17 @@ factory, description)``. The config names the implementation that runs.
 
 from __future__ import annotations
 
+import collections.abc
 import functools
 import importlib
 import inspect
+import numbers
+import types
+import typing
 from collections.abc import Iterable
 from dataclasses import dataclass
 from importlib import metadata
+from pathlib import Path, PurePath
 from typing import Any, Generic, TypeVar
 
 import pluggy
@@ -79,8 +84,32 @@ class Implementation(Generic[T]):
             if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)
         }
 
+    def option_types(self) -> dict[str, Any]:
+        """Option name -> its declared type: the factory's annotation, else the
+        type of its default (an option with neither is not in the mapping)."""
+        try:
+            signature = inspect.signature(self.factory, eval_str=True)
+        except (NameError, TypeError, SyntaxError, ValueError):  # an annotation that cannot be resolved
+            signature = inspect.signature(self.factory)
+        out: dict[str, Any] = {}
+        for p in signature.parameters.values():
+            if p.kind not in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD):
+                continue
+            annotation = p.annotation
+            if annotation is inspect.Parameter.empty or isinstance(annotation, str):
+                annotation = type(p.default) if p.default not in (inspect.Parameter.empty, None) else None
+            if annotation is not None and _checkable(annotation):
+                out[p.name] = annotation
+        return out
+
     def create(self, options: dict[str, Any], where: str = "") -> T:
         """Build the implementation; unknown or missing options name the key.
+
+        Each value is checked against its declared type (:meth:`option_types`):
+        the factory's own ``ValueError`` wins (its message is the most
+        specific); a value of another type that the factory accepts, or that
+        makes it fail with a ``TypeError``, is a :class:`ConfigError` naming
+        the key and the type it must have.
 
         The object built is checked against the stage's protocol: one that
         lacks a method or attribute is a :class:`PluginError` naming the
@@ -97,12 +126,103 @@ class Implementation(Generic[T]):
         for key, default in known.items():
             if default is inspect.Parameter.empty and key not in options:
                 raise ConfigError(f"{prefix}{self.stage} plugin {self.name!r} needs option {key!r}")
+        declared = self.option_types()
+        mismatch = next(
+            (
+                f"{prefix}option {key!r} of {self.stage} plugin {self.name!r} must be "
+                f"{_describe(declared[key])}, got {value!r}"
+                for key, value in options.items()
+                if key in declared and not _is_instance(value, declared[key])
+            ),
+            None,
+        )
         try:
             made = self.factory(**options)
-        except (TypeError, ValueError) as exc:
+        except ValueError as exc:  # the plugin's own check: its message is the most specific
             raise ConfigError(f"{prefix}{self.stage} plugin {self.name!r}: {exc}") from None
+        except TypeError as exc:  # e.g. "'>' not supported ...": the declared type says more
+            raise ConfigError(mismatch or f"{prefix}{self.stage} plugin {self.name!r}: {exc}") from None
+        if mismatch is not None:  # accepted by the factory, but not of the declared type: refused
+            close = getattr(made, "close", None)
+            if callable(close):
+                close()
+            raise ConfigError(mismatch)
         who = f"{self.stage} plugin {self.name!r} (registered by {self.plugin}, {self.package} {self.version})"
         return check_implementation(made, self.stage, who)
+
+
+#: Types an option value from TOML is checked against (others are left to the factory).
+_PLAIN = (bool, int, float, str, list, tuple, dict)
+
+
+def _alternatives(annotation: Any) -> tuple[Any, ...]:
+    """The members of a union annotation (``int | None`` -> (int, NoneType)), else (annotation,)."""
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        return typing.get_args(annotation)
+    return (annotation,)
+
+
+def _checkable(annotation: Any) -> bool:
+    """True when every alternative of ``annotation`` is a type this module checks."""
+    for alt in _alternatives(annotation):
+        origin = typing.get_origin(alt) or alt
+        if origin is typing.Literal or alt is type(None) or origin in (Path, PurePath):
+            continue
+        if isinstance(origin, type) and (origin in _PLAIN or issubclass(origin, (collections.abc.Sequence, collections.abc.Mapping))):
+            continue
+        return False
+    return True
+
+
+def _is_instance(value: Any, annotation: Any) -> bool:
+    """Whether a config value fits ``annotation`` (a TOML integer fits a float; a bool is no number)."""
+    for alt in _alternatives(annotation):
+        origin = typing.get_origin(alt) or alt
+        if origin is typing.Literal:
+            if value in typing.get_args(alt):
+                return True
+        elif alt is type(None):
+            if value is None:
+                return True
+        elif origin is bool:
+            if isinstance(value, bool):
+                return True
+        elif origin is float:
+            if isinstance(value, numbers.Real) and not isinstance(value, bool):
+                return True
+        elif origin is int:
+            if isinstance(value, numbers.Integral) and not isinstance(value, bool):
+                return True
+        elif origin in (Path, PurePath, str):  # a path given from Python fits a str option
+            if isinstance(value, (str, PurePath)):
+                return True
+        elif isinstance(origin, type) and issubclass(origin, collections.abc.Mapping):
+            if isinstance(value, collections.abc.Mapping):
+                return True
+        elif isinstance(origin, type) and issubclass(origin, collections.abc.Sequence):
+            if isinstance(value, (list, tuple)):
+                return True
+        else:  # pragma: no cover - _checkable admits no other type
+            return True
+    return False
+
+
+def _describe(annotation: Any) -> str:
+    names = {bool: "true or false", int: "an integer", float: "a number", str: "a string", type(None): "none"}
+    parts = []
+    for alt in _alternatives(annotation):
+        origin = typing.get_origin(alt) or alt
+        if origin is typing.Literal:
+            parts.append("one of " + ", ".join(repr(a) for a in typing.get_args(alt)))
+        elif origin in (Path, PurePath):
+            parts.append("a path (string)")
+        elif origin in names:
+            parts.append(names[origin])
+        elif isinstance(origin, type) and issubclass(origin, collections.abc.Mapping):
+            parts.append("a table")
+        else:
+            parts.append("a list")
+    return " or ".join(dict.fromkeys(parts))
 
 
 @functools.cache

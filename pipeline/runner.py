@@ -26,7 +26,7 @@ import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pluggy
@@ -34,7 +34,7 @@ import pluggy
 from crossfield.aggregate import SessionAccumulator
 from crossfield.config import Config
 from crossfield.correspondence import match_control_points
-from crossfield.errors import ConfigError, CrossfieldError, PluginError
+from crossfield.errors import ConfigError, CrossfieldError, PluginError, RecordingError
 from crossfield.plan import MeasurementPlan, load_plan
 from crossfield.provenance import package_versions
 from crossfield.registry import Implementation, get_implementation
@@ -65,6 +65,9 @@ from crossfield.types import (
     StereoCentroids,
     StereoFrame,
 )
+
+if TYPE_CHECKING:  # the recording wing is imported when a session records
+    from crossfield.recording.recorder import SessionRecorder
 
 __all__ = [
     "SIMULATED_PORT",
@@ -231,19 +234,26 @@ def _session_id(config: Config, acquisition_info: Mapping[str, Any]) -> str:
     return f"{stamp}-{re.sub(r'[^A-Za-z0-9._-]+', '_', tag)}"
 
 
-def new_session_dir(base: Path, name: str) -> Path:
+def new_session_dir(base: Path, name: str, what: str = "") -> Path:
     """Create and return ``base/name`` (``base/name-2``, ... if it exists).
 
     ``name`` must be one path component (no separator, not ``.`` or ``..``):
-    the folder is always a direct child of ``base``."""
+    the folder is always a direct child of ``base``. ``what`` names ``base``
+    in errors (e.g. the config key it came from)."""
     if name in ("", ".", "..") or "/" in name or "\\" in name or Path(name).name != name:
         raise ConfigError(f"session folder name {name!r} is not a single folder name")
+    label = f"{what} = {str(base)!r}" if what else str(base)
+    if base.exists() and not base.is_dir():
+        raise ConfigError(f"{label}: not a folder (a file is there); name a folder for the sessions")
     out = base / name
     k = 1
     while out.exists():
         k += 1
         out = base / f"{name}-{k}"
-    out.mkdir(parents=True)
+    try:
+        out.mkdir(parents=True)
+    except OSError as exc:
+        raise ConfigError(f"{label}: cannot create the session folder {out}: {exc.strerror}") from None
     return out
 
 
@@ -415,10 +425,13 @@ def run_session(
             import_reference = _live_reference(config, stages, source, plan, reader)
         else:
             import_reference = _recorded_reference(stages.implementations["reference"].name, reader, cmm_raw, plan)
-        out_dir = new_session_dir(base, name)
+        out_dir = new_session_dir(base, name, "" if mcap_path is not None else f"{config.source}: [session] output_dir")
         info = session_info(config, stages, source, plan, out_dir, parent, description)
         recorded = source if isinstance(source, RecordedAcquisition) else None
-        with _registered(pm, _session_observers(config, out_dir, observers, mcap_path)):
+        from crossfield.recording.recorder import SessionRecorder
+
+        session_observers = _session_observers(config, out_dir, observers, mcap_path)
+        with _registered(pm, session_observers):
             return run_pipeline(
                 pm.hook,
                 stages,
@@ -427,6 +440,7 @@ def run_session(
                 source.frames(),
                 float(config.session.get("match_tolerance_mm", 0.5)),
                 incomplete=(lambda: recorded.incomplete) if recorded is not None else (lambda: None),
+                recordings=[o for o in session_observers if isinstance(o, SessionRecorder)],
             )
     finally:
         if owned:
@@ -525,6 +539,7 @@ def run_pipeline(
     frames: Iterable[StereoFrame],
     match_tolerance_mm: float,
     incomplete: Callable[[], str | None] = lambda: None,
+    recordings: Sequence[SessionRecorder] = (),
 ) -> SessionSummary:
     """The session's chain, shared by a live run and a replay.
 
@@ -534,7 +549,10 @@ def run_pipeline(
     data (frame capture times, serial read times), so a replay that feeds
     the recorded inputs with their recorded times emits the same hook calls
     with the same arguments. ``incomplete()`` is asked after the last frame
-    (a replay of a cut-short recording says so).
+    (a replay of a cut-short recording says so). ``recordings``: the
+    session's recorders, ended by :func:`finish_session` before the reports
+    are written. A recording that fails while frames are processed (disk
+    full) ends the frames there: the session is then finished as incomplete.
     """
     hook.on_session_start(session=info)
     reference, reference_time_ns = import_reference(hook)
@@ -546,17 +564,32 @@ def run_pipeline(
     # (the first rows are kept for the report; the recording has every frame).
     accumulator = SessionAccumulator(info.plan, calibration_source=info.calibration.source)
     session_pose = SessionPoseAccumulator()
+    failed: str | None = None
     for frame in frames:
-        hook.on_frame(frame=frame)
-        result = process_frame(
-            frame, stages, info.calibration, info.plan, reference, info.ground_truth, hook, match_tolerance_mm
-        )
-        hook.on_frame_done(result=result)
+        try:
+            hook.on_frame(frame=frame)
+            result = process_frame(
+                frame, stages, info.calibration, info.plan, reference, info.ground_truth, hook, match_tolerance_mm
+            )
+            hook.on_frame_done(result=result)
+        except RecordingError as exc:  # an observer's recording failed (disk full): no more frames
+            if not recordings:
+                raise
+            failed = f"the recording failed after {accumulator.frames_processed} frame(s): {exc}"
+            break
         accumulator.add(result)
         session_pose.add(result.points, result.registration)
         t = frame.timestamp_ns
     _log_session_pose(hook, session_pose, reference, info.plan, stages.register, t)
-    return finish_session(hook, stages, info, reference, accumulator, incomplete())
+    return finish_session(
+        hook, stages, info, reference, accumulator, _joined(incomplete(), failed), recordings=recordings
+    )
+
+
+def _joined(*reasons: str | None) -> str | None:
+    """The reasons given, joined by '; ' (None when there is none)."""
+    given = [r for r in reasons if r]
+    return "; ".join(given) if given else None
 
 
 def _log_session_pose(
@@ -581,11 +614,52 @@ def finish_session(
     reference: ReferenceData,
     accumulator: SessionAccumulator,
     incomplete: str | None = None,
+    recordings: Sequence[SessionRecorder] = (),
 ) -> SessionSummary:
-    """Summarise the aggregated frames (:meth:`SessionSummary.of_session`), write
-    the report, tell the observers; returns the summary."""
+    """Summarise the aggregated frames (:meth:`SessionSummary.of_session`), end
+    the recordings, write the report, tell the observers; returns the summary.
+
+    The order is the guarantee of docs/faults.md: first every recording is
+    closed and checked (it reads back complete, its seal computed); only
+    then are the reports written, report.json with the seal
+    (``integrity``). If ending a recording fails (disk full), the reports
+    say INCOMPLETE with the reason (``passed`` false) and a
+    :class:`RecordingError` follows, so the command exits non-zero; what was
+    written stays in the file (a truncated recording replays as INCOMPLETE).
+    A report that cannot be written is a :class:`RecordingError` naming it.
+    """
+    from crossfield.recording.recorder import REPORT_JSON, add_seal_to_report
+
     summary = SessionSummary.of_session(info, reference, accumulator, incomplete)
-    files = stages.report.write(summary, info.out_dir)
+    # The recording lists the report files to come when the report plugin says
+    # which they are (an optional ``report_files(out_dir)``); it is closed before they exist.
+    planned = getattr(stages.report, "report_files", None)
+    ending = dataclasses.replace(summary, report_files=tuple(planned(info.out_dir))) if callable(planned) else summary
+    seals, failures = [], []
+    for recording in recordings:
+        try:
+            sealed = recording.end_session(ending)
+        except CrossfieldError as exc:
+            failures.append(str(exc))
+        else:
+            if sealed is not None:
+                seals.append(sealed)
+    if failures:
+        reason = "; ".join(failures)
+        if not reason.startswith("the recording failed"):
+            reason = f"the recording failed: {reason}"
+        summary = dataclasses.replace(summary, incomplete=_joined(incomplete, reason))
+    try:
+        files = stages.report.write(summary, info.out_dir)
+        for path in files:
+            if seals and Path(path).name == REPORT_JSON:
+                add_seal_to_report(Path(path), seals[0])
+    except OSError as exc:
+        where = exc.filename or info.out_dir
+        also = f" (and {'; '.join(failures)})" if failures else ""
+        raise RecordingError(f"{where}: cannot write the reports: {exc.strerror or exc}{also}") from None
     summary = dataclasses.replace(summary, report_files=tuple(files))
     hook.on_session_end(summary=summary)
+    if failures:
+        raise RecordingError(f"{'; '.join(failures)}; the reports say INCOMPLETE")
     return summary

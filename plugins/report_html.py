@@ -605,6 +605,11 @@ class JsonReport:
         self._last = report
         return path
 
+    def report_files(self, out_dir: Path) -> list[Path]:
+        """The files :meth:`write` writes into ``out_dir`` (the recording lists
+        them: it is closed before they are written)."""
+        return [Path(out_dir) / "report.json"]
+
     def write(self, summary: SessionSummary, out_dir: Path) -> list[Path]:
         """Write report.json into ``out_dir`` (created if missing)."""
         out_dir = Path(out_dir)
@@ -645,6 +650,9 @@ class HtmlReport(JsonReport):
             raise ValueError(f"option 'figures' must be true or false, got {figures!r}")
         self.templates = templates
         self.figures = figures
+
+    def report_files(self, out_dir: Path) -> list[Path]:
+        return [*super().report_files(out_dir), Path(out_dir) / "report.html"]
 
     def write(self, summary: SessionSummary, out_dir: Path) -> list[Path]:
         """Write report.json and report.html into ``out_dir`` (created if missing)."""

@@ -113,7 +113,7 @@ class Recording:
                 raise RecordingError(f"{self.path}: {what}")
             try:
                 self._summary = self._seeking(f).get_summary()
-            except _DAMAGE as exc:
+            except (*_DAMAGE, OSError) as exc:  # OSError: a file too short to hold a footer
                 self.damage = f"no readable summary ({exc}); read sequentially"
         if self._summary is None and self.damage is None:
             self.damage = "no summary section; read sequentially"

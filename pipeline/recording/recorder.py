@@ -102,10 +102,19 @@ class SessionRecorder:
     def on_log(self, level: str, message: str, timestamp_ns: int) -> None:
         self.writer.log(level, message, timestamp_ns)
 
+    def end_session(self, summary: Any) -> Seal | None:
+        """Record the session's end (``/report``, the result record) and close
+        the recording; the runner calls this before any report is written.
+        Returns the seal (None for a sink that has none). Idempotent."""
+        try:
+            self.writer.session_end(summary)
+        finally:
+            self.close()
+        return None
+
     @hookimpl
     def on_session_end(self, summary: Any) -> None:
-        self.writer.session_end(summary)
-        self.close()
+        self.end_session(summary)
 
 
 class McapRecorder(SessionRecorder):
@@ -119,10 +128,12 @@ class McapRecorder(SessionRecorder):
     chunk_size (bytes), writer_thread, queue_size, flush_interval_s (s),
     compression, signing_key (a PEM Ed25519 private key file). When the file
     is finished its seal (chain head, file SHA-256, signature) is written
-    next to it (:mod:`crossfield.recording.seal`) and into the session's
-    ``report.json`` (key ``integrity``). An error writing the file is raised as
-    :class:`crossfield.errors.RecordingError` from the next hook call (and
-    from :meth:`close`).
+    next to it (:mod:`crossfield.recording.seal`). The runner ends the
+    recording with :meth:`end_session` *before* it writes the reports, which
+    then carry the seal (``report.json`` key ``integrity``): no report exists
+    while the recording is open or unchecked. An error writing the file is
+    raised as :class:`crossfield.errors.RecordingError` from the next hook
+    call (and from :meth:`close` and :meth:`end_session`).
     """
 
     def __init__(
@@ -161,15 +172,40 @@ class McapRecorder(SessionRecorder):
         atexit.unregister(self.close)
         super().close()
 
+    def end_session(self, summary: Any) -> Seal:
+        """Record the session's end, close and seal the file, then check it:
+        the file reads back complete (summary and footer) and its seal was
+        computed from the bytes on disk. Returns the seal; any failure is a
+        :class:`RecordingError` saying what failed (the part of the file
+        already written stays readable: a reader sees an INCOMPLETE recording)."""
+        if not self.closed:
+            super().end_session(summary)
+        return check_closed(self.path, self.seal)
+
     @hookimpl
     def on_session_end(self, summary: Any) -> None:
-        super().on_session_end(summary)
-        sealed = self.seal
-        if sealed is None:
+        """For use outside the runner: end the recording, then add the seal to
+        the report.json the summary names (the runner ends the recording first
+        and writes report.json with the seal itself)."""
+        if self.closed:
             return
+        sealed = self.end_session(summary)
         for path in summary.report_files:
             if Path(path).name == REPORT_JSON:
                 add_seal_to_report(Path(path), sealed)
+
+
+def check_closed(path: Path, sealed: Seal | None) -> Seal:
+    """``sealed`` if the closed recording at ``path`` reads back complete and was
+    sealed; else a :class:`RecordingError` naming the file and what is wrong."""
+    from crossfield.recording.reader import open_recording
+
+    if sealed is None:
+        raise RecordingError(f"{path}: the recording was closed but not sealed")
+    with open_recording(path) as rec:
+        if not rec.complete:
+            raise RecordingError(f"{path}: the recording does not read back complete: {rec.damage}")
+    return sealed
 
 
 #: The report file that carries the seal.
