@@ -43,7 +43,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from crossfield.imaging.blobs import estimate_background  # noqa: E402
-from crossfield.plugins.triangulate_epipolar import _geometry, project_pair  # noqa: E402
+from crossfield.camera.stereo_model import project_pair, stereo_geometry  # noqa: E402
 from crossfield.registry import implementations, make_plugin_manager  # noqa: E402
 from crossfield.rigid import kabsch  # noqa: E402
 from crossfield.runner import register_frame  # noqa: E402
@@ -114,7 +114,7 @@ def centroid_fisher(scene, camera: str) -> dict[str, np.ndarray]:
 
 def chain_crb(scene, fisher, frames: int, cmm_sigma: float) -> dict[str, np.ndarray]:
     """Target id -> (3, 3) CRB (mm^2) of its global point from ``frames`` frames (static station)."""
-    geometry = _geometry(scene.calibration)
+    geometry = stereo_geometry(scene.calibration)
     ids = [t.id for t in scene.targets]
     X = np.array([t.centre_camera for t in scene.targets])
     _, J = project_pair(geometry, X)  # (N, 4, 3)
