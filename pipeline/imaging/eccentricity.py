@@ -54,6 +54,7 @@ __all__ = [
     "offset_covariance",
     "predicted_shape",
     "project",
+    "stereo_views",
 ]
 
 
@@ -82,6 +83,17 @@ class CircleFit:
     cov: np.ndarray
     cost: np.ndarray
     params: np.ndarray
+
+
+def stereo_views(calibration) -> tuple[View, View]:
+    """The (upper, lower) :class:`View` of a ``StereoCalibration``: the upper camera at the
+    origin, the lower at ``p_lower = R_lower_upper @ p_upper + t_lower_upper`` (mm)."""
+    return tuple(
+        View(np.asarray(c.camera_matrix, dtype=np.float64), np.asarray(c.dist_coeffs, dtype=np.float64).ravel(),
+             np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64))
+        for c, R, t in ((calibration.upper, np.eye(3), np.zeros(3)),
+                        (calibration.lower, calibration.R_lower_upper, calibration.t_lower_upper))
+    )
 
 
 def ellipse_centre_point(C: np.ndarray, n: np.ndarray, r: np.ndarray) -> np.ndarray:
