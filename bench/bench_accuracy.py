@@ -43,7 +43,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from crossfield.imaging.blobs import estimate_background  # noqa: E402
-from crossfield.plugins.triangulate_epipolar import _geometry, project_pair  # noqa: E402
+from crossfield.camera.stereo_model import project_pair, stereo_geometry  # noqa: E402
+from crossfield.covariance import skew  # noqa: E402
 from crossfield.registry import implementations, make_plugin_manager  # noqa: E402
 from crossfield.rigid import kabsch  # noqa: E402
 from crossfield.runner import register_frame  # noqa: E402
@@ -114,7 +115,7 @@ def centroid_fisher(scene, camera: str) -> dict[str, np.ndarray]:
 
 def chain_crb(scene, fisher, frames: int, cmm_sigma: float) -> dict[str, np.ndarray]:
     """Target id -> (3, 3) CRB (mm^2) of its global point from ``frames`` frames (static station)."""
-    geometry = _geometry(scene.calibration)
+    geometry = stereo_geometry(scene.calibration)
     ids = [t.id for t in scene.targets]
     X = np.array([t.centre_camera for t in scene.targets])
     _, J = project_pair(geometry, X)  # (N, 4, 3)
@@ -128,20 +129,16 @@ def chain_crb(scene, fisher, frames: int, cmm_sigma: float) -> dict[str, np.ndar
     H = np.zeros((6, 6))
     for tid in scene.plan.control_ids:
         g = Rg @ X[ids.index(tid)] + tg
-        Jp = np.hstack([-_skew(g), np.eye(3)])
+        Jp = np.hstack([-skew(g), np.eye(3)])
         S = Rg @ cam_cov[tid] @ Rg.T + cmm_sigma**2 * np.eye(3)
         H += Jp.T @ np.linalg.solve(S, Jp)
     P = np.linalg.inv(H)
     out = {}
     for target in scene.plan.targets:
         g = Rg @ X[ids.index(target.id)] + tg
-        G = np.hstack([-_skew(g), np.eye(3)])
+        G = np.hstack([-skew(g), np.eye(3)])
         out[target.id] = Rg @ cam_cov[target.id] @ Rg.T + G @ P @ G.T
     return out
-
-
-def _skew(g):
-    return np.array([[0, -g[2], g[1]], [g[2], 0, -g[0]], [-g[1], g[0], 0]])
 
 
 # ------------------------------------------------------------------ the plain OpenCV pipeline

@@ -25,9 +25,13 @@ __all__ = ["camera_covariance", "global_point_covariance", "global_sigma", "regi
 
 
 def skew(v: np.ndarray) -> np.ndarray:
-    """The cross-product matrix ``[v]_x`` of a 3-vector: ``[v]_x @ w == v x w``."""
-    x, y, z = (float(c) for c in np.asarray(v, dtype=np.float64).reshape(3))
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    """The cross-product matrices ``[v]_x`` (..., 3, 3) of vectors v (..., 3): ``[v]_x @ w == v x w``."""
+    v = np.asarray(v, dtype=np.float64)
+    out = np.zeros(v.shape + (3,))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
 
 
 def camera_covariance(A: np.ndarray, sigma_xyz: np.ndarray) -> np.ndarray:

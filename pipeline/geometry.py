@@ -52,14 +52,24 @@ __all__ = [
 
 
 def perpendicular_basis(direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Two unit vectors (3,) completing unit ``direction`` to a right-handed orthonormal basis."""
+    """Two unit vectors completing unit ``direction`` to a right-handed orthonormal basis.
+
+    direction: (3,) or (N, 3) (one basis per row); returns e1, e2 of the same shape. The
+    helper axis is the one along the direction's smallest component.
+    """
     d = np.asarray(direction, dtype=np.float64)
-    d = d / np.linalg.norm(d)
-    helper = np.eye(3)[np.argmin(np.abs(d))]
+    if d.ndim == 1:
+        d = d / np.linalg.norm(d)
+        helper = np.eye(3)[np.argmin(np.abs(d))]
+        e1 = np.cross(d, helper)
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(d, e1)
+        return e1, e2
+    d = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    helper = np.eye(3)[np.argmin(np.abs(d), axis=-1)]
     e1 = np.cross(d, helper)
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(d, e1)
-    return e1, e2
+    e1 /= np.linalg.norm(e1, axis=-1, keepdims=True)
+    return e1, np.cross(d, e1)
 
 
 @dataclass(frozen=True)

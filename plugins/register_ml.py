@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from crossfield.covariance import skew
 from crossfield.errors import RegistrationError
 from crossfield.hookspecs import hookimpl
 from crossfield.rigid import REFLECTION_RATIO, check_ratio, check_reflection, kabsch, point_set_size, residual_rms, validate_pairs
@@ -38,19 +39,10 @@ from crossfield.types import RigidFit
 STEP_TOLERANCE = 1e-13
 
 
-def _skew(g: np.ndarray) -> np.ndarray:
-    """(N, 3) -> (N, 3, 3) cross-product matrices [g]x."""
-    S = np.zeros(g.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2] = -g[..., 2], g[..., 1]
-    S[..., 1, 0], S[..., 1, 2] = g[..., 2], -g[..., 0]
-    S[..., 2, 0], S[..., 2, 1] = -g[..., 1], g[..., 0]
-    return S
-
-
 def _exp_so3(omega: np.ndarray) -> np.ndarray:
     """Rodrigues' formula: exp([omega]x), (3,) rad -> (3, 3)."""
     angle = float(np.linalg.norm(omega))
-    K = _skew(omega[None])[0]
+    K = skew(omega)
     if angle < 1e-12:
         return np.eye(3) + K
     return np.eye(3) + np.sin(angle) / angle * K + (1 - np.cos(angle)) / angle**2 * (K @ K)
@@ -123,7 +115,7 @@ class MaximumLikelihoodRegistrar:
             g = P @ R.T + t
             r = g - Q
             Winv = np.linalg.inv(covariances(R)[use])
-            J = np.concatenate([-_skew(g[use]), np.broadcast_to(I3, (int(use.sum()), 3, 3))], axis=2)  # (M, 3, 6)
+            J = np.concatenate([-skew(g[use]), np.broadcast_to(I3, (int(use.sum()), 3, 3))], axis=2)  # (M, 3, 6)
             JtW = np.swapaxes(J, 1, 2) @ Winv
             H = np.sum(JtW @ J, axis=0)
             b = np.sum(JtW @ r[use][:, :, None], axis=0)[:, 0]
@@ -139,7 +131,7 @@ class MaximumLikelihoodRegistrar:
         g = P @ R.T + t
         residuals = g - Q
         Winv = np.linalg.inv(covariances(R)[use])
-        J = np.concatenate([-_skew(g[use]), np.broadcast_to(I3, (int(use.sum()), 3, 3))], axis=2)
+        J = np.concatenate([-skew(g[use]), np.broadcast_to(I3, (int(use.sum()), 3, 3))], axis=2)
         JtW = np.swapaxes(J, 1, 2) @ Winv
         H = np.sum(JtW @ J, axis=0)
         chi2 = float(np.einsum("ni,nij,nj->", residuals[use], Winv, residuals[use]))

@@ -39,6 +39,20 @@ def test_perpendicular_basis_is_right_handed_orthonormal():
         assert np.linalg.det(B) == pytest.approx(1.0)
 
 
+
+def test_perpendicular_basis_of_many_directions_is_each_rows_basis():
+    rng = np.random.default_rng(3)
+    D = np.vstack([rng.normal(size=(200, 3)), np.eye(3), -np.eye(3)])
+    E1, E2 = perpendicular_basis(D)
+    assert E1.shape == E2.shape == D.shape
+    for d, e1, e2 in zip(D, E1, E2):
+        single = perpendicular_basis(d)
+        np.testing.assert_allclose(e1, single[0], atol=1e-15)
+        np.testing.assert_allclose(e2, single[1], atol=1e-15)
+        B = np.column_stack([e1, e2, d / np.linalg.norm(d)])
+        np.testing.assert_allclose(B.T @ B, np.eye(3), atol=1e-12)
+        assert np.linalg.det(B) == pytest.approx(1.0)
+
 def test_distances():
     assert distance_point_point([1, 2, 3], [4, 6, 3]) == pytest.approx(5.0)
     line = Line3D(np.array([0.0, 0, 5]), np.array([0.0, 0, 2]))

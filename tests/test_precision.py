@@ -231,21 +231,26 @@ def test_chain_bound_on_the_station():
 
 
 def test_a_circle_facing_the_camera_on_its_axis_has_no_eccentricity():
-    from crossfield.precision.perspective import ellipse_centre_offset
+    from crossfield.imaging.eccentricity import View, centre_offsets
 
     K = np.array([[3000.0, 0, 800], [0, 3000.0, 600], [0, 0, 1]])
-    off = ellipse_centre_offset(K, np.array([[0.0, 0.0, 400.0]]), np.array([[0.0, 0.0, -1.0]]), 2.5)
-    np.testing.assert_allclose(off, 0.0, atol=1e-12)
+    pinhole = (View(K, np.zeros(5), np.eye(3), np.zeros(3)),)
+
+    def offset(centre, normal, r):
+        return centre_offsets(np.array([centre]), np.array([normal]), np.array([r]), pinhole)
+
+    np.testing.assert_allclose(offset([0.0, 0.0, 400.0], [0.0, 0.0, -1.0], 2.5), 0.0, atol=1e-12)
     # Tilted or off-axis: the ellipse centre moves; the offset grows as r^2 (small-target limit).
-    tilt = np.array([[0.0, np.sin(0.4), -np.cos(0.4)]])
-    small = ellipse_centre_offset(K, np.array([[30.0, 20.0, 400.0]]), tilt, 1.0)
-    large = ellipse_centre_offset(K, np.array([[30.0, 20.0, 400.0]]), tilt, 2.0)
+    tilt = [0.0, np.sin(0.4), -np.cos(0.4)]
+    small = offset([30.0, 20.0, 400.0], tilt, 1.0)
+    large = offset([30.0, 20.0, 400.0], tilt, 2.0)
     assert np.linalg.norm(small) > 1e-4
     np.testing.assert_allclose(large, 4 * small, rtol=0.01)
 
 
 def test_eccentricity_matches_the_simulators_blob_centres():
-    from crossfield.precision.perspective import stereo_eccentricity
+    """The planner's perspective bias (centre_offsets of stereo_views, the triangulation's kernel)."""
+    from crossfield.imaging.eccentricity import centre_offsets, stereo_views
 
     scene = build_scene("table3")
     X = np.array([t.centre_camera for t in scene.targets])
@@ -253,7 +258,7 @@ def test_eccentricity_matches_the_simulators_blob_centres():
     uv, _ = project_stereo(scene.calibration, X)
     blob = {c: scene.true_blob_centres(c) for c in ("upper", "lower")}
     true = np.array([np.r_[blob["upper"][t.id], blob["lower"][t.id]] for t in scene.targets]) - uv
-    model = stereo_eccentricity(scene.calibration, X, N, 2.5)
+    model = centre_offsets(X, N, np.full(len(X), 2.5), stereo_views(scene.calibration))
     assert np.sqrt(np.mean(true**2)) > 0.01  # the effect is real: ~0.02 px
-    # The conic model explains it to ~0.002 px RMS (the rest: rendering discretisation, distortion).
+    # The conic model explains it to ~0.0014 px RMS (the rest: rendering discretisation).
     assert np.sqrt(np.mean((model - true) ** 2)) < 0.15 * np.sqrt(np.mean(true**2))

@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
+import crossfield.camera.stereo_model as stereo_model
 import crossfield.plugins.triangulate_epipolar as epipolar
 from crossfield.errors import ConfigError
 from crossfield.registry import get_implementation, make_plugin_manager
@@ -116,14 +117,14 @@ def triangulator(**options):
 )
 def test_projection_and_jacobian_match_opencv(dist):
     calibration = make_calibration(dist_upper=dist, dist_lower=dist)
-    geometry = epipolar._geometry(calibration)
+    geometry = stereo_model.stereo_geometry(calibration)
     X = random_points(np.random.default_rng(3), calibration, 30)
-    uv, J = epipolar.project_pair(geometry, X)
+    uv, J = stereo_model.project_pair(geometry, X)
     np.testing.assert_allclose(uv[:, :2], project(calibration, X, "upper"), atol=1e-9)
     np.testing.assert_allclose(uv[:, 2:], project(calibration, X, "lower"), atol=1e-9)
     h = 1e-4  # mm; central differences
-    plus = [epipolar.project_pair(geometry, X + h * e)[0] for e in np.eye(3)]
-    minus = [epipolar.project_pair(geometry, X - h * e)[0] for e in np.eye(3)]
+    plus = [stereo_model.project_pair(geometry, X + h * e)[0] for e in np.eye(3)]
+    minus = [stereo_model.project_pair(geometry, X - h * e)[0] for e in np.eye(3)]
     numeric = np.stack([(p - m) / (2 * h) for p, m in zip(plus, minus)], axis=2)
     np.testing.assert_allclose(J, numeric, rtol=0, atol=1e-6)
 

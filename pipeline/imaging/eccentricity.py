@@ -45,6 +45,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from crossfield.geometry import perpendicular_basis
+
 __all__ = [
     "CircleFit",
     "View",
@@ -54,6 +56,7 @@ __all__ = [
     "offset_covariance",
     "predicted_shape",
     "project",
+    "stereo_views",
 ]
 
 
@@ -82,6 +85,17 @@ class CircleFit:
     cov: np.ndarray
     cost: np.ndarray
     params: np.ndarray
+
+
+def stereo_views(calibration) -> tuple[View, View]:
+    """The (upper, lower) :class:`View` of a ``StereoCalibration``: the upper camera at the
+    origin, the lower at ``p_lower = R_lower_upper @ p_upper + t_lower_upper`` (mm)."""
+    return tuple(
+        View(np.asarray(c.camera_matrix, dtype=np.float64), np.asarray(c.dist_coeffs, dtype=np.float64).ravel(),
+             np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64))
+        for c, R, t in ((calibration.upper, np.eye(3), np.zeros(3)),
+                        (calibration.lower, calibration.R_lower_upper, calibration.t_lower_upper))
+    )
 
 
 def ellipse_centre_point(C: np.ndarray, n: np.ndarray, r: np.ndarray) -> np.ndarray:
@@ -132,13 +146,6 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     ))
 
 
-def _basis(n0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    helper = np.where(np.abs(n0[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
-    b1 = _cross(n0, helper)
-    b1 /= np.linalg.norm(b1, axis=1, keepdims=True)
-    return b1, _cross(n0, b1)
-
-
 def _normals(n0, b1, b2, w):
     """Rodrigues: n0 rotated by the rotation vector w1 b1 + w2 b2 (perpendicular to n0)."""
     axis = w[:, :1] * b1 + w[:, 1:2] * b2
@@ -150,7 +157,7 @@ def _normals(n0, b1, b2, w):
 def predicted_shape(C: np.ndarray, n: np.ndarray, r: np.ndarray) -> np.ndarray:
     """(N, 3) shape (s_uu, s_uv, s_vv) in normalised coordinates of the image ellipse of
     circles (C, n, r) in the view frame: S = A / (c^T A c - s) of Q = H^-T diag(1, 1, -r^2) H^-1."""
-    e1, e2 = _basis(n)
+    e1, e2 = perpendicular_basis(n)
     H = np.stack([e1, e2, C], axis=-1)  # columns
     G = np.linalg.inv(H)
     D = np.zeros((len(C), 3, 3))
@@ -200,7 +207,7 @@ def fit_circles(
     n = len(X)
     obs = _observed(views, X, ellipses, ellipse_covs)
     n0 = -X / np.linalg.norm(X, axis=1, keepdims=True)
-    b1, b2 = _basis(n0)
+    b1, b2 = perpendicular_basis(n0)
 
     def residuals(p, idx):
         normal = _normals(n0[idx], b1[idx], b2[idx], p[:, :2])
@@ -290,7 +297,7 @@ def centre_offsets(X: np.ndarray, normal: np.ndarray, radius: np.ndarray, views)
 def offset_covariance(X: np.ndarray, fit: CircleFit, views) -> np.ndarray:
     """(N, 4, 4) px^2 covariance of :func:`centre_offsets` from the circle fit's covariance."""
     n0 = -X / np.linalg.norm(X, axis=1, keepdims=True)
-    b1, b2 = _basis(n0)
+    b1, b2 = perpendicular_basis(n0)
 
     def offsets(p):
         return centre_offsets(X, _normals(n0, b1, b2, p[:, :2]), np.exp(p[:, 2]), views)

@@ -36,7 +36,10 @@ def add_parsers(command) -> None:
     plan.add_argument("-o", "--output-dir", metavar="DIR",
                       help="write plan.html (plots) and plan.json there (default: plan-<station>/ with --sweep)")
     plan.add_argument("--scheduler", metavar="ADDRESS",
-                      help="run the sweep on Dask: 'local' (a LocalCluster here) or tcp://HOST:PORT")
+                      help="run the sweep on Dask: 'local' (an embedded LocalCluster) or tcp://HOST:PORT")
+    plan.add_argument("--workers", type=int, metavar="N",
+                      help="with --scheduler local: N worker processes (default one per core); with an "
+                      "address: wait for N workers")
     crb = command(
         "crb", help="the Cramér-Rao bound of the chain for a station (centroid, camera point, registration, "
         "target point)",
@@ -75,7 +78,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
 
     from crossfield.planning.report import write_report
     from crossfield.planning.routes import predict
-    from crossfield.planning.sweeps import client_for, recommend, run_sweeps
+    from crossfield.planning.sweeps import recommend, run_sweeps
 
     station = _station(args)
     if args.sessions < 2 or args.sweep_sessions < 2:
@@ -84,15 +87,17 @@ def cmd_plan(args: argparse.Namespace) -> int:
     prediction = predict(station, sessions=args.sessions, seed=args.seed, route=args.route)
     sweeps = recommendation = None
     if args.sweep:
-        client = client_for(args.scheduler) if args.scheduler else None
-        try:
-            sweeps = run_sweeps(station, sessions=args.sweep_sessions, seed=args.seed, route=args.route,
-                                client=client)
-        finally:
-            if client is not None:
-                client.close()
-    elif args.scheduler:
-        raise ConfigError("--scheduler applies to --sweep")
+        options = dict(sessions=args.sweep_sessions, seed=args.seed, route=args.route)
+        if args.scheduler:  # the shared Dask client; 'local' = the embedded LocalCluster
+            from crossfield.batch import engine
+
+            address = None if args.scheduler == "local" else args.scheduler
+            with engine.client(address, args.workers, dashboard_address=":0") as client:
+                sweeps = run_sweeps(station, **options, client=client)
+        else:
+            sweeps = run_sweeps(station, **options)
+    elif args.scheduler or args.workers is not None:
+        raise ConfigError("--scheduler and --workers apply to --sweep")
     if args.target_mm is not None:
         try:
             recommendation = recommend(station, args.target_mm, sessions=args.sessions, seed=args.seed)

@@ -23,7 +23,8 @@ per session and does not. So ``u_session^2 = u_cmm^2 + u_camera,frame^2 / frames
   is not batched).
 
 Both routes also carry the perspective eccentricity of the targets' blob centres
-(:mod:`crossfield.precision.perspective`): a fixed offset of every centroid, the
+(:func:`crossfield.imaging.eccentricity.centre_offsets`, the kernel of the
+triangulation's eccentricity correction): a fixed offset of every centroid, the
 same in every frame and session, so a fixed bias of each session result
 (``bias_mm``); the analytic route propagates it linearly, the Monte Carlo adds
 it to the true image positions. ``u_mm`` is the RMS session error
@@ -41,11 +42,11 @@ from typing import Any
 import numpy as np
 
 from crossfield.geometry import fit_cylinder_axis, fit_line, point_line_distance
+from crossfield.imaging.eccentricity import centre_offsets, stereo_views
 from crossfield.precision.chain import centroid_sigmas, image_radius_px
 from crossfield.precision.registration import (
     fitzpatrick_covariance, fitzpatrick_tre, point_jacobian, registration_covariance,
 )
-from crossfield.precision.perspective import stereo_eccentricity
 from crossfield.precision.stereo import camera_point_covariance, project_stereo, triangulate_batch
 from crossfield.rigid import kabsch
 from crossfield.planning.station import Characteristic, ReferenceLine, Station
@@ -72,7 +73,8 @@ def camera_model(station: Station) -> CameraModel:
     crb = centroid_sigmas(radius_px, station.blur_sigma_px, station.signal_dn, station.background_dn, station.noise)
     sigma = crb * station.centroid_efficiency
     uv, J = project_stereo(station.calibration, X)
-    bias = (stereo_eccentricity(station.calibration, X, station.camera_normals, station.radius_mm)
+    bias = (centre_offsets(X, station.camera_normals, np.full(len(X), station.radius_mm),
+                           stereo_views(station.calibration))
             if station.perspective_bias else np.zeros_like(uv))
     return CameraModel(X, uv, sigma, camera_point_covariance(J, sigma), crb, bias, J)
 

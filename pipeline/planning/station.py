@@ -86,7 +86,7 @@ class Station:
     control_box: tuple[tuple[float, float, float], tuple[float, float, float]] = ((0, 0, 400), (80, 45, 18))
     source: str = ""
     design: dict[str, float] = field(default_factory=dict)
-    perspective_bias: bool = True  # model the blob centres' perspective eccentricity (precision.perspective)
+    perspective_bias: bool = True  # model the blob centres' perspective eccentricity (imaging.eccentricity)
 
     @property
     def working_distance_mm(self) -> float:

@@ -2,8 +2,8 @@
 
 Each sweep varies one design parameter of a station (:mod:`crossfield.planning.station`'s
 ``with_*`` variants), everything else fixed, and evaluates both routes at every
-value. Large grids can run on Dask (``client``: a ``distributed.Client``): each
-design point is one task (:func:`evaluate`).
+value. Large grids can run on Dask (``client``: a ``distributed.Client``, from
+:func:`crossfield.batch.engine.client`): each design point is one task (:func:`evaluate`).
 """
 
 from __future__ import annotations
@@ -138,18 +138,3 @@ def recommend(
                    f"reference probing, the same in every frame) is U = {best['U_cmm_mm']:.4f} mm: a better arm "
                    f"(--cmm-sigma-mm) or more frames per session may reach it, see the sweeps")
     return {"reached": False, "reason": reason, "tried": tried, "best": best}
-
-
-def client_for(scheduler: str):
-    """A Dask client: ``local`` starts a LocalCluster on this machine, else an address
-    (``tcp://HOST:PORT``) of a running scheduler. Dask is imported only here."""
-    try:
-        from distributed import Client, LocalCluster
-    except ImportError:  # pragma: no cover - depends on the installation
-        from crossfield.errors import ConfigError
-
-        raise ConfigError("--scheduler needs Dask: pip install 'crossfield[dask]'") from None
-    if scheduler == "local":
-        cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None)
-        return Client(cluster)
-    return Client(scheduler)

@@ -5,13 +5,13 @@
 * :func:`registration_crb`, :func:`registration_covariance`, :func:`fitzpatrick_tre`,
   :func:`fitzpatrick_covariance`: the rigid registration (6 x 6, rad and mm);
 * :func:`chain_bound`: all of them for a station's points, and the target points in the global frame;
-* :func:`triangulate_batch`: the batched triangulation kernel of the Monte Carlo routes;
-* :func:`ellipse_centre_offset`, :func:`stereo_eccentricity`: the perspective bias of a circle's blob centre.
+* :func:`triangulate_batch`: the batched triangulation kernel of the Monte Carlo routes.
+
+The perspective bias of a circle's blob centre is :mod:`crossfield.imaging.eccentricity`'s.
 """
 
 from crossfield.precision.centroid import CentroidBound, NoiseModel, centroid_crb, edge_limited_bound
 from crossfield.precision.chain import ChainBound, centroid_sigmas, chain_bound, image_radius_px
-from crossfield.precision.perspective import ellipse_centre_offset, stereo_eccentricity
 from crossfield.precision.registration import (
     fitzpatrick_covariance,
     fitzpatrick_tre,
@@ -24,7 +24,7 @@ from crossfield.precision.stereo import camera_point_covariance, project_stereo,
 
 __all__ = [
     "CentroidBound", "ChainBound", "NoiseModel", "camera_point_covariance", "centroid_crb", "centroid_sigmas",
-    "chain_bound", "edge_limited_bound", "ellipse_centre_offset", "stereo_eccentricity", "fitzpatrick_covariance", "fitzpatrick_tre", "global_point_covariance",
+    "chain_bound", "edge_limited_bound", "fitzpatrick_covariance", "fitzpatrick_tre", "global_point_covariance",
     "image_radius_px", "point_jacobian", "project_stereo", "registration_covariance", "registration_crb",
     "triangulate_batch",
 ]

@@ -30,15 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 
-
-def skew(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrices [v]x (..., 3, 3) of vectors v (..., 3)."""
-    v = np.asarray(v, dtype=np.float64)
-    out = np.zeros(v.shape + (3,))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
+from crossfield.covariance import skew
 
 
 def point_jacobian(points: np.ndarray, g_bar: np.ndarray) -> np.ndarray:

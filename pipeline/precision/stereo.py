@@ -1,11 +1,11 @@
 """Stereo triangulation precision (the Cramér-Rao bound of a camera point) and
 the batched triangulation kernel of the Monte Carlo routes.
 
-Both reuse the projection model and the triangulation steps of the
-``epipolar`` triangulation (``crossfield.plugins.triangulate_epipolar``:
-OpenCV's lens model with its analytic Jacobian, linear triangulation H&Z 12.2,
-Gauss-Newton refinement of the weighted reprojection error H&Z 12.3), so the
-bound and the Monte Carlo describe the estimator the pipeline runs.
+Both use the stereo camera model the ``epipolar`` triangulation uses
+(:mod:`crossfield.camera.stereo_model`: OpenCV's lens model with its analytic
+Jacobian, linear triangulation H&Z 12.2, Gauss-Newton refinement of the
+weighted reprojection error H&Z 12.3), so the bound and the Monte Carlo
+describe the estimator the pipeline runs.
 
 Bound: with independent Gaussian centroid errors of standard deviation
 ``sigma_uv`` (px) on the four image coordinates ``(u_upper, v_upper, u_lower,
@@ -21,12 +21,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from crossfield.plugins.triangulate_epipolar import (
-    EpipolarTriangulator,
-    _geometry,
-    _undistort,
+from crossfield.camera.stereo_model import (
     linear_triangulation,
     project_pair,
+    refine_points,
+    stereo_geometry,
+    undistort,
 )
 from crossfield.types import StereoCalibration
 
@@ -38,7 +38,7 @@ def project_stereo(calibration: StereoCalibration, X: np.ndarray) -> tuple[np.nd
     Jacobian J (N, 4, 3) px/mm.
     """
     X = np.asarray(X, dtype=np.float64).reshape(-1, 3)
-    return project_pair(_geometry(calibration), X)
+    return project_pair(stereo_geometry(calibration), X)
 
 
 def camera_point_covariance(J: np.ndarray, sigma_uv: np.ndarray) -> np.ndarray:
@@ -62,16 +62,15 @@ def triangulate_batch(
     pixels, any leading batch shape); sigma_uv: (..., 4) px or broadcastable.
     Steps: undistortion (cv2.undistortPoints), linear triangulation (H&Z 12.2),
     Gauss-Newton on the weighted reprojection error (H&Z 12.3), each the
-    plugin's own function. Returns X (..., 3) mm in the upper camera frame.
+    the ``epipolar`` triangulation's own kernel. Returns X (..., 3) mm in the upper camera frame.
     """
     uv = np.asarray(uv, dtype=np.float64)
     shape = uv.shape[:-1]
     flat = uv.reshape(-1, 4)
     weights = 1.0 / np.broadcast_to(np.asarray(sigma_uv, dtype=np.float64), uv.shape).reshape(-1, 4) ** 2
-    geometry = _geometry(calibration)
-    xn_u = _undistort(flat[:, :2], geometry.upper)
-    xn_l = _undistort(flat[:, 2:], geometry.lower)
+    geometry = stereo_geometry(calibration)
+    xn_u = undistort(flat[:, :2], geometry.upper)
+    xn_l = undistort(flat[:, 2:], geometry.lower)
     X = linear_triangulation(xn_u, xn_l, geometry)
-    refiner = EpipolarTriangulator(max_iterations=iterations)
-    X, _, _, _ = refiner._refine(X, flat, weights, geometry)
+    X, _, _, _ = refine_points(X, flat, weights, geometry, max_iterations=iterations)
     return X.reshape(shape + (3,))
