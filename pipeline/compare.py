@@ -44,6 +44,8 @@ CHARACTERISTIC_KEYS = (
     "measured_mm",
     "std_mm",
     "uncertainty_mm",
+    "expanded_uncertainty_mm",
+    "decision",
     "deviation_mm",
     "passed",
     "actual_mm",

@@ -164,7 +164,8 @@ def test_batch_compare_matches_per_session_replay_and_compare(archive, cluster, 
         for r in entry["characteristics"]:
             original = rows[r["name"]]["a"]
             assert r["shift_mm"] == rows[r["name"]]["delta_mm"]
-            assert r["U_mm"] == 2 * original["uncertainty_mm"] and r["U_source"] == "2 x uncertainty_mm"
+            # report.json states U (issue 12): the batch uses it, not 2 u
+            assert r["U_mm"] == original["expanded_uncertainty_mm"] and r["U_source"] == "expanded_uncertainty_mm"
             assert r["shift_over_U"] == pytest.approx(r["shift_mm"] / r["U_mm"], rel=1e-12)
             assert r["decision_changed"] == (original["passed"] != rows[r["name"]]["b"]["passed"])
         assert entry["verdict"] == ("FAIL" if any(r["decision_changed"] for r in entry["characteristics"]) else "PASS")
