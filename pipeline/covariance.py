@@ -47,10 +47,14 @@ def camera_covariance(A: np.ndarray, sigma_xyz: np.ndarray) -> np.ndarray:
 
 
 def registration_jacobian(p_global: np.ndarray, g_bar: np.ndarray) -> np.ndarray:
-    """``J = [-[p_g - g_bar]_x, I_3]`` (3, 6): how a global point moves with the
-    registration's (dtheta (rad), dt (mm)) about the control centroid ``g_bar`` (mm)."""
+    """``J = [-[p_g - g_bar]_x, I_3]`` (..., 3, 6) for global points (..., 3) mm: how
+    a point moves with the registration's (dtheta (rad), dt (mm)) about the control
+    centroid ``g_bar`` (mm)."""
     y = np.asarray(p_global, dtype=np.float64) - np.asarray(g_bar, dtype=np.float64)
-    return np.hstack([-skew(y), np.eye(3)])
+    J = np.zeros(y.shape + (6,))
+    J[..., :3] = -skew(y)
+    J[..., 3:] = np.eye(3)
+    return J
 
 
 def global_point_covariance(

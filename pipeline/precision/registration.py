@@ -30,16 +30,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from crossfield.covariance import skew
+from crossfield.covariance import registration_jacobian
 
 
-def point_jacobian(points: np.ndarray, g_bar: np.ndarray) -> np.ndarray:
-    """d(point error)/d(xi): (..., 3, 6) = [-[p - g_bar]x, I] for points (..., 3) mm."""
-    p = np.asarray(points, dtype=np.float64)
-    J = np.zeros(p.shape + (6,))
-    J[..., :3] = -skew(p - g_bar)
-    J[..., 3:] = np.eye(3)
-    return J
+#: d(point error)/d(xi) (..., 3, 6) of points (..., 3) mm: the one kernel of crossfield.covariance.
+point_jacobian = registration_jacobian
 
 
 def registration_crb(controls_global: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
