@@ -288,3 +288,76 @@ def test_options_are_checked_against_the_declared_types() -> None:
             impl.create({key: value}, "f.toml: [centroid]")
         text = str(caught.value)
         assert text.startswith("f.toml: [centroid]: option ") and repr(key) in text and expected in text, text
+
+
+def test_ctrl_c_during_the_frames_reports_what_was_measured(tmp_path: Path) -> None:
+    """A real SIGINT to a running ``crossfield run``: the frames measured before it are in
+    the report (INCOMPLETE, naming the interruption), the recording is closed and sealed,
+    and it replays the frames it holds."""
+    import signal
+    import time
+
+    script = Path(sys.executable).with_name("crossfield")
+    cmd = [str(script)] if script.exists() else [sys.executable, "-m", "crossfield.cli"]
+    proc = subprocess.Popen(
+        [*cmd, "run", "--scenario", "station", "--frames", "500", "--no-rerun", "--output-dir", str(tmp_path),
+         "--name", "cut"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    mcap = tmp_path / "cut" / "session.mcap"
+    deadline = time.monotonic() + 300
+    # Wait until a frame is in the file.
+    while time.monotonic() < deadline and proc.poll() is None:
+        with open_recording_if_any(mcap) as frames:
+            if frames >= 1:
+                break
+        time.sleep(0.5)
+    assert proc.poll() is None, proc.communicate()
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=300)
+    assert proc.returncode == 130, (out, err)
+    assert "interrupted (Ctrl-C) after" in err and "Traceback" not in err
+    report = _reports(tmp_path / "cut")
+    assert report["incomplete"] is True and report["passed"] is False
+    assert "interrupted (Ctrl-C)" in report["incomplete_reason"]
+    assert 1 <= report["frames_processed"] < 500
+    assert report["integrity"]["chain_head"] == json.loads(sidecar_path(mcap).read_text())["chain_head"]
+    with open_recording(mcap) as rec:
+        assert rec.complete
+    replay = crossfield("replay", str(mcap), "-o", str(tmp_path / "replayed.mcap"), "-q", "--no-rerun")
+    assert replay.returncode == 0 and "Traceback" not in replay.stderr, replay.stdout + replay.stderr
+    replayed = json.loads((tmp_path / "replayed" / "report.json").read_text(encoding="utf-8"))
+    assert replayed["frames_processed"] == report["frames_processed"]
+    assert replayed["characteristics"] == report["characteristics"]
+
+
+class open_recording_if_any:
+    """``with open_recording_if_any(path) as n``: the number of stereo frames a
+    recording being written already holds (0 if it cannot be read yet)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def __enter__(self) -> int:
+        from mcap.stream_reader import StreamReader
+        from mcap.records import Channel, Message
+
+        from crossfield.recording import layout
+
+        if not self.path.exists():
+            return 0
+        topics: dict[int, str] = {}
+        count = 0
+        try:
+            with open(self.path, "rb") as f:
+                for record in StreamReader(f, skip_magic=False).records:
+                    if isinstance(record, Channel):
+                        topics[record.id] = record.topic
+                    elif isinstance(record, Message) and topics.get(record.channel_id) == layout.TOPIC_REGISTRATION:
+                        count += 1
+        except Exception:  # a file being written ends mid-record
+            pass
+        return count
+
+    def __exit__(self, *exc: object) -> None:
+        return None
