@@ -38,15 +38,18 @@ def stage_choices(args: argparse.Namespace) -> tuple[dict[str, str | None], list
     return {stage: getattr(args, stage) for stage in STAGES}, list(args.option)
 
 
-def _verbosity_flags() -> argparse.ArgumentParser:
-    """-v / -q of every command: the level of the ``crossfield`` loggers (:func:`logging_to_stderr`)."""
+def _verbosity_flags(default: object = 0) -> argparse.ArgumentParser:
+    """-v / -q of every command: the level of the ``crossfield`` loggers (:func:`logging_to_stderr`).
+    A nested command's flags (``batch -v audit`` and ``batch audit -v``) are made with
+    ``default=argparse.SUPPRESS``, so that they do not reset the outer command's count
+    (given at both levels, the inner count is the one kept)."""
     flags = argparse.ArgumentParser(add_help=False)
     flags.add_argument(
-        "-v", "--verbose", action="count", default=0,
+        "-v", "--verbose", action="count", default=default,
         help="log more: -v progress of the steps (INFO), -vv details (DEBUG)",
     )
     flags.add_argument(
-        "-q", "--quiet", action="count", default=0,
+        "-q", "--quiet", action="count", default=default,
         help="log only errors (and no progress display for run and replay)",
     )
     return flags
@@ -168,7 +171,7 @@ def build_parser() -> argparse.ArgumentParser:
         "the recorded session's rerun_image_every)",
     )
 
-    add_batch_commands(command, verbosity)
+    add_batch_commands(command)
     # -- export (docs/user-guide.md, "Exporting results") ------------------------------------
     export = command(
         "export",
@@ -404,9 +407,7 @@ def cmd_view(args: argparse.Namespace) -> int:
 # ---- crossfield batch (docs/batch.md) ------------------------------------------------
 
 
-def add_batch_commands(
-    command: Callable[..., argparse.ArgumentParser], verbosity: argparse.ArgumentParser
-) -> None:
+def add_batch_commands(command: Callable[..., argparse.ArgumentParser]) -> None:
     """``crossfield batch audit | replay | compare PATHS...`` over an archive, on Dask."""
     from crossfield.batch.engine import add_engine_flags
 
@@ -425,7 +426,7 @@ def add_batch_commands(
         "compare": "replay every session with other plugins and compare it with its original",
     }
     for kind, text in helps.items():
-        p = kinds.add_parser(kind, help=text, parents=[verbosity])
+        p = kinds.add_parser(kind, help=text, parents=[_verbosity_flags(argparse.SUPPRESS)])
         p.add_argument("paths", nargs="+", metavar="PATH", help="session folder, MCAP file or glob (quoted)")
         p.add_argument(
             "-o", "--output-dir", metavar="DIR",

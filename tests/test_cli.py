@@ -179,3 +179,16 @@ def test_user_guide_states_the_defaults():
     assert f"where session folders go (default `{SESSION_DEFAULTS['output_dir']}/`)" in text
     view = build_parser().parse_args(["view", "x"])
     assert f"`--port {view.port}`, `--window-size {view.window_size}`" in text
+
+
+@pytest.mark.parametrize("argv, verbose", [
+    (["batch", "-v", "audit", "x.mcap"], 1),
+    (["batch", "audit", "-v", "x.mcap"], 1),
+    (["batch", "-vv", "compare", "x.mcap"], 2),
+    (["batch", "replay", "x.mcap"], 0),
+])
+def test_batch_verbosity_is_kept_on_either_side_of_the_kind(argv, verbose) -> None:
+    from crossfield.cli import build_parser
+
+    args = build_parser().parse_args(argv)
+    assert args.verbose == verbose and args.quiet == 0
