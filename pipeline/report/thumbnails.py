@@ -1,0 +1,179 @@
+"""One small picture per camera for the report: :class:`ThumbnailObserver`.
+
+The report stage gets the :class:`~crossfield.session.SessionSummary`, never an
+image. This observer, registered by the runner for every session (live run,
+replay, audit: :func:`crossfield.runner.run_session`), keeps for each camera
+ONE downsampled 8-bit copy of the image of the session's first *measured*
+stereo pair (else the first registered one, else the first with centroids),
+with that pair's centroids (px) and the target label of each: the control
+point id the correspondence gave it, or the measured target id the measure
+stage found there. The summary carries them (``summary.thumbnails``) and
+report.html draws them (:func:`crossfield.report.figures.thumbnail_chart`).
+
+Memory is bounded whatever the session's length: between ``on_frame`` and
+``on_frame_done`` it holds a reference to the current pair (no copy), and
+afterwards at most one thumbnail per camera (each at most ``max_width`` px
+wide); a pair is downsampled only when it is better than the one kept (at
+most three times per session).
+
+Pixel convention (OpenCV, ``docs/conventions.md``): (0, 0) is the centre of
+the top-left pixel. The image is reduced by an integer factor ``f`` by block
+means (f x f pixels per thumbnail pixel, the last ``w mod f`` columns and
+``h mod f`` rows dropped), so thumbnail pixel ``j`` is the mean of image
+pixels ``f j .. f j + f - 1``, centred at ``f j + (f - 1) / 2``: an image
+coordinate ``u`` is at thumbnail coordinate ``(u - (f - 1) / 2) / f``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from crossfield.hookspecs import hookimpl
+from crossfield.types import CAMERAS, CentroidSet, StereoFrame, frozen_array
+
+if TYPE_CHECKING:  # pragma: no cover
+    from crossfield.session import FrameResult
+
+__all__ = [
+    "KIND_CONTROL",
+    "KIND_TARGET",
+    "LABEL_TOLERANCE_MM",
+    "MAX_WIDTH_PX",
+    "CameraThumbnail",
+    "ThumbnailObserver",
+    "downsample",
+    "point_labels",
+]
+
+#: Default largest thumbnail width (px).
+MAX_WIDTH_PX = 480
+
+#: A measured target position (global, mm) names the camera point whose
+#: registered position lies within this distance (the measure stage reports
+#: ``fit.apply(p)`` of the point it identified: 0 mm for the built-in one).
+LABEL_TOLERANCE_MM = 0.5
+
+#: What a labelled centroid is: a common control point (correspondence) or a
+#: measured target (measure stage); "" for a centroid left unidentified.
+KIND_CONTROL = "control"
+KIND_TARGET = "target"
+
+#: How far the kept pair got: the first pair of the highest rank is kept.
+_RANK = {"centroids": 1, "registered": 2, "measured": 3}
+
+
+@dataclass(frozen=True)
+class CameraThumbnail:
+    """One camera's picture for the report.
+
+    camera: ``"upper"`` or ``"lower"``. sequence: the stereo pair it shows.
+    image: (h, w) uint8, read-only: block means of ``factor`` x ``factor``
+    image pixels, DN scaled by ``255 / (2**bit_depth - 1)``.
+    factor: the integer reduction (1 = full size). full_size: (height, width)
+    of the camera image (px). uv: (N, 2) every centroid of that image, image
+    pixels (OpenCV convention). labels: (N,) its target id, "" when the
+    pipeline did not identify it. kinds: (N,) :data:`KIND_CONTROL`,
+    :data:`KIND_TARGET` or "". status: how far the pair got
+    (``"measured"``, ``"registered"`` or ``"centroids"``).
+    """
+
+    camera: str
+    sequence: int
+    image: np.ndarray
+    factor: int
+    full_size: tuple[int, int]
+    uv: np.ndarray
+    labels: tuple[str, ...]
+    kinds: tuple[str, ...]
+    status: str
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "image", frozen_array(self.image, np.uint8, shape=(None, None)))
+        object.__setattr__(self, "uv", frozen_array(self.uv, shape=(None, 2)))
+        if not len(self.labels) == len(self.kinds) == len(self.uv):
+            raise ValueError("uv, labels and kinds differ in length")
+
+    def thumbnail_uv(self) -> np.ndarray:
+        """(N, 2) the centroids in thumbnail pixels: ``(uv - (f - 1) / 2) / f``."""
+        return (self.uv - (self.factor - 1) / 2.0) / self.factor
+
+
+def downsample(image: np.ndarray, bit_depth: int, max_width: int = MAX_WIDTH_PX) -> tuple[np.ndarray, int]:
+    """``image`` (h, w) DN of ``bit_depth`` bits as (h // f, w // f) uint8 block
+    means, f = ceil(w / max_width); returns (thumbnail, f)."""
+    h, w = image.shape
+    f = max(1, math.ceil(w / max_width))
+    h2, w2 = (h // f) * f, (w // f) * f
+    blocks = np.asarray(image[:h2, :w2]).reshape(h2 // f, f, w2 // f, f)
+    mean = blocks.mean(axis=(1, 3), dtype=np.float64)
+    full_scale = float(2 ** int(bit_depth) - 1)
+    return np.clip(np.rint(mean * (255.0 / full_scale)), 0, 255).astype(np.uint8), f
+
+
+def point_labels(result: FrameResult, camera: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """(labels, kinds) of each centroid of ``camera`` in ``result`` (a
+    :class:`~crossfield.session.FrameResult`): control ids from the
+    registration's correspondence, measured target ids from the measurement's
+    ``target_points`` (each matched to the camera point whose registered
+    position is nearest, within :data:`LABEL_TOLERANCE_MM`)."""
+    cset: CentroidSet = getattr(result.centroids, camera)
+    labels, kinds = [""] * len(cset), [""] * len(cset)
+    points, registration = result.points, result.registration
+    if points is None or registration is None or not len(points):
+        return tuple(labels), tuple(kinds)
+    index = getattr(points, f"{camera}_index")
+    corr = registration.correspondence
+    for k, cid in zip(corr.camera_index, corr.control_ids):
+        labels[index[k]], kinds[index[k]] = cid, KIND_CONTROL
+    if result.measurement is not None and result.measurement.target_points:
+        global_xyz = registration.fit.apply(points.xyz)
+        for tid, xyz in result.measurement.target_points.items():
+            d = np.linalg.norm(global_xyz - np.asarray(xyz, dtype=np.float64), axis=1)
+            k = int(np.argmin(d))
+            if d[k] <= LABEL_TOLERANCE_MM:
+                labels[index[k]], kinds[index[k]] = tid, KIND_TARGET
+    return tuple(labels), tuple(kinds)
+
+
+class ThumbnailObserver:
+    """Observer plugin: keeps one :class:`CameraThumbnail` per camera (see the module)."""
+
+    def __init__(self, max_width: int = MAX_WIDTH_PX) -> None:
+        if isinstance(max_width, bool) or not isinstance(max_width, int) or max_width < 1:
+            raise ValueError(f"max_width must be a positive number of pixels, got {max_width!r}")
+        self.max_width = max_width
+        self._frame: StereoFrame | None = None  # the pair in flight, until on_frame_done
+        self._rank = 0
+        self._kept: tuple[CameraThumbnail, ...] = ()
+
+    @hookimpl
+    def on_frame(self, frame: StereoFrame) -> None:
+        self._frame = frame if self._rank < _RANK["measured"] else None
+
+    @hookimpl
+    def on_frame_done(self, result: FrameResult) -> None:
+        frame, self._frame = self._frame, None
+        if frame is None or frame.sequence != result.sequence or result.centroids is None:
+            return
+        status = "measured" if result.measurement is not None else (
+            "registered" if result.registration is not None else "centroids")
+        if _RANK[status] <= self._rank:
+            return
+        kept = []
+        for camera in CAMERAS:
+            image = frame.image(camera)
+            small, f = downsample(image, frame.bit_depth, self.max_width)
+            labels, kinds = point_labels(result, camera)
+            kept.append(CameraThumbnail(
+                camera, int(frame.sequence), small, f, (int(image.shape[0]), int(image.shape[1])),
+                getattr(result.centroids, camera).uv, labels, kinds, status,
+            ))
+        self._kept, self._rank = tuple(kept), _RANK[status]
+
+    def thumbnails(self) -> tuple[CameraThumbnail, ...]:
+        """The kept thumbnails, one per camera (``CAMERAS`` order); () before any pair."""
+        return self._kept
