@@ -58,12 +58,13 @@ def _pyplot():
     return plt
 
 
-def svg(fig) -> str:
-    """The figure as an inline ``<svg>`` element (no XML prolog, no DOCTYPE)."""
+def svg(fig, tight: bool = True) -> str:
+    """The figure as an inline ``<svg>`` element (no XML prolog, no DOCTYPE);
+    ``tight``: cropped to what is drawn (matplotlib draws the figure twice then)."""
     plt = _pyplot()
     out = io.StringIO()
     with plt.rc_context({"svg.fonttype": "none", "svg.hashsalt": "crossfield"}):
-        fig.savefig(out, format="svg", bbox_inches="tight", metadata={"Date": None, "Creator": None})
+        fig.savefig(out, format="svg", bbox_inches="tight" if tight else None, metadata={"Date": None, "Creator": None})
     plt.close(fig)
     text = out.getvalue()
     return text[text.index("<svg"):]
@@ -166,6 +167,9 @@ def trend_chart(report: Mapping[str, Any]) -> str:
 
 
 #: Marker colours of the thumbnail: control points, measured targets, the rest.
+#: Blank space right of and below a thumbnail (SVG units = thumbnail px), for labels.
+_THUMB_MARGIN = (24, 10)
+
 _THUMB_COLOURS = {KIND_CONTROL: "#2f7fd6", KIND_TARGET: "#f28e1c", "": "#b0b8c0"}
 
 
@@ -180,8 +184,11 @@ def thumbnail_chart(thumb) -> str:
     plt = _pyplot()
     h, w = thumb.image.shape
     camera = thumb.camera
-    fig = plt.figure(figsize=(w / 72.0, h / 72.0))  # 72 SVG units per inch: one unit per pixel
-    ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))
+    # 72 SVG units per inch: one unit per thumbnail pixel, and a margin right and
+    # below for the labels of targets at the edge (not cropped: one draw, not two)
+    W, H = w + _THUMB_MARGIN[0], h + _THUMB_MARGIN[1]
+    fig = plt.figure(figsize=(W / 72.0, H / 72.0))
+    ax = fig.add_axes((0.0, 1.0 - h / H, w / W, h / H))
     image = ax.imshow(thumb.image, cmap="gray", vmin=0, vmax=255, interpolation="none")
     image.set_gid(THUMBNAIL_GID["image"].format(camera=camera))
     uv = thumb.thumbnail_uv()
@@ -200,4 +207,4 @@ def thumbnail_chart(thumb) -> str:
     ax.set_xlim(-0.5, w - 0.5)
     ax.set_ylim(h - 0.5, -0.5)
     ax.set_axis_off()
-    return svg(fig)
+    return svg(fig, tight=False)

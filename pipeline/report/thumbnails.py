@@ -27,7 +27,7 @@ coordinate ``u`` is at thumbnail coordinate ``(u - (f - 1) / 2) / f``.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -66,7 +66,7 @@ KIND_TARGET = "target"
 _RANK = {"centroids": 1, "registered": 2, "measured": 3}
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class CameraThumbnail:
     """One camera's picture for the report.
 
@@ -78,12 +78,13 @@ class CameraThumbnail:
     pixels (OpenCV convention). labels: (N,) its target id, "" when the
     pipeline did not identify it. kinds: (N,) :data:`KIND_CONTROL`,
     :data:`KIND_TARGET` or "". status: how far the pair got
-    (``"measured"``, ``"registered"`` or ``"centroids"``).
+    (``"measured"``, ``"registered"`` or ``"centroids"``). Compared by identity
+    (``eq=False``: it holds arrays).
     """
 
     camera: str
     sequence: int
-    image: np.ndarray
+    image: np.ndarray = field(repr=False)
     factor: int
     full_size: tuple[int, int]
     uv: np.ndarray
