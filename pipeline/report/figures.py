@@ -200,7 +200,7 @@ def thumbnail_chart(thumb) -> str:
             line.set_gid(THUMBNAIL_GID[kind].format(camera=camera))
     for (u, v), label, kind in zip(uv, thumb.labels, thumb.kinds):
         if label:
-            text = ax.annotate(label, (u, v), textcoords="offset points", xytext=LABEL_OFFSET, fontsize=7,
+            text = ax.annotate(label, (u, v), textcoords="offset points", xytext=LABEL_OFFSET, fontsize=8,
                                color=_THUMB_COLOURS.get(kind, _THUMB_COLOURS[KIND_TARGET]),
                                fontweight="bold", annotation_clip=False)
             text.set_gid(THUMBNAIL_GID["label"].format(camera=camera, label=label))
