@@ -508,6 +508,15 @@ def report_figures(report: Mapping[str, Any], positions: Mapping[str, Any] | Non
     }
 
 
+#: Which pair a thumbnail shows, by its ``status`` (crossfield.report.thumbnails.STATUS_RANK).
+_PAIR_TEXT = {
+    "measured": "the session's first measured pair",
+    "registered": "no pair was measured: the first registered one",
+    "centroids": "no pair was registered: the first with centroids",
+    "image": "no pair had centroids: the first pair",
+}
+
+
 def camera_figures(thumbnails: Sequence[Any]) -> list[dict[str, Any]]:
     """The "Cameras" section: per :class:`~crossfield.report.thumbnails.CameraThumbnail`
     (``summary.thumbnails``) its ``camera``, ``svg`` (:func:`crossfield.report.figures.thumbnail_chart`)
@@ -520,7 +529,7 @@ def camera_figures(thumbnails: Sequence[Any]) -> list[dict[str, Any]]:
         height, width = t.full_size
         n_control, n_target = t.kinds.count(KIND_CONTROL), t.kinds.count(KIND_TARGET)
         caption = (
-            f"{t.camera.capitalize()} camera, frame {t.sequence} (the session's first {t.status} pair): "
+            f"{t.camera.capitalize()} camera, frame {t.sequence} ({_PAIR_TEXT.get(t.status, t.status)}): "
             f"{width} x {height} px shown at 1:{t.factor}; {len(t.uv)} centroids, "
             f"{n_control} control point{'s' if n_control != 1 else ''} (blue) and "
             f"{n_target} measured target{'s' if n_target != 1 else ''} (orange) labelled"

@@ -213,8 +213,9 @@ def _centroids(camera: str, seq: int, uv) -> CentroidSet:
 
 
 def test_the_observer_keeps_the_first_best_pair_and_downsamples_rarely(monkeypatch):
-    """50 pairs that got only as far as centroids: the first is kept, downsampled once,
-    and no pair is held after its on_frame_done."""
+    """Pair 0 failed in its centroid stage, pairs 1..49 got only as far as centroids:
+    pair 1 is kept (pair 0 until then), each downsampled once per camera, and no pair
+    is held after its on_frame_done."""
     calls = []
     real = T.downsample
     monkeypatch.setattr(T, "downsample", lambda *a, **k: calls.append(1) or real(*a, **k))
@@ -223,13 +224,17 @@ def test_the_observer_keeps_the_first_best_pair_and_downsamples_rarely(monkeypat
     for seq in range(50):
         frame = StereoFrame(seq, 1000 + seq, image, image)
         spy.on_frame(frame=frame)
-        cents = StereoCentroids(seq, _centroids("upper", seq, [[10.0, 20.0]]), _centroids("lower", seq, [[12.0, 20.0]]))
-        spy.on_frame_done(result=FrameResult(seq, 1000 + seq, centroids=cents))
+        cents = None if seq == 0 else StereoCentroids(
+            seq, _centroids("upper", seq, [[10.0, 20.0]]), _centroids("lower", seq, [[12.0, 20.0]]))
+        spy.on_frame_done(result=FrameResult(seq, 1000 + seq, centroids=cents, error="x" if seq == 0 else None))
         assert spy._frame is None
+        if seq == 0:
+            assert [(t.sequence, t.status, len(t.uv)) for t in spy.thumbnails()] == [(0, "image", 0)] * 2
     kept = spy.thumbnails()
     assert [(t.camera, t.sequence, t.status, t.labels) for t in kept] == [
-        ("upper", 0, "centroids", ("",)), ("lower", 0, "centroids", ("",))]
-    assert len(calls) == len(CAMERAS)  # one downsampling per camera for the whole session
+        ("upper", 1, "centroids", ("",)), ("lower", 1, "centroids", ("",))]
+    assert len(calls) == 2 * len(CAMERAS)  # pairs 0 and 1 only, for the whole session
     assert kept[0].image.shape == (30, 100) and kept[0].factor == 4
+    assert np.array_equal(kept[1].uv, [[12.0, 20.0]])
     with pytest.raises(ValueError, match="max_width"):
         T.ThumbnailObserver(max_width=0)

@@ -4,7 +4,8 @@ The report stage gets the :class:`~crossfield.session.SessionSummary`, never an
 image. This observer, registered by the runner for every session (live run,
 replay, audit: :func:`crossfield.runner.run_session`), keeps for each camera
 ONE downsampled 8-bit copy of the image of the session's first *measured*
-stereo pair (else the first registered one, else the first with centroids),
+stereo pair (else the first registered one, else the first with centroids,
+else the first pair: a session whose centroid stage failed still shows why),
 with that pair's centroids (px) and the target label of each: the control
 point id the correspondence gave it, or the measured target id the measure
 stage found there. The summary carries them (``summary.thumbnails``) and
@@ -14,7 +15,7 @@ Memory is bounded whatever the session's length: between ``on_frame`` and
 ``on_frame_done`` it holds a reference to the current pair (no copy), and
 afterwards at most one thumbnail per camera (each at most ``max_width`` px
 wide); a pair is downsampled only when it is better than the one kept (at
-most three times per session).
+most four times per session).
 
 Pixel convention (OpenCV, ``docs/conventions.md``): (0, 0) is the centre of
 the top-left pixel. The image is reduced by an integer factor ``f`` by block
@@ -43,6 +44,7 @@ __all__ = [
     "KIND_TARGET",
     "LABEL_TOLERANCE_MM",
     "MAX_WIDTH_PX",
+    "STATUS_RANK",
     "CameraThumbnail",
     "ThumbnailObserver",
     "downsample",
@@ -62,8 +64,8 @@ LABEL_TOLERANCE_MM = 0.5
 KIND_CONTROL = "control"
 KIND_TARGET = "target"
 
-#: How far the kept pair got: the first pair of the highest rank is kept.
-_RANK = {"centroids": 1, "registered": 2, "measured": 3}
+#: How far a pair got (``CameraThumbnail.status``): the first pair of the highest rank is kept.
+STATUS_RANK = {"image": 1, "centroids": 2, "registered": 3, "measured": 4}
 
 
 @dataclass(frozen=True, eq=False)
@@ -78,7 +80,8 @@ class CameraThumbnail:
     pixels (OpenCV convention). labels: (N,) its target id, "" when the
     pipeline did not identify it. kinds: (N,) :data:`KIND_CONTROL`,
     :data:`KIND_TARGET` or "". status: how far the pair got
-    (``"measured"``, ``"registered"`` or ``"centroids"``). Compared by identity
+    (:data:`STATUS_RANK`: ``"measured"``, ``"registered"``, ``"centroids"``, or
+    ``"image"`` when its centroid stage failed: no centroids). Compared by identity
     (``eq=False``: it holds arrays).
     """
 
@@ -153,27 +156,34 @@ class ThumbnailObserver:
 
     @hookimpl
     def on_frame(self, frame: StereoFrame) -> None:
-        self._frame = frame if self._rank < _RANK["measured"] else None
+        self._frame = frame if self._rank < STATUS_RANK["measured"] else None
 
     @hookimpl
     def on_frame_done(self, result: FrameResult) -> None:
         frame, self._frame = self._frame, None
-        if frame is None or frame.sequence != result.sequence or result.centroids is None:
+        if frame is None or frame.sequence != result.sequence:
             return
-        status = "measured" if result.measurement is not None else (
-            "registered" if result.registration is not None else "centroids")
-        if _RANK[status] <= self._rank:
+        if result.measurement is not None:
+            status = "measured"
+        elif result.registration is not None:
+            status = "registered"
+        else:
+            status = "centroids" if result.centroids is not None else "image"
+        if STATUS_RANK[status] <= self._rank:
             return
         kept = []
         for camera in CAMERAS:
             image = frame.image(camera)
             small, f = downsample(image, frame.bit_depth, self.max_width)
-            labels, kinds = point_labels(result, camera)
+            if result.centroids is None:
+                uv, (labels, kinds) = np.zeros((0, 2)), ((), ())
+            else:
+                uv, (labels, kinds) = getattr(result.centroids, camera).uv, point_labels(result, camera)
             kept.append(CameraThumbnail(
                 camera, int(frame.sequence), small, f, (int(image.shape[0]), int(image.shape[1])),
-                getattr(result.centroids, camera).uv, labels, kinds, status,
+                uv, labels, kinds, status,
             ))
-        self._kept, self._rank = tuple(kept), _RANK[status]
+        self._kept, self._rank = tuple(kept), STATUS_RANK[status]
 
     def thumbnails(self) -> tuple[CameraThumbnail, ...]:
         """The kept thumbnails, one per camera (``CAMERAS`` order); () before any pair."""
