@@ -31,6 +31,7 @@ import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
+import cv2
 import numpy as np
 
 from crossfield.hookspecs import hookimpl
@@ -109,8 +110,6 @@ class CameraThumbnail:
 def downsample(image: np.ndarray, bit_depth: int, max_width: int = MAX_WIDTH_PX) -> tuple[np.ndarray, int]:
     """``image`` (h, w) DN of ``bit_depth`` bits as (h // f, w // f) uint8 block
     means, f = ceil(w / max_width); returns (thumbnail, f)."""
-    import cv2
-
     h, w = image.shape
     f = max(1, math.ceil(w / max_width))
     h2, w2 = (h // f) * f, (w // f) * f
@@ -126,7 +125,7 @@ def point_labels(result: FrameResult, camera: str) -> tuple[tuple[str, ...], tup
     :class:`~crossfield.session.FrameResult`): control ids from the
     registration's correspondence, measured target ids from the measurement's
     ``target_points`` (each matched to the camera point whose registered
-    position is nearest, within :data:`LABEL_TOLERANCE_MM`)."""
+    position is nearest, within :data:`LABEL_TOLERANCE_MM`, and not a control point)."""
     cset: CentroidSet = getattr(result.centroids, camera)
     labels, kinds = [""] * len(cset), [""] * len(cset)
     points, registration = result.points, result.registration
@@ -141,7 +140,7 @@ def point_labels(result: FrameResult, camera: str) -> tuple[tuple[str, ...], tup
         for tid, xyz in result.measurement.target_points.items():
             d = np.linalg.norm(global_xyz - np.asarray(xyz, dtype=np.float64), axis=1)
             k = int(np.argmin(d))
-            if d[k] <= LABEL_TOLERANCE_MM:
+            if d[k] <= LABEL_TOLERANCE_MM and not labels[index[k]]:  # a control keeps its id
                 labels[index[k]], kinds[index[k]] = tid, KIND_TARGET
     return tuple(labels), tuple(kinds)
 
