@@ -240,3 +240,16 @@ def test_the_observer_keeps_the_first_best_pair_and_downsamples_rarely(monkeypat
     assert np.array_equal(kept[1].uv, [[12.0, 20.0]])
     with pytest.raises(ValueError, match="max_width"):
         T.ThumbnailObserver(max_width=0)
+
+
+def test_a_label_from_the_plan_is_text_not_markup():
+    from crossfield.report.figures import thumbnail_chart
+
+    label = '<script>alert(1)</script>" onload="x'
+    thumb = T.CameraThumbnail("upper", 0, np.zeros((30, 40), np.uint8), 1, (30, 40), [[5.0, 5.0]],
+                              (label,), (T.KIND_TARGET,), "measured")
+    text = thumbnail_chart(thumb)
+    assert "<script" not in text and "&lt;script&gt;" in text
+    root = ET.fromstring(text)  # well-formed XML
+    texts = ["".join(e.itertext()) for e in root.iter(f"{SVG}text")]
+    assert texts == [label] and not list(root.iter(f"{SVG}script"))
