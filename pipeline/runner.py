@@ -68,6 +68,7 @@ from crossfield.types import (
 
 if TYPE_CHECKING:  # the recording wing is imported when a session records
     from crossfield.recording.recorder import SessionRecorder
+    from crossfield.report.thumbnails import CameraThumbnail
 
 __all__ = [
     "SIMULATED_PORT",
@@ -430,8 +431,10 @@ def run_session(
         info = session_info(config, stages, source, plan, out_dir, parent, description)
         recorded = source if isinstance(source, RecordedAcquisition) else None
         from crossfield.recording.recorder import SessionRecorder
+        from crossfield.report.thumbnails import ThumbnailObserver
 
-        session_observers = _session_observers(config, out_dir, observers, mcap_path)
+        thumbnails = ThumbnailObserver()  # one image per camera for the report (docs/report.md, "Cameras")
+        session_observers = [*_session_observers(config, out_dir, observers, mcap_path), thumbnails]
         with _registered(pm, session_observers):
             return run_pipeline(
                 pm.hook,
@@ -442,6 +445,7 @@ def run_session(
                 float(config.session.get("match_tolerance_mm", 0.5)),
                 incomplete=(lambda: recorded.incomplete) if recorded is not None else (lambda: None),
                 recordings=[o for o in session_observers if isinstance(o, SessionRecorder)],
+                thumbnails=thumbnails.thumbnails,
             )
     finally:
         if owned:
@@ -541,6 +545,7 @@ def run_pipeline(
     match_tolerance_mm: float,
     incomplete: Callable[[], str | None] = lambda: None,
     recordings: Sequence[SessionRecorder] = (),
+    thumbnails: Callable[[], Sequence[CameraThumbnail]] = tuple,
 ) -> SessionSummary:
     """The session's chain, shared by a live run and a replay.
 
@@ -554,6 +559,7 @@ def run_pipeline(
     session's recorders, ended by :func:`finish_session` before the reports
     are written. A recording that fails while frames are processed (disk
     full) ends the frames there: the session is then finished as incomplete.
+    ``thumbnails()``: the camera thumbnails for the summary, asked after the last frame.
     """
     hook.on_session_start(session=info)
     reference, reference_time_ns = import_reference(hook)
@@ -589,7 +595,8 @@ def run_pipeline(
         failed = f"interrupted (Ctrl-C) after {accumulator.frames_processed} frame(s)"
     _log_session_pose(hook, session_pose, reference, info.plan, stages.register, t)
     summary = finish_session(
-        hook, stages, info, reference, accumulator, _joined(incomplete(), failed), recordings=recordings
+        hook, stages, info, reference, accumulator, _joined(incomplete(), failed), recordings=recordings,
+        thumbnails=thumbnails(),
     )
     if interrupted:
         raise SessionInterrupted(summary)
@@ -636,6 +643,7 @@ def finish_session(
     accumulator: SessionAccumulator,
     incomplete: str | None = None,
     recordings: Sequence[SessionRecorder] = (),
+    thumbnails: Sequence[CameraThumbnail] = (),
 ) -> SessionSummary:
     """Summarise the aggregated frames (:meth:`SessionSummary.of_session`), end
     the recordings, write the report, tell the observers; returns the summary.
@@ -651,7 +659,7 @@ def finish_session(
     """
     from crossfield.recording.recorder import REPORT_JSON, add_seal_to_report
 
-    summary = SessionSummary.of_session(info, reference, accumulator, incomplete)
+    summary = SessionSummary.of_session(info, reference, accumulator, incomplete, thumbnails=thumbnails)
     # The recording lists the report files to come when the report plugin says
     # which they are (an optional ``report_files(out_dir)``); it is closed before they exist.
     planned = getattr(stages.report, "report_files", None)

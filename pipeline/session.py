@@ -9,7 +9,7 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import TYPE_CHECKING, Any, Iterable, Mapping
 
 from crossfield.aggregate import CharacteristicSummary, SessionAccumulator, SessionAggregate, aggregate_frames
 from crossfield.config import Config
@@ -24,6 +24,9 @@ from crossfield.types import (
     StereoCalibration,
     StereoCentroids,
 )
+
+if TYPE_CHECKING:  # pragma: no cover
+    from crossfield.report.thumbnails import CameraThumbnail
 
 __all__ = [
     "FrameResult",
@@ -92,6 +95,9 @@ class SessionSummary(SummaryTables):
     characteristics, registration, targets not found. None when constructing
     by hand: then it is aggregated from ``frames``, which must hold every frame.
     characteristics: Table 3, normally ``aggregate.characteristics``.
+    thumbnails: one downsampled image per camera with its labelled centroids
+    (:class:`crossfield.report.thumbnails.CameraThumbnail`, kept by the runner's
+    :class:`~crossfield.report.thumbnails.ThumbnailObserver`); () when none.
     """
 
     info: SessionInfo
@@ -101,6 +107,7 @@ class SessionSummary(SummaryTables):
     report_files: tuple[Path, ...] = field(default_factory=tuple)
     incomplete: str | None = None
     aggregate: SessionAggregate = None  # type: ignore[assignment]  # None: from ``frames``
+    thumbnails: tuple[CameraThumbnail, ...] = ()
 
     def __post_init__(self) -> None:
         if self.aggregate is None:
@@ -114,6 +121,7 @@ class SessionSummary(SummaryTables):
         accumulator: SessionAccumulator,
         incomplete: str | None = None,
         report_files: Iterable[Path] = (),
+        thumbnails: Iterable[CameraThumbnail] = (),
     ) -> SessionSummary:
         """The summary of a session whose frames went through ``accumulator``:
         the one place a session's summary is made (the runner's
@@ -127,6 +135,7 @@ class SessionSummary(SummaryTables):
             report_files=tuple(report_files),
             incomplete=incomplete,
             aggregate=aggregate,
+            thumbnails=tuple(thumbnails),
         )
 
     @property

@@ -15,7 +15,7 @@ import html
 import json
 import os
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any, Iterable, Mapping, Sequence
 
 from markupsafe import Markup
 
@@ -386,10 +386,12 @@ def render_html(
     *,
     figures: Mapping[str, str] | None = None,
     templates: str | Path | None = None,
+    cameras: Sequence[Mapping[str, Any]] = (),
 ) -> str:
     """report.html for a :func:`crossfield.report.document.build_report` result.
 
     figures: name -> inline SVG (:func:`report_figures`; none drawn when None).
+    cameras: the camera thumbnails (:func:`camera_figures`), the "Cameras" section.
     templates: a folder whose ``report.html.j2`` / ``report.css`` replace crossfield's
     (Jinja2; ``docs/report.md``, "Templates")."""
     reg = report["registration"]
@@ -455,6 +457,9 @@ def render_html(
             name: Markup((figures or {}).get(name, ""))
             for name in ("deviations", "residuals", "trends", *(figures or {}))
         },
+        "cameras": [
+            {"camera": c["camera"], "figure": Markup(c["svg"]), "caption": c["caption"]} for c in cameras
+        ],
     }
     return _environment(templates).get_template("report.html.j2").render(context)
 
@@ -501,6 +506,36 @@ def report_figures(report: Mapping[str, Any], positions: Mapping[str, Any] | Non
         "residuals": figures.residual_chart(report, positions or {}),
         "trends": figures.trend_chart(report),
     }
+
+
+#: Which pair a thumbnail shows, by its ``status`` (crossfield.report.thumbnails.STATUS_RANK).
+_PAIR_TEXT = {
+    "measured": "the session's first measured pair",
+    "registered": "no pair was measured: the first registered one",
+    "centroids": "no pair was registered: the first with centroids",
+    "image": "no pair had centroids: the first pair",
+}
+
+
+def camera_figures(thumbnails: Sequence[Any]) -> list[dict[str, Any]]:
+    """The "Cameras" section: per :class:`~crossfield.report.thumbnails.CameraThumbnail`
+    (``summary.thumbnails``) its ``camera``, ``svg`` (:func:`crossfield.report.figures.thumbnail_chart`)
+    and ``caption`` (plain text)."""
+    from crossfield.report import figures
+    from crossfield.report.thumbnails import KIND_CONTROL, KIND_TARGET
+
+    out = []
+    for t in thumbnails:
+        height, width = t.full_size
+        n_control, n_target = t.kinds.count(KIND_CONTROL), t.kinds.count(KIND_TARGET)
+        caption = (
+            f"{t.camera.capitalize()} camera, frame {t.sequence} ({_PAIR_TEXT.get(t.status, t.status)}): "
+            f"{width} x {height} px shown at 1:{t.factor}; {len(t.uv)} centroids, "
+            f"{n_control} control point{'s' if n_control != 1 else ''} (blue) and "
+            f"{n_target} measured target{'s' if n_target != 1 else ''} (orange) labelled"
+        )
+        out.append({"camera": t.camera, "svg": figures.thumbnail_chart(t), "caption": caption})
+    return out
 
 
 # --------------------------------------------------------------------------
@@ -637,7 +672,7 @@ class HtmlReport(JsonReport):
     templates: a folder with the lab's ``report.html.j2`` and/or ``report.css``
     (Jinja2), used in place of crossfield's (``docs/report.md``, "Templates");
     "" = crossfield's.
-    figures: draw the pictures (matplotlib; default true).
+    figures: draw the pictures (matplotlib; default true), the camera thumbnails included.
     """
 
     def __init__(self, *, decimals: int = 4, templates: str = "", figures: bool = True, monte_carlo: int = 0):
@@ -664,7 +699,9 @@ class HtmlReport(JsonReport):
         html_path = out_dir / "report.html"
         positions = {p.label: tuple(float(v) for v in p.xyz) for p in summary.reference.points}
         figures = report_figures(report, positions) if self.figures else None
-        _write_atomic(html_path, render_html(report, self.decimals, figures=figures, templates=self.templates or None))
+        cameras = camera_figures(summary.thumbnails) if self.figures else []
+        page = render_html(report, self.decimals, figures=figures, templates=self.templates or None, cameras=cameras)
+        _write_atomic(html_path, page)
         return [json_path, html_path]
 
 

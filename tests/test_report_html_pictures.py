@@ -1,5 +1,7 @@
 """report.html with pictures, rendered by a real browser (headless Chromium, the Debian
-``chromium`` package the Makefile installs), and the lab's template override."""
+``chromium`` package the Makefile installs), and the lab's template override.
+The screenshot in docs/report.md (docs/img/report-html.png) is this test's command
+on a ``crossfield run --scenario table3 --frames 6 --name demo`` session."""
 
 from __future__ import annotations
 
@@ -25,7 +27,8 @@ def test_chromium_renders_the_report_with_its_pictures(session, tmp_path):
     assert chromium, "the Debian package 'chromium' is needed (make apt-packages)"
     page = session.info.out_dir / "report.html"
     text = page.read_text(encoding="utf-8")
-    for figure in ("figure-deviations", "figure-residuals", "figure-trends"):
+    for figure in ("figure-deviations", "figure-residuals", "figure-trends", "figure-camera-upper",
+                   "figure-camera-lower"):
         assert f'id="{figure}"' in text
     png = tmp_path / "report.png"
     result = subprocess.run(
@@ -40,6 +43,11 @@ def test_chromium_renders_the_report_with_its_pictures(session, tmp_path):
     dark = np.mean(image.max(axis=2) < 100)
     green = np.mean((image[:, :, 1] > 200) & (image[:, :, 2] < 235) & (image[:, :, 0] < 235))
     assert dark > 0.005 and green > 0.002, (dark, green)
+    # the camera thumbnails (Cameras section, near the top): two large near-black images
+    # with the bright target discs in them
+    top = image[: image.shape[0] // 2]
+    black = np.mean(top.max(axis=2) < 40)
+    assert black > 0.05, black
 
 
 def test_a_lab_template_folder_replaces_the_page(session, tmp_path):

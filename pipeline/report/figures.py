@@ -10,10 +10,15 @@ and returns an ``<svg>`` element as text, or ``""`` when there is nothing to dra
   (global frame, mean over frames, drawn magnified) in the plane of the two
   largest spreads of the controls, with circles of the expected RMS;
 * :func:`trend_chart`: per frame (the kept rows) the registration RMS and each
-  characteristic's difference from its session mean.
+  characteristic's difference from its session mean;
+* :func:`thumbnail_chart`: one camera's image (a
+  :class:`~crossfield.report.thumbnails.CameraThumbnail`, not the report
+  document) in grey with each centroid marked and labelled with its target id.
 
 SVG text stays text (``svg.fonttype = none``), so the page remains searchable;
-matplotlib's SVG carries no script.
+matplotlib's SVG carries no script. A raster image is embedded in the SVG as a
+PNG data URI (``<image xlink:href="data:image/png;base64,...">``), at its own
+resolution.
 """
 
 from __future__ import annotations
@@ -24,7 +29,24 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["deviation_chart", "residual_chart", "svg", "trend_chart"]
+from crossfield.report.thumbnails import KIND_CONTROL, KIND_TARGET
+
+__all__ = ["LABEL_OFFSET", "THUMBNAIL_GID", "deviation_chart", "residual_chart", "svg", "thumbnail_chart", "trend_chart"]
+
+#: SVG group ids of a thumbnail's parts (:func:`thumbnail_chart`), formatted
+#: with the camera name and a centroid's label: the image; the markers of the
+#: control points, of the measured targets and of the unidentified centroids
+#: (one ``<use>`` each, in centroid order); each label's ``<text>``.
+THUMBNAIL_GID = {
+    "image": "thumbnail-{camera}-image",
+    KIND_CONTROL: "thumbnail-{camera}-controls",
+    KIND_TARGET: "thumbnail-{camera}-targets",
+    "": "thumbnail-{camera}-unlabelled",
+    "label": "thumbnail-{camera}-label-{label}",
+}
+
+#: Where a thumbnail label's text starts from its centroid (points, x right, y up).
+LABEL_OFFSET = (5.0, -6.0)
 
 
 def _pyplot():
@@ -36,12 +58,13 @@ def _pyplot():
     return plt
 
 
-def svg(fig) -> str:
-    """The figure as an inline ``<svg>`` element (no XML prolog, no DOCTYPE)."""
+def svg(fig, tight: bool = True) -> str:
+    """The figure as an inline ``<svg>`` element (no XML prolog, no DOCTYPE);
+    ``tight``: cropped to what is drawn (matplotlib draws the figure twice then)."""
     plt = _pyplot()
     out = io.StringIO()
     with plt.rc_context({"svg.fonttype": "none", "svg.hashsalt": "crossfield"}):
-        fig.savefig(out, format="svg", bbox_inches="tight", metadata={"Date": None, "Creator": None})
+        fig.savefig(out, format="svg", bbox_inches="tight" if tight else None, metadata={"Date": None, "Creator": None})
     plt.close(fig)
     text = out.getvalue()
     return text[text.index("<svg"):]
@@ -140,3 +163,48 @@ def trend_chart(report: Mapping[str, Any]) -> str:
     for ax in (top, bottom):
         ax.grid(color="#c9d2dc", linewidth=0.5)
     return svg(fig)
+
+
+
+#: Marker colours of the thumbnail: control points, measured targets, the rest.
+#: Blank space right of and below a thumbnail (SVG units = thumbnail px), for labels.
+_THUMB_MARGIN = (24, 10)
+
+_THUMB_COLOURS = {KIND_CONTROL: "#2f7fd6", KIND_TARGET: "#f28e1c", "": "#b0b8c0"}
+
+
+def thumbnail_chart(thumb) -> str:
+    """One camera's image in grey (``thumb.image``, uint8, drawn pixel for pixel,
+    one thumbnail pixel = one SVG unit) with its centroids at ``thumb.thumbnail_uv()``
+    (thumbnail px; pixel centres at integer coordinates, OpenCV convention),
+    labelled with their target ids: control points (correspondence) and measured
+    targets in two colours, unidentified centroids as small grey crosses.
+
+    The SVG's parts carry the group ids of :data:`THUMBNAIL_GID`."""
+    plt = _pyplot()
+    h, w = thumb.image.shape
+    camera = thumb.camera
+    # 72 SVG units per inch: one unit per thumbnail pixel, and a margin right and
+    # below for the labels of targets at the edge (not cropped: one draw, not two)
+    W, H = w + _THUMB_MARGIN[0], h + _THUMB_MARGIN[1]
+    fig = plt.figure(figsize=(W / 72.0, H / 72.0))
+    ax = fig.add_axes((0.0, 1.0 - h / H, w / W, h / H))
+    image = ax.imshow(thumb.image, cmap="gray", vmin=0, vmax=255, interpolation="none")
+    image.set_gid(THUMBNAIL_GID["image"].format(camera=camera))
+    uv = thumb.thumbnail_uv()
+    for kind, marker, size in (("", "x", 4), (KIND_CONTROL, "o", 7), (KIND_TARGET, "o", 7)):
+        index = [i for i, k in enumerate(thumb.kinds) if k == kind]
+        if index:  # one artist per kind: its marker is defined once in the SVG
+            (line,) = ax.plot(uv[index, 0], uv[index, 1], marker, ms=size, mfc="none",
+                              mec=_THUMB_COLOURS[kind], mew=1.4 if kind else 1.0, linestyle="none")
+            line.set_gid(THUMBNAIL_GID[kind].format(camera=camera))
+    for (u, v), label, kind in zip(uv, thumb.labels, thumb.kinds):
+        if label:
+            text = ax.annotate(label, (u, v), textcoords="offset points", xytext=LABEL_OFFSET, fontsize=8,
+                               color=_THUMB_COLOURS.get(kind, _THUMB_COLOURS[KIND_TARGET]),
+                               fontweight="bold", annotation_clip=False)
+            text.set_gid(THUMBNAIL_GID["label"].format(camera=camera, label=label))
+    ax.set_xlim(-0.5, w - 0.5)
+    ax.set_ylim(h - 0.5, -0.5)
+    ax.set_axis_off()
+    return svg(fig, tight=False)
