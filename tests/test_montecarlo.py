@@ -93,19 +93,24 @@ def test_monte_carlo_section_in_report_json(demo, tmp_path):
         HtmlReport(monte_carlo=1)
 
 
-def test_the_sample_is_the_same_on_an_embedded_dask_cluster_of_two_workers(demo):
-    """Chunks of 3 draws, each with its own SeedSequence child: 4 chunks over 2 worker
-    processes give the in-process sample bit for bit."""
+@pytest.fixture(scope="module")
+def small_sample(demo):
+    """10 draws of the demo in chunks of 3 (4 chunks, each with its own SeedSequence child), in
+    this process: (problem, sample)."""
+    problem = problem_from_summary(demo)
+    return problem, run_draws(problem, 10, seed=7, chunk_draws=3)
+
+
+def test_the_sample_is_the_same_on_an_embedded_dask_cluster_of_two_workers(small_sample):
     from crossfield.batch.engine import client
 
-    problem = problem_from_summary(demo)
-    local = run_draws(problem, 10, seed=7, chunk_draws=3)
+    problem, local = small_sample
     with client(None, 2, dashboard_address=":0") as c:
-        remote = run_draws(problem, 10, seed=7, client=c, chunk_draws=3)
         assert len(c.scheduler_info()["workers"]) == 2
+        remote = run_draws(problem, 10, seed=7, client=c, chunk_draws=3)
     assert local.shape == (10, len(problem.names)) and np.isfinite(local).all()
     assert remote.tobytes() == local.tobytes()
-    assert run_draws(problem, 10, seed=8, chunk_draws=3).tobytes() != local.tobytes()
+    assert run_draws(problem, 4, seed=8, chunk_draws=3).tobytes() != local[:4].tobytes()
 
 
 def _free_port() -> int:
@@ -114,12 +119,14 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def test_run_monte_carlo_on_a_dask_scheduler_and_workers(tmp_path):
-    """``crossfield run --monte-carlo N --scheduler tcp://...`` with a real ``dask scheduler`` and
-    two ``dask worker`` processes on 127.0.0.1: the report's Monte Carlo section is the one the
-    same session gives in this process."""
+def test_on_a_dask_scheduler_and_workers(small_sample, tmp_path):
+    """A real ``dask scheduler`` and two ``dask worker`` processes on 127.0.0.1: the same sample
+    bit for bit, and ``crossfield run --monte-carlo N --scheduler tcp://...`` runs its chunks there."""
+    from dask.distributed import Client
+
     from crossfield.cli import main
 
+    problem, local = small_sample
     bin_dir = Path(sys.executable).parent
     port = _free_port()
     address = f"tcp://127.0.0.1:{port}"
@@ -131,10 +138,13 @@ def test_run_monte_carlo_on_a_dask_scheduler_and_workers(tmp_path):
             procs.append(subprocess.Popen(
                 [str(bin_dir / "dask"), "worker", address, "--nthreads", "1", "--no-nanny", "--name", name,
                  "--host", "127.0.0.1", "--no-dashboard", "--memory-limit", "1GiB"], **quiet))
-        args = ["run", "--scenario", "table3", "--frames", "1", "--seed", "2", "--no-record", "--no-rerun",
-                "-q", "--monte-carlo", "30"]
-        assert main([*args, "-o", str(tmp_path), "--name", "dask", "--scheduler", address, "--workers", "2"]) in (0, 1)
-        assert main([*args, "-o", str(tmp_path), "--name", "local"]) in (0, 1)
+        with Client(address, timeout=60) as c:
+            c.wait_for_workers(2, timeout=90)
+            assert run_draws(problem, 10, seed=7, client=c, chunk_draws=3).tobytes() == local.tobytes()
+            args = ["run", "--scenario", "table3", "--frames", "1", "--no-record", "--no-rerun", "-q",
+                    "-o", str(tmp_path), "--name", "s", "--monte-carlo", "4", "--scheduler", address]
+            assert main(args) in (0, 1)
+            prefixes = c.run_on_scheduler(lambda dask_scheduler: list(dask_scheduler.task_prefixes))
     finally:
         for p in reversed(procs):
             p.send_signal(signal.SIGTERM)
@@ -144,8 +154,9 @@ def test_run_monte_carlo_on_a_dask_scheduler_and_workers(tmp_path):
             except subprocess.TimeoutExpired:
                 p.kill()
                 p.wait()
-    on_dask, local = (json.loads((tmp_path / n / "report.json").read_text())["monte_carlo"] for n in ("dask", "local"))
-    assert on_dask == local and on_dask["n_draws"] == 30
+    mc = json.loads((tmp_path / "s" / "report.json").read_text())["monte_carlo"]
+    assert mc["n_draws"] == 4 and all(c["U_mc_mm"] > 0 for c in mc["characteristics"])
+    assert "crossfield-monte-carlo" in prefixes  # the run's chunks were tasks of this scheduler
 
 
 def test_scheduler_flags_without_monte_carlo_are_an_error(tmp_path, capsys):

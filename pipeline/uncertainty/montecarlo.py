@@ -53,6 +53,7 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import dataclasses
+import functools
 import math
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
@@ -209,11 +210,19 @@ def problem_from_summary(summary: Any) -> MonteCarloProblem | None:
 # --------------------------------------------------------------------------
 
 
+@functools.lru_cache(maxsize=1)
+def _plugin_manager() -> Any:
+    """The installed plugins (one plugin manager per process: a worker builds it once)."""
+    from crossfield.registry import make_plugin_manager
+
+    return make_plugin_manager(entry_points=True)
+
+
 def _implementations(problem: MonteCarloProblem) -> tuple[Any, Any]:
     """Fresh register and measure implementations from the installed plugins."""
-    from crossfield.registry import get_implementation, make_plugin_manager
+    from crossfield.registry import get_implementation
 
-    pm = make_plugin_manager(entry_points=True)
+    pm = _plugin_manager()
     return tuple(  # type: ignore[return-value]
         get_implementation(pm, stage, name).create(dict(options))
         for stage, (name, options) in (("register", problem.register), ("measure", problem.measure))
