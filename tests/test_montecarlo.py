@@ -49,6 +49,26 @@ def test_every_measured_frame_is_a_frame_of_the_model(demo):
         assert set(demo.info.plan.control_ids) & named and {t.id for t in demo.info.plan.targets} <= named
 
 
+def test_the_session_budget_is_that_of_the_mean_of_its_frames(demo):
+    """The model the Monte Carlo draws: per source, the RMS of the per-frame contributions; the
+    camera term (noise drawn anew in every frame) divided by sqrt(n), the shared sources not;
+    the repeatability excess over the camera part of the mean. Recomputed from the frames."""
+    frames = [f for f in demo.frames if f.measurement is not None]
+    n = len(frames)
+    assert n == 3
+    for c in demo.characteristics:
+        per_frame = [next(r for r in f.measurement.characteristics if r.name == c.name) for f in frames]
+        terms = {t.source: t for t in c.budget}
+        for source in ("camera", "control_cmm", "reference_cmm", "calibration"):
+            rms = math.sqrt(np.mean([next(t.u_mm for t in r.budget if t.source == source) ** 2 for r in per_frame]))
+            assert terms[source].u_mm == pytest.approx(rms / math.sqrt(n) if source == "camera" else rms, rel=1e-12)
+        values = np.array([r.measured_mm for r in per_frame])
+        type_a = values.std(ddof=1) / math.sqrt(n)
+        excess = math.sqrt(max(0.0, type_a**2 - terms["camera"].u_mm ** 2))
+        assert terms["repeatability"].u_mm == pytest.approx(excess, rel=1e-9, abs=1e-15)
+        assert c.uncertainty_mm == pytest.approx(math.sqrt(sum(t.u_mm**2 for t in c.budget)), rel=1e-12)
+
+
 def test_monte_carlo_agrees_with_the_linear_U_on_the_3_frame_demo(demo, demo_results):
     by_name = {c.name: c for c in demo.characteristics}
     assert [r.name for r in demo_results] == list(by_name)

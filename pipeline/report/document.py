@@ -410,6 +410,7 @@ def monte_carlo_section(results, n_draws: int, tolerance: float = 0.10) -> dict[
         "for k = 2",
         "n_draws": int(n_draws),
         "tolerance": real(tolerance),
+        **({"coverage": real(results[0].coverage)} if results else {}),
         "characteristics": [
             {
                 "name": r.name,
@@ -418,6 +419,7 @@ def monte_carlo_section(results, n_draws: int, tolerance: float = 0.10) -> dict[
                 "U_mc_mm": real(r.U_mc_mm),
                 "U_linear_mm": real(r.U_linear_mm),
                 "agreement": real(r.agreement),
+                "agreement_u": real(r.agreement_u),
                 "agreed": r.agreement is not None and abs(r.agreement) <= tolerance,
             }
             for r in results
