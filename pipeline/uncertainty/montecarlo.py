@@ -61,6 +61,7 @@ from typing import Any
 
 import numpy as np
 
+from crossfield.errors import CrossfieldError
 from crossfield.plan import MeasurementPlan
 from crossfield.types import CameraPoints, Correspondence, ReferenceData, Registration
 from crossfield.uncertainty.temperature import LENGTH_KINDS, Temperature, correction
@@ -257,11 +258,11 @@ def draw_chunk(problem: MonteCarloProblem, seed: np.random.SeedSequence, n_draws
     plan = problem.plan
     column = {name: j for j, name in enumerate(problem.names)}
     out = np.full((n_draws, len(problem.names)), np.nan)
+    labels = sorted({label for f in problem.frames for label in f.labels if label})
     for d in range(n_draws):
         reference = _draw_reference(problem.reference, rng, problem.cmm_inflation)  # shared by the frames
         by_label = reference.by_label()
         scale = 1.0 + rng.normal(0.0, problem.calibration_scale_u)
-        labels = sorted({label for f in problem.frames for label in f.labels if label})
         offsets = dict(zip(labels, rng.normal(size=(len(labels), 3))))  # eccentricity, per target
         sums = np.zeros(len(problem.names))
         counts = np.zeros(len(problem.names))
@@ -323,8 +324,8 @@ def run_draws(
 
     run_each(client, draw_chunk, [(shared, s, n) for s, n in chunks], collect,
              prefix="crossfield-monte-carlo", progress=False)
-    if errors:
-        raise RuntimeError("Monte Carlo on Dask: " + "; ".join(errors))
+    if errors:  # e.g. a worker without the session's plugins, or lost too often
+        raise CrossfieldError("the Monte Carlo check on Dask failed: " + "; ".join(errors))
     return np.vstack(parts)  # type: ignore[arg-type]
 
 
