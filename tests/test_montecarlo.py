@@ -60,8 +60,10 @@ def test_the_session_budget_is_that_of_the_mean_of_its_frames(demo):
         per_frame = [next(r for r in f.measurement.characteristics if r.name == c.name) for f in frames]
         terms = {t.source: t for t in c.budget}
         for source in ("camera", "control_cmm", "reference_cmm", "calibration"):
-            rms = math.sqrt(np.mean([next(t.u_mm for t in r.budget if t.source == source) ** 2 for r in per_frame]))
-            assert terms[source].u_mm == pytest.approx(rms / math.sqrt(n) if source == "camera" else rms, rel=1e-12)
+            per = [next(t.u_mm for t in r.budget if t.source == source) for r in per_frame]
+            rms = math.sqrt(np.mean(np.square(per)))
+            expected = rms / math.sqrt(n) if source == "camera" else rms
+            assert terms[source].u_mm == pytest.approx(expected, rel=1e-12)
         values = np.array([r.measured_mm for r in per_frame])
         type_a = values.std(ddof=1) / math.sqrt(n)
         excess = math.sqrt(max(0.0, type_a**2 - terms["camera"].u_mm ** 2))
@@ -182,7 +184,7 @@ def test_on_a_dask_scheduler_and_workers(small_sample, tmp_path):
 def test_scheduler_flags_without_monte_carlo_are_an_error(tmp_path, capsys):
     from crossfield.cli import main
 
-    code = main(["run", "--scenario", "table3", "--frames", "1", "--no-record", "--no-rerun", "-o", str(tmp_path),
-                 "--workers", "2"])
+    code = main(["run", "--scenario", "table3", "--frames", "1", "--no-record", "--no-rerun",
+                 "-o", str(tmp_path), "--workers", "2"])
     assert code != 0
     assert "--monte-carlo" in capsys.readouterr().err

@@ -404,10 +404,10 @@ def monte_carlo_section(results, n_draws: int, tolerance: float = 0.10) -> dict[
     """The ``monte_carlo`` section: the GUM-S1 check beside the linear U
     (:mod:`crossfield.uncertainty.montecarlo`); agreed: |U_MC / U - 1| <= tolerance."""
     return {
-        "method": "GUM Supplement 1 (JCGM 101:2008): each draw a whole session (every kept measured frame through "
-        "the session's register and measure implementations, their mean, the temperature correction), inputs drawn "
-        "from the budget's distributions; probabilistically symmetric interval for p = erf(k / sqrt 2), 95.45 % "
-        "for k = 2",
+        "method": "GUM Supplement 1 (JCGM 101:2008): each draw a whole session (every kept measured frame "
+        "through the session's register and measure implementations, their mean, the temperature correction), "
+        "inputs drawn from the budget's distributions; probabilistically symmetric interval for "
+        "p = erf(k / sqrt 2), 95.45 % for k = 2",
         "n_draws": int(n_draws),
         "tolerance": real(tolerance),
         **({"coverage": real(results[0].coverage)} if results else {}),

@@ -301,7 +301,12 @@ def _chunks(n_draws: int, seed: int, size: int) -> list[tuple[np.random.SeedSequ
 
 
 def run_draws(
-    problem: MonteCarloProblem, n_draws: int, seed: int = 0, client: Any = None, *, chunk_draws: int = CHUNK_DRAWS
+    problem: MonteCarloProblem,
+    n_draws: int,
+    seed: int = 0,
+    client: Any = None,
+    *,
+    chunk_draws: int = CHUNK_DRAWS,
 ) -> np.ndarray:
     """The (n_draws, C) sample (mm): :func:`draw_chunk` over chunks of ``chunk_draws``
     draws, chunk i drawn with ``SeedSequence(seed).spawn(...)[i]``, in this process, or
@@ -402,7 +407,9 @@ class _Engine:
     memory_limit: str | int | None
 
 
-_ENGINE: contextvars.ContextVar[_Engine | None] = contextvars.ContextVar("crossfield_monte_carlo_engine", default=None)
+_ENGINE: contextvars.ContextVar[_Engine | None] = contextvars.ContextVar(
+    "crossfield_monte_carlo_engine", default=None
+)
 
 
 @contextlib.contextmanager
@@ -429,5 +436,6 @@ def session_monte_carlo(summary: Any, n_draws: int, seed: int = 0) -> list[Monte
         return monte_carlo(summary, n_draws, seed)
     from crossfield.batch.engine import client
 
-    with client(engine.scheduler, engine.workers, memory_limit=engine.memory_limit, dashboard_address=":0") as c:
+    where = dict(memory_limit=engine.memory_limit, dashboard_address=":0")
+    with client(engine.scheduler, engine.workers, **where) as c:
         return monte_carlo(summary, n_draws, seed, client=c)
