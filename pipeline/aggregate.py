@@ -55,6 +55,10 @@ FRAME_ROWS_KEPT = 200
 #: others are counted.
 FRAME_ERRORS_KEPT = 100
 
+#: Measured frames whose camera points a session keeps for the Monte Carlo check
+#: (:mod:`crossfield.uncertainty.montecarlo`): the first ones, a few kB each.
+MONTE_CARLO_FRAMES_KEPT = 20
+
 
 # --------------------------------------------------------------------------
 # Running statistics
@@ -120,11 +124,14 @@ class CharacteristicSummary:
     std_mm: their sample standard deviation (repeatability, 0 for n = 1);
     uncertainty_mm: combined standard uncertainty u_c of measured_mm, the root
     sum of squares of ``budget`` (``docs/uncertainty.md``): per source, the
-    per-frame propagated contribution (RMS over frames, *not* divided by
-    sqrt(n): most of it comes from the CMM data, imported once and shared by
-    every frame; conservative for the camera part), the CMM terms inflated
-    when the registration residuals contradict the stated sigma, a
-    repeatability term for scatter beyond the model, the temperature term.
+    per-frame propagated contribution (RMS over frames); the camera term (centroid
+    noise, drawn anew in every frame, through the frame's own triangulation and
+    registration) divided by sqrt(n), the uncertainty of a mean of n independent
+    values; the others (CMM data imported once, the eccentricity of the same
+    targets, the one calibration) shared by every frame, not divided. The CMM
+    terms inflated when the registration residuals contradict the stated sigma,
+    a repeatability term for scatter over the frames beyond the modelled camera
+    part, the temperature term.
     expanded_uncertainty_mm: U = k u_c, k = coverage_factor. decision: ISO
     14253-1 verdict under ``decision_rule`` (conforms / does_not_conform /
     not_proven); passed: accepted under that rule. Zone: ``[nominal -
@@ -240,9 +247,11 @@ class SessionAggregate:
     in order of first miss. consistency: the chi-square test of the
     registration residuals (None without data). calibration_scale_u: the
     relative scale uncertainty of the calibration used in the budgets, and
-    where it came from. sample_frame: the first frame registered and measured,
-    with its camera points (one frame, for the Monte Carlo check,
-    :mod:`crossfield.uncertainty.montecarlo`).
+    where it came from. monte_carlo_frames: the first frames registered and
+    measured (at most :data:`MONTE_CARLO_FRAMES_KEPT`), with their camera points,
+    for the Monte Carlo check (:mod:`crossfield.uncertainty.montecarlo`);
+    frames_measured: how many frames were registered and measured with camera
+    points in all.
     """
 
     frames_processed: int
@@ -254,7 +263,13 @@ class SessionAggregate:
     consistency: ConsistencyCheck | None = None
     calibration_scale_u: float = DEFAULT_SCALE_U
     calibration_uncertainty_source: str = "stated default"
-    sample_frame: FrameResult | None = None
+    monte_carlo_frames: tuple[FrameResult, ...] = ()
+    frames_measured: int = 0
+
+    @property
+    def sample_frame(self) -> FrameResult | None:
+        """The first frame registered and measured, with its camera points (None if none)."""
+        return self.monte_carlo_frames[0] if self.monte_carlo_frames else None
 
     @property
     def frame_errors_omitted(self) -> int:
@@ -315,12 +330,23 @@ class _CharacteristicRun:
             elif source == "calibration":
                 t = _budget.scaled(t, ctx.calibration_ratio)
             terms.append(t)
-        if not terms and self.uncertainty.n:  # a measurer without a budget: its u as one term
+        if terms:
+            # The camera term is the centroid noise of one frame, drawn anew in every
+            # frame: its part of the mean of n frames is u / sqrt(n) (GUM 4.2.3). The
+            # other sources are one error shared by every frame: not divided.
+            terms = [_budget.scaled(t, 1.0 / math.sqrt(n)) if t.source == "camera" else t for t in terms]
+            random_part = next((t.u_mm for t in terms if t.source == "camera"), 0.0)
+        elif self.uncertainty.n:  # a measurer without a budget: its u as one term, not divided
             terms.append(_budget.term("camera", 0.0, "mm", self.uncertainty.mean))
-        model = _budget.combined(terms)
+            random_part = terms[0].u_mm
+        else:
+            random_part = 0.0
         type_a = std / math.sqrt(n) if n > 1 else 0.0
-        # u_c^2 = max(s^2 / n, u_model^2): the observed scatter where it exceeds the model.
-        terms.append(_budget.term("repeatability", type_a, "mm", math.sqrt(max(0.0, type_a**2 - model**2))))
+        # The scatter over the frames shows only the per-frame (camera) part: where
+        # s^2 / n exceeds it, the excess is a term of its own, so that the random
+        # part of u_c^2 is max(s^2 / n, u_camera^2 / n) (GUM 4.2.3, 4.3).
+        excess = math.sqrt(max(0.0, type_a**2 - random_part**2))
+        terms.append(_budget.term("repeatability", type_a, "mm", excess))
         temp = ctx.plan.temperature
         dL, u_temp = correction(mean, temp) if spec.kind in LENGTH_KINDS else (0.0, 0.0)
         terms.append(_budget.term("temperature", u_temp / abs(mean) if mean else 0.0, "1", u_temp))
@@ -513,7 +539,8 @@ class SessionAccumulator:
         self._characteristics = {spec.name: _CharacteristicRun() for spec in plan.characteristics}
         self._registration = _RegistrationRun()
         self._consistency = ConsistencyRun()
-        self._sample: FrameResult | None = None
+        self._mc_frames: list[FrameResult] = []
+        self._frames_measured = 0
         stated = plan.uncertainty.calibration_scale_u
         self._calibration = calibration_uncertainty(
             calibration_source, DEFAULT_SCALE_U if stated is None else stated
@@ -537,8 +564,10 @@ class SessionAccumulator:
                 )
         if result.registration is not None:
             self._registration.add(result.registration)
-            if self._sample is None and result.points is not None and result.measurement is not None:
-                self._sample = dataclasses.replace(result, centroids=None)
+            if result.points is not None and result.measurement is not None:
+                self._frames_measured += 1
+                if len(self._mc_frames) < MONTE_CARLO_FRAMES_KEPT:
+                    self._mc_frames.append(dataclasses.replace(result, centroids=None))
         measurement = result.measurement
         if measurement is None:
             return
@@ -573,7 +602,8 @@ class SessionAccumulator:
             consistency=check,
             calibration_scale_u=self._calibration.scale_u,
             calibration_uncertainty_source=self._calibration.source,
-            sample_frame=self._sample,
+            monte_carlo_frames=tuple(self._mc_frames),
+            frames_measured=self._frames_measured,
         )
 
 

@@ -91,6 +91,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="also check the uncertainty budget by a GUM Supplement 1 Monte Carlo of N draws through the "
         "session's register and measure implementations (= --option report.monte_carlo=N; docs/uncertainty.md)",
     )
+    from crossfield.batch.engine import add_engine_flags
+
+    add_engine_flags(run)  # where the Monte Carlo draws run: in this process unless --scheduler or --workers
 
     sub.add_parser(
         "romer-sim", add_help=False,
@@ -221,6 +224,21 @@ def _monte_carlo_option(args: argparse.Namespace) -> list[str]:
     return [f"report.monte_carlo={n}"] if n else []
 
 
+def _monte_carlo_engine(args: argparse.Namespace, config: Config) -> contextlib.AbstractContextManager:
+    """``--scheduler`` / ``--workers`` of ``run``: the Monte Carlo draws on Dask (``local``
+    or ``--workers`` alone: an embedded LocalCluster); neither: in this process, no Dask."""
+    from crossfield.errors import ConfigError
+
+    scheduler, workers = getattr(args, "scheduler", None), getattr(args, "workers", None)
+    if scheduler is None and workers is None:
+        return contextlib.nullcontext()
+    if not config.stages["report"].options.get("monte_carlo"):
+        raise ConfigError("--scheduler and --workers apply to the Monte Carlo check: give --monte-carlo N")
+    from crossfield.uncertainty.montecarlo import on_dask
+
+    return on_dask(None if scheduler == "local" else scheduler, workers, args.memory_limit)
+
+
 def plugin_manager() -> "pluggy.PluginManager":
     """The built-in plugins and the installed third-party ones (entry-point group ``crossfield``)."""
     pm = make_plugin_manager(entry_points=True)
@@ -247,7 +265,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 
         live = RerunLogger(viewer=spawn_live_viewer() if args.view == "new" else args.view)
         observers.append(live)
-    summary = run_session(config, pm, observers=observers)
+    with _monte_carlo_engine(args, config):
+        summary = run_session(config, pm, observers=observers)
     for warning in live.warnings if live is not None else ():
         logger.warning("%s", warning)
     reporter = summary.info.plugins["report"]["name"]

@@ -258,7 +258,8 @@ def _monte_carlo_html(report: Mapping[str, Any], decimals: int) -> str:
         _row([
             _td(esc(c["name"])), _num(c["U_linear_mm"], decimals + 1), _num(c["U_mc_mm"], decimals + 1),
             _td(esc("[" + ", ".join(fixed(v, decimals + 1, True) for v in c["interval_mm"]) + "]"), "num"),
-            _td(esc(DASH if c["agreement"] is None else f"{c['agreement']:+.1%}"), "num"),
+            _td(esc(DASH if c["agreement"] is None else f"{c['agreement']:+.1%}"
+                    + ("" if c.get("agreement_u") is None else f" ± {c['agreement_u']:.1%}")), "num"),
             _td("agrees" if c["agreed"] else "differs", "pass" if c["agreed"] else "fail"),
         ])
         for c in mc["characteristics"]
@@ -266,7 +267,7 @@ def _monte_carlo_html(report: Mapping[str, Any], decimals: int) -> str:
     return (
         '<table id="monte-carlo" class="wide">'
         f"<caption>GUM Supplement 1 check: Monte Carlo ({esc(mc['n_draws'])} draws) beside the linear U (mm)</caption>"
-        "<thead><tr><th>Characteristic</th><th>U linear</th><th>U Monte Carlo</th><th>95 % interval about the mean</th>"
+        "<thead><tr><th>Characteristic</th><th>U linear</th><th>U Monte Carlo</th><th>" + esc(f"{mc.get('coverage', 0.95):.2%}") + " interval about the mean</th>"
         "<th>U<sub>MC</sub> / U &#8722; 1</th><th>Within " + esc(f"{mc['tolerance']:.0%}") + "</th></tr></thead>"
         f"<tbody>{rows}</tbody>"
         f'<tfoot><tr><td colspan="6">{esc(mc["method"])}.</td></tr></tfoot></table>'

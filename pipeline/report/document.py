@@ -404,11 +404,13 @@ def monte_carlo_section(results, n_draws: int, tolerance: float = 0.10) -> dict[
     """The ``monte_carlo`` section: the GUM-S1 check beside the linear U
     (:mod:`crossfield.uncertainty.montecarlo`); agreed: |U_MC / U - 1| <= tolerance."""
     return {
-        "method": "GUM Supplement 1 (JCGM 101:2008): the session's register and measure implementations on its "
-        "first measured frame, inputs drawn from the budget's distributions; 95 % probabilistically symmetric "
-        "interval",
+        "method": "GUM Supplement 1 (JCGM 101:2008): each draw a whole session (every kept measured frame "
+        "through the session's register and measure implementations, their mean, the temperature correction), "
+        "inputs drawn from the budget's distributions; probabilistically symmetric interval for "
+        "p = erf(k / sqrt 2), 95.45 % for k = 2",
         "n_draws": int(n_draws),
         "tolerance": real(tolerance),
+        **({"coverage": real(results[0].coverage)} if results else {}),
         "characteristics": [
             {
                 "name": r.name,
@@ -417,6 +419,7 @@ def monte_carlo_section(results, n_draws: int, tolerance: float = 0.10) -> dict[
                 "U_mc_mm": real(r.U_mc_mm),
                 "U_linear_mm": real(r.U_linear_mm),
                 "agreement": real(r.agreement),
+                "agreement_u": real(r.agreement_u),
                 "agreed": r.agreement is not None and abs(r.agreement) <= tolerance,
             }
             for r in results

@@ -33,15 +33,15 @@ __all__ = [
 #: Budget sources, in report order, with what each holds.
 SOURCE_TEXT: dict[str, str] = {
     "camera": "centroid noise of the camera points (target and control points, through the triangulation "
-    "and the registration); per frame, not divided by sqrt(n)",
+    "and the registration); drawn anew in every frame: the per-frame value divided by sqrt(n) for the mean",
     "eccentricity": "perspective eccentricity of circle centres (projected centre of a tilted circle is "
     "not the projection of its centre), uniform over the stated tilt range",
     "calibration": "the stereo calibration's parameter uncertainty, as a relative scale of camera-frame "
     "distances (from the calibration file's std_* keys, else the stated default)",
     "control_cmm": "CMM coordinates of the common control points, through the shared registration",
     "reference_cmm": "CMM coordinates of the reference points and of the probes of fitted reference lines",
-    "repeatability": "scatter over the frames beyond the modelled per-frame noise: "
-    "sqrt(max(0, s^2 / n - u_model^2))",
+    "repeatability": "scatter over the frames beyond the modelled per-frame (camera) noise of the mean: "
+    "sqrt(max(0, s^2 / n - u_camera^2))",
     "temperature": "correction to 20 degC (ISO 1): part and reference temperatures and expansion "
     "coefficients",
 }
