@@ -201,6 +201,43 @@ def _cylinder_residuals(params: np.ndarray, P: np.ndarray, origin: np.ndarray, d
     return np.linalg.norm(perp, axis=1) - r
 
 
+def _tilted_jacobian(d0: np.ndarray, e1: np.ndarray, e2: np.ndarray, a: float, b: float) -> np.ndarray:
+    """(3, 2) derivative of :func:`_tilted` with respect to (a, b). With theta = |(a, b)|,
+    u = a e1 + b e2 and s(theta) = sin(theta) / theta:
+    d = cos(theta) d0 + s u, so dd/da = -sin(theta) (a / theta) d0 + s e1 + s'(theta) (a / theta) u,
+    s' = (theta cos(theta) - sin(theta)) / theta^2 (and (e1, e2) at theta = 0)."""
+    theta = float(np.hypot(a, b))
+    if theta < 1e-12:
+        return np.column_stack([e1, e2])
+    s = np.sin(theta) / theta
+    ds = (theta * np.cos(theta) - np.sin(theta)) / theta**2
+    u = a * e1 + b * e2
+    return np.column_stack([
+        -np.sin(theta) * (w / theta) * d0 + s * e + ds * (w / theta) * u for w, e in ((a, e1), (b, e2))
+    ])
+
+
+def _cylinder_jacobian(params: np.ndarray, P: np.ndarray, origin: np.ndarray, d0: np.ndarray,
+                       e1: np.ndarray, e2: np.ndarray) -> np.ndarray:
+    """(N, 5) analytic Jacobian of :func:`_cylinder_residuals` over (x, y, a, b, r).
+    With v = p - x0, the foot-normal n = perp / |perp| (perpendicular to the axis a):
+    dd/dx0 = -n (so dd/dx = -n.e1, dd/dy = -n.e2), dd/da = -(v.a) n (the axis turned by da),
+    chained with :func:`_tilted_jacobian`; dd/dr = -1."""
+    x, y, a, b, _ = params
+    axis_point = origin + x * e1 + y * e2
+    direction = _tilted(d0, e1, e2, a, b)
+    v = P - axis_point
+    along = v @ direction
+    perp = v - np.outer(along, direction)
+    n = perp / np.maximum(np.linalg.norm(perp, axis=1), 1e-300)[:, None]
+    J = np.empty((len(P), 5))
+    J[:, 0] = -n @ e1
+    J[:, 1] = -n @ e2
+    J[:, 2:4] = -along[:, None] * (n @ _tilted_jacobian(d0, e1, e2, a, b))
+    J[:, 4] = -1.0
+    return J
+
+
 def _cylinder_from(direction: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """Start values for an axis along ``direction``: circle fit in the perpendicular plane."""
     e1, e2 = perpendicular_basis(direction)
@@ -256,7 +293,7 @@ def fit_cylinder_axis(
         params = np.array([0.0, 0.0, 0.0, 0.0, r0])
         for _ in range(8):
             result = least_squares(
-                _cylinder_residuals, params, args=(P, origin, d0, e1, e2),
+                _cylinder_residuals, params, jac=_cylinder_jacobian, args=(P, origin, d0, e1, e2),
                 method="lm", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=60,
             )
             if result.status > 0:  # converged (0: evaluation budget used up)
@@ -276,11 +313,7 @@ def fit_cylinder_axis(
     residuals = _cylinder_residuals(np.array([0, 0, 0, 0, radius]), P, line.point, line.direction, f1, f2)
     n = len(P)
     sigma = _posterior_sigma(residuals, n - 5, sigma_mm)
-    J = _numeric_jacobian(
-        lambda q: _cylinder_residuals(q, P, line.point, line.direction, f1, f2),
-        np.array([0.0, 0.0, 0.0, 0.0, radius]),
-        np.array([1e-6, 1e-6, 1e-8, 1e-8, 1e-6]) * max(1.0, radius),
-    )
+    J = _cylinder_jacobian(np.array([0.0, 0.0, 0.0, 0.0, radius]), P, line.point, line.direction, f1, f2)
     JtJ = J.T @ J
     if not np.isfinite(JtJ).all() or np.linalg.cond(JtJ) > 1e14:
         raise ValueError(
@@ -341,16 +374,6 @@ def _check_unique_cylinder(solutions, best_cost, sigma, line, radius, f1, f2, co
                 f"pattern cannot determine the axis: probe at three or more heights, at angles that "
                 f"are not symmetric (e.g. 20, 80, 140, 200 deg)"
             )
-
-
-def _numeric_jacobian(func, x0: np.ndarray, steps: np.ndarray) -> np.ndarray:
-    """Central-difference Jacobian (M, K) of func: (K,) -> (M,)."""
-    columns = []
-    for k, h in enumerate(steps):
-        dx = np.zeros_like(x0)
-        dx[k] = h
-        columns.append((func(x0 + dx) - func(x0 - dx)) / (2 * h))
-    return np.column_stack(columns)
 
 
 # --------------------------------------------------------------------------
