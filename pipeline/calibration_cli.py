@@ -287,7 +287,7 @@ def _live_pairs(args: argparse.Namespace, board, settings):
             options["calibration"] = str(write_provisional_calibration(Path(tmp) / "provisional.yml"))
         source = implementation.create(options, f"--source {args.source}")
         try:
-            events = KeyEvents(sys.stdin, source.stop)
+            events = KeyEvents(sys.stdin)
             window = None if args.no_window or not window_available() else CoverageWindow(events)
             if window is not None:
                 views.append(window)

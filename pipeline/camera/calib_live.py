@@ -95,7 +95,8 @@ class KeyEvents:
     Terminal: a reader thread takes ``stream`` line by line: an empty line
     (Enter) or any text but ``q`` is ``take``; ``q`` is ``quit``; the end of
     the stream is ``end of input``. ``on_quit`` is called on ``quit`` (from
-    that thread): it stops the source so that a wait for a trigger ends.
+    that thread; :func:`capture_live` sets it when the source is not asked
+    for pairs by keys): it stops the source so that a wait for a trigger ends.
     """
 
     def __init__(self, stream: TextIO | None = None, on_quit: Callable[[], None] | None = None):
@@ -256,6 +257,10 @@ def capture_live(
         raise ConfigError(f"mode must be one of {', '.join(MODES)}, got {mode!r}")
     detector = BoardDetector(board, min_points=min_points)
     latest = LatestPair(frames) if free_running and mode != "trigger" else None
+    if mode == "trigger" or latest is not None:
+        # Pairs are not asked for by keys: a quit must end the wait for the next pair at once.
+        # (Otherwise it is taken in turn, after the keys typed before it.)
+        events.on_quit = stop
     taken: list[LivePair] = []
     coverage: dict[str, CameraCoverage] = {}
 
@@ -322,14 +327,14 @@ def capture_live(
 # ---- the live view ---------------------------------------------------------------------------------
 
 
-def print_pair(pair: LivePair, coverage: Mapping[str, CameraCoverage], stream: TextIO = sys.stdout) -> None:
+def print_pair(pair: LivePair, coverage: Mapping[str, CameraCoverage], stream: TextIO | None = None) -> None:
     """The terminal's live view: one line per pair (points found, then :func:`coverage_line`)."""
     found = ", ".join(
         f"{cam} {len(d)} points" if d is not None else f"{cam}: board not found"
         for cam, d in pair.detections.items()
     )
     print(f"pair {pair.index + 1} (frame {pair.frame.sequence}): {found} | {coverage_line(coverage)}",
-          file=stream, flush=True)  # fmt: skip
+          file=sys.stdout if stream is None else stream, flush=True)  # fmt: skip
 
 
 class CoverageLog:
