@@ -88,7 +88,7 @@ def add_parsers(command) -> dict:
         metavar="K",
         help="simulated views in which the board moves between the two exposures",
     )
-    cal.add_argument("--save-images", metavar="DIR", help="also write the simulated views as image pairs")
+    cal.add_argument("--save-images", metavar="DIR", help="also write the simulated or live views as image pairs")
     cal.add_argument("--no-report", action="store_true", help="do not write the report")
     cal.add_argument(
         "--record", metavar="CAL.mcap",
