@@ -347,44 +347,63 @@ def test_basler_enter_in_a_terminal_takes_pairs_ctrl_c_ends_and_calibrates(views
     check_truth(out, views)
 
 
-def test_basler_hardware_trigger_takes_every_pulse(views, emulated, tmp_path):
-    """--trigger: the cameras wait for a line; each pulse (emulated: a thread firing both
-    cameras' triggers, as in tests/test_basler.py) is a pair; --pairs ends the capture."""
+def hardware_triggered_source(root: Path, tmp_path: Path):
+    """The basler plugin on the emulated cameras, waiting for a trigger line (trigger = hardware;
+    the line is emulated by :class:`Pulses`, as in tests/test_basler.py)."""
     from crossfield.registry import get_implementation, make_plugin_manager
 
-    root, _ = emulated
+    def features(cam: str) -> dict:
+        return {"TestImageSelector": "Off", "ImageFileMode": "On", "ImageFilename": str(root / cam),
+                "Width": 1626, "Height": 1236}  # fmt: skip
+
     options = {
         "upper": UPPER, "lower": LOWER, "frames": 0, "trigger": "hardware", "trigger_source": "Software",
         "trigger_activation": "", "max_skew_ms": 250.0,
         "calibration": str(write_provisional_calibration(tmp_path / "provisional.yml")),
-        "upper_features": {"TestImageSelector": "Off", "ImageFileMode": "On", "ImageFilename": str(root / "upper"),
-                           "Width": 1626, "Height": 1236},
-        "lower_features": {"TestImageSelector": "Off", "ImageFileMode": "On", "ImageFilename": str(root / "lower"),
-                           "Width": 1626, "Height": 1236},
+        "upper_features": features("upper"), "lower_features": features("lower"),
     }  # fmt: skip
-    source = get_implementation(make_plugin_manager(), "acquire", "basler").create(options)
-    stop = threading.Event()
+    return get_implementation(make_plugin_manager(), "acquire", "basler").create(options)
 
-    def pulses():
-        cams = [source.cameras[r].instant for r in ("upper", "lower")]
-        while not all(c.IsGrabbing() for c in cams) and not stop.is_set():
+
+class Pulses(threading.Thread):
+    """Fires both cameras' frame triggers every ``period_s`` once they grab; ``on_pulse(n)`` after each."""
+
+    def __init__(self, source, period_s: float, on_pulse=lambda n: None):
+        super().__init__(daemon=True)
+        self.cams = [source.cameras[r].instant for r in ("upper", "lower")]
+        self.period_s, self.on_pulse = period_s, on_pulse
+        self.halt = threading.Event()
+        self.start()
+
+    def run(self) -> None:
+        while not all(c.IsGrabbing() for c in self.cams) and not self.halt.is_set():
             time.sleep(0.01)
-        while not stop.is_set():
-            if all(c.IsGrabbing() and c.WaitForFrameTriggerReady(2000, 0) for c in cams):
-                for cam in cams:  # both or neither: a pulse reaches both cameras
+        n = 0
+        while not self.halt.is_set():
+            if all(c.IsGrabbing() and c.WaitForFrameTriggerReady(2000, 0) for c in self.cams):
+                for cam in self.cams:  # both or neither: a pulse reaches both cameras
                     cam.ExecuteSoftwareTrigger()
-            time.sleep(0.2)
+            n += 1
+            self.on_pulse(n)
+            time.sleep(self.period_s)
 
-    thread = threading.Thread(target=pulses, daemon=True)
-    thread.start()
+    def end(self) -> None:
+        self.halt.set()
+        self.join(5)
+
+
+def test_basler_hardware_trigger_takes_every_pulse(views, emulated, tmp_path):
+    """--trigger: the cameras wait for a line; each pulse is a pair; --pairs ends the capture."""
+    root, _ = emulated
+    source = hardware_triggered_source(root, tmp_path)
+    pulses = Pulses(source, 0.2)
     try:
         live = capture_live(
             source.frames(), views.board, KeyEvents(None), mode="trigger", pairs=4, stop=source.stop
         )
         info = source.describe()
     finally:
-        stop.set()
-        thread.join(5)
+        pulses.end()
         source.close()
     assert live.ended_by == "pairs" and len(live.images) == 4 and live.bit_depth == 12
     assert info["incidents"] == []
@@ -398,47 +417,23 @@ def test_basler_hardware_trigger_takes_every_pulse(views, emulated, tmp_path):
 def test_free_running_source_key_takes_a_pair_arriving_after_the_press(views, emulated, tmp_path):
     """A camera triggered by a line keeps delivering; a key press takes the first pair after it,
     never one that was waiting before (LatestPair)."""
-    from crossfield.registry import get_implementation, make_plugin_manager
-
     root, _ = emulated
-    options = {
-        "upper": UPPER, "lower": LOWER, "frames": 0, "trigger": "hardware", "trigger_source": "Software",
-        "trigger_activation": "", "max_skew_ms": 250.0,
-        "calibration": str(write_provisional_calibration(tmp_path / "provisional.yml")),
-        "upper_features": {"TestImageSelector": "Off", "ImageFileMode": "On", "ImageFilename": str(root / "upper"),
-                           "Width": 1626, "Height": 1236},
-        "lower_features": {"TestImageSelector": "Off", "ImageFileMode": "On", "ImageFilename": str(root / "lower"),
-                           "Width": 1626, "Height": 1236},
-    }  # fmt: skip
-    source = get_implementation(make_plugin_manager(), "acquire", "basler").create(options)
-    stop = threading.Event()
+    source = hardware_triggered_source(root, tmp_path)
     events = KeyEvents(None)
     presses: list[int] = []
     arrivals: list[int] = []
 
-    def pulses_and_keys():
-        cams = [source.cameras[r].instant for r in ("upper", "lower")]
-        while not all(c.IsGrabbing() for c in cams) and not stop.is_set():
-            time.sleep(0.01)
-        n = 0
-        while not stop.is_set():
-            if all(c.IsGrabbing() and c.WaitForFrameTriggerReady(2000, 0) for c in cams):
-                for cam in cams:
-                    cam.ExecuteSoftwareTrigger()
-            n += 1
-            if n % 4 == 2 and len(presses) < 3:  # a key every 4th pulse, between pulses
-                presses.append(time.time_ns())
-                events.put("take")
-            time.sleep(0.1)
+    def key_every_fourth_pulse(n: int) -> None:
+        if n % 4 == 2 and len(presses) < 3:
+            presses.append(time.time_ns())
+            events.put("take")
 
-    thread = threading.Thread(target=pulses_and_keys, daemon=True)
-    thread.start()
+    pulses = Pulses(source, 0.1, key_every_fourth_pulse)
     try:
         live = capture_live(source.frames(), views.board, events, mode="key", pairs=3, free_running=True,
                             stop=source.stop, on_pair=lambda pair, _: arrivals.append(pair.frame.timestamp_ns))  # fmt: skip
     finally:
-        stop.set()
-        thread.join(5)
+        pulses.end()
         source.close()
     assert live.ended_by == "pairs" and len(live.images) == 3
     sequences = [int(n.split("frame ")[1].rstrip(")")) for n in live.names]
