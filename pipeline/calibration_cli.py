@@ -45,18 +45,24 @@ def add_parsers(command) -> dict:
         "(-c CONFIG [acquire] table, --option acquire.KEY=VALUE); Enter takes a pair, q ends",
     )
     live = cal.add_argument_group("live cameras (--source)")
-    live.add_argument("-c", "--config", metavar="FILE", help="session config whose [acquire] table has the source's options")
+    live.add_argument(
+        "-c", "--config", metavar="FILE", help="session config whose [acquire] table has the source's options"
+    )
     live.add_argument(
         "--option", action="append", default=[], metavar="acquire.KEY=VALUE",
         help="set a source option, e.g. acquire.upper='\"40012345\"' (repeatable)",
     )
     when = live.add_mutually_exclusive_group()
-    when.add_argument("--every", type=float, metavar="SECONDS", help="take a pair every SECONDS (no key needed)")
+    when.add_argument(
+        "--every", type=float, metavar="SECONDS", help="take a pair every SECONDS (no key needed)"
+    )
     when.add_argument(
         "--trigger", action="store_true",
         help="take every pair the source delivers (basler: trigger = hardware, a pair per trigger pulse)",
     )
-    live.add_argument("--pairs", type=int, default=0, metavar="N", help="end after N pairs (default: until q or Ctrl-C)")
+    live.add_argument(
+        "--pairs", type=int, default=0, metavar="N", help="end after N pairs (default: until q or Ctrl-C)"
+    )
     live.add_argument(
         "--view", nargs="?", const="new", metavar="URL",
         help="show the coverage live in a Rerun viewer: a new native one, or the running one at URL",
@@ -240,15 +246,22 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def _live_options(args: argparse.Namespace) -> dict:
-    """The source's options as `crossfield run` reads them (config file, then --option), plus the
-    live defaults: frames = 0 (until stopped); --trigger: trigger = hardware (basler)."""
-    from crossfield.config import session_config
+    """The source's options as `crossfield run` reads them (the config file's [acquire] table, then
+    --option acquire.KEY=VALUE), plus the live defaults: frames = 0 (until stopped); --trigger:
+    trigger = hardware (basler). The table's plugin, if named, must be the --source."""
+    from crossfield.config import DEFAULT_PLUGINS, load_config, parse_option
 
+    acquire = load_config(args.config).stages["acquire"]
+    if acquire.plugin not in (args.source, DEFAULT_PLUGINS["acquire"]):
+        raise ConfigError(
+            f"{args.config}: [acquire] plugin is {acquire.plugin!r}, but --source is {args.source!r}"
+        )
+    options = dict(acquire.options)
     for text in args.option:
-        if not text.startswith("acquire."):
+        stage, key, value = parse_option(text)
+        if stage != "acquire":
             raise ConfigError(f"--option {text!r}: calibrate takes source options only (acquire.KEY=VALUE)")
-    config = session_config(args.config, plugins={"acquire": args.source}, option_texts=args.option)
-    options = dict(config.stages["acquire"].options)
+        options[key] = value
     options.setdefault("frames", 0)
     if args.trigger and args.source == "basler":
         options.setdefault("trigger", "hardware")
@@ -305,7 +318,8 @@ def _live_pairs(args: argparse.Namespace, board, settings):
                     view(pair, coverage)
 
             if mode == "key":
-                how = "Enter" + (" (or space in the window)" if window else "") + " takes a pair, q then Enter ends"
+                how = "Enter" + (" (or space in the window)" if window else "")
+                how += " takes a pair, q then Enter ends"
             elif mode == "every":
                 how = f"a pair every {args.every:g} s, q then Enter ends"
             else:

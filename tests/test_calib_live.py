@@ -43,6 +43,7 @@ from crossfield.camera.calib_record import read_calibration_recording
 from crossfield.camera.calib_report import coverage_fraction
 from crossfield.camera.calibration_io import read_stereo_calibration
 from crossfield.cli import main
+from crossfield.errors import ConfigError
 from crossfield.simulator.board_views import cached_calibration_views
 
 N_FILES = 12  # views on disk
@@ -440,3 +441,26 @@ def test_free_running_source_key_takes_a_pair_arriving_after_the_press(views, em
     assert sequences == sorted(set(sequences))
     assert sequences[-1] > 4  # pulses went on between the presses, frames were skipped, not queued
     assert all(arrived >= pressed for arrived, pressed in zip(arrivals, presses)), (arrivals, presses)
+
+
+def test_live_options_are_the_run_options_with_the_live_defaults(tmp_path):
+    """--trigger makes the basler source wait for a line; frames default to 0 (until stopped);
+    the config file's [acquire] options come first, --option after, as for `crossfield run`."""
+    from crossfield.calibration_cli import _live_options
+    from crossfield.cli import build_parser
+
+    config = tmp_path / "cameras.toml"
+    config.write_text('[acquire]\nupper = "A"\nlower = "B"\nexposure_us = 800.0\n')
+
+    def options(*argv: str) -> dict:
+        return _live_options(build_parser().parse_args(["calibrate", *argv, "-o", "c.yml"]))
+
+    got = options("--source", "basler", "-c", str(config), "--option", "acquire.lower=C", "--trigger")
+    assert got == {"upper": "A", "lower": "C", "exposure_us": 800.0, "frames": 0, "trigger": "hardware"}
+    got = options("--source", "basler", "-c", str(config), "--option", "acquire.trigger=software", "--trigger")
+    assert got["trigger"] == "software"  # an explicit option wins
+    assert "trigger" not in options("--source", "opencv", "--option", "acquire.upper=0", "--trigger")
+    assert options("--source", "opencv", "--option", "acquire.frames=5")["frames"] == 5
+    config.write_text('[acquire]\nplugin = "folder"\nfolder = "x"\n')
+    with pytest.raises(ConfigError, match="plugin is 'folder', but --source is 'basler'"):
+        options("--source", "basler", "-c", str(config))

@@ -45,7 +45,7 @@ import numpy as np
 from crossfield.camera.board_detect import BoardDetection, BoardDetector, to_uint8
 from crossfield.camera.boards import Board
 from crossfield.camera.calib_coverage import CameraCoverage, camera_coverage, coverage_line, coverage_picture
-from crossfield.errors import ConfigError
+from crossfield.errors import ConfigError, RecordingError
 from crossfield.types import CAMERAS, StereoFrame
 
 __all__ = [
@@ -353,11 +353,15 @@ class CoverageLog:
         self.rr = rr
         self.rec = rr.RecordingStream("crossfield-calibrate", recording_id=uuid.uuid4())
         sinks: list[Any] = []
-        if rrd_path is not None:
-            sinks.append(rr.FileSink(str(rrd_path)))
-        if viewer:
-            sinks.append(rr.GrpcSink(viewer))
-        self.rec.set_sinks(*sinks)
+        try:
+            if rrd_path is not None:
+                sinks.append(rr.FileSink(str(rrd_path)))
+            if viewer:
+                sinks.append(rr.GrpcSink(viewer))
+            self.rec.set_sinks(*sinks)
+        except Exception as exc:  # noqa: BLE001 - rerun raises several types
+            where = rrd_path if rrd_path is not None else viewer
+            raise RecordingError(f"{where}: cannot write the Rerun live view: {exc}") from None
 
     def __call__(self, pair: LivePair, coverage: Mapping[str, CameraCoverage]) -> None:
         rr = self.rr
@@ -396,6 +400,9 @@ class CoverageWindow:
         self.picture = np.hstack([t[:height] for t in tiles])
         cv2.imshow(self.NAME, cv2.cvtColor(self.picture, cv2.COLOR_RGB2BGR))
         self.poll()
+
+    def close(self) -> None:
+        cv2.destroyWindow(self.NAME)
 
     def poll(self) -> None:
         """Pass the window's key presses on (call regularly: OpenCV handles its events here)."""
