@@ -464,3 +464,21 @@ def test_live_options_are_the_run_options_with_the_live_defaults(tmp_path):
     config.write_text('[acquire]\nplugin = "folder"\nfolder = "x"\n')
     with pytest.raises(ConfigError, match="plugin is 'folder', but --source is 'basler'"):
         options("--source", "basler", "-c", str(config))
+
+
+def test_a_board_not_found_in_a_dark_image_says_so(views, capsys):
+    """12-bit data delivered as 16-bit (the opencv source's bit_depth left at 0) is too dark to detect."""
+    from crossfield.camera.calib_live import LivePair, print_pair
+    from crossfield.types import StereoFrame
+
+    view = views.images[0]
+    frame = StereoFrame(3, 0, view["upper"], view["lower"], 16)
+    detector = BoardDetector(views.board, min_points=6)
+    found = {cam: detector.detect(frame.image(cam), 16) for cam in ("upper", "lower")}
+    assert found == {"upper": None, "lower": None}
+    cov = {cam: camera_coverage(cam, [None], (1626, 1236)) for cam in ("upper", "lower")}
+    print_pair(LivePair(0, frame, found), cov)
+    line = capsys.readouterr().out
+    peak = int(view["upper"].max())
+    assert line.startswith(f"pair 1 (frame 3): upper: board not found (peak {peak} of 65535: dark, or set")
+    assert "0/64 cells (0%), empty: everywhere" in line

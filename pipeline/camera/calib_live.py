@@ -310,7 +310,7 @@ def capture_live(
                     ended_by = "quit" if events.quit_requested else "source ended"
                     break
                 take(frame)
-        if events.quit_requested:
+        if ended_by == "source ended" and events.quit_requested:  # the quit stopped the source
             ended_by = "quit"
     except KeyboardInterrupt:
         ended_by = "interrupt"
@@ -329,10 +329,14 @@ def capture_live(
 
 def print_pair(pair: LivePair, coverage: Mapping[str, CameraCoverage], stream: TextIO | None = None) -> None:
     """The terminal's live view: one line per pair (points found, then :func:`coverage_line`)."""
-    found = ", ".join(
-        f"{cam} {len(d)} points" if d is not None else f"{cam}: board not found"
-        for cam, d in pair.detections.items()
-    )
+    def found_in(cam: str, d: BoardDetection | None) -> str:
+        if d is not None:
+            return f"{cam} {len(d)} points"
+        peak, full = int(np.max(pair.frame.image(cam))), (1 << pair.frame.bit_depth) - 1
+        dark = f" (peak {peak} of {full}: dark, or set the source's bit_depth)" if peak < full / 8 else ""
+        return f"{cam}: board not found{dark}"
+
+    found = ", ".join(found_in(cam, d) for cam, d in pair.detections.items())
     print(f"pair {pair.index + 1} (frame {pair.frame.sequence}): {found} | {coverage_line(coverage)}",
           file=sys.stdout if stream is None else stream, flush=True)  # fmt: skip
 
