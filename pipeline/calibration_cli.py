@@ -23,7 +23,7 @@ def add_parsers(command) -> dict:
         "calibrate",
         help="stereo-calibrate the upper/lower pair from views of a planar board (Zhang), write CALIB.yml",
         description="Zhang stereo calibration from image pairs of a planar board (ChArUco, chessboard or asymmetric "
-        "circles), or from simulated views (--scenario). Writes the OpenCV FileStorage YAML the folder, basler and "
+        "circles), from simulated views (--scenario), or from live cameras (--source). Writes the OpenCV FileStorage YAML the folder, basler and "
         "opencv sources read (M1 D1 M2 D2 R T, image size) with standard deviations under std_* keys, and a report "
         "(<CALIB>-report.html/.json). Exit status 0 on success, 2 if the views cannot give a calibration.",
     )
@@ -159,6 +159,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from crossfield.camera.calibrate import calibrate_images
 
     board, settings = _board_and_settings(args.board, args.distortion)
+    if not args.source:
+        live_only = {"--config": args.config, "--option": args.option, "--every": args.every is not None,
+                     "--trigger": args.trigger, "--pairs": args.pairs, "--view": args.view, "--rrd": args.rrd}  # fmt: skip
+        given = [flag for flag, value in live_only.items() if value]
+        if given:
+            raise ConfigError(f"{given[0]} applies to live cameras (--source) only")
     if args.replay:
         from dataclasses import replace
 

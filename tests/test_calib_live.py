@@ -482,3 +482,8 @@ def test_a_board_not_found_in_a_dark_image_says_so(views, capsys):
     peak = int(view["upper"].max())
     assert line.startswith(f"pair 1 (frame 3): upper: board not found (peak {peak} of 65535: dark, or set")
     assert "0/64 cells (0%), empty: everywhere" in line
+
+
+def test_live_flags_without_a_live_source_are_refused(tmp_path, capsys):
+    assert main(["calibrate", "--scenario", "station", "--every", "2", "-o", str(tmp_path / "c.yml")]) == 2
+    assert capsys.readouterr().err.strip() == "crossfield: error: --every applies to live cameras (--source) only"
