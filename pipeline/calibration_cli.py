@@ -7,6 +7,9 @@ commands in one block.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import sys
+import tempfile
 import tomllib
 from pathlib import Path
 
@@ -20,7 +23,7 @@ def add_parsers(command) -> dict:
         "calibrate",
         help="stereo-calibrate the upper/lower pair from views of a planar board (Zhang), write CALIB.yml",
         description="Zhang stereo calibration from image pairs of a planar board (ChArUco, chessboard or asymmetric "
-        "circles), or from simulated views (--scenario). Writes the OpenCV FileStorage YAML the folder, basler and "
+        "circles), from simulated views (--scenario), or from live cameras (--source). Writes the OpenCV FileStorage YAML the folder, basler and "
         "opencv sources read (M1 D1 M2 D2 R T, image size) with standard deviations under std_* keys, and a report "
         "(<CALIB>-report.html/.json). Exit status 0 on success, 2 if the views cannot give a calibration.",
     )
@@ -35,6 +38,37 @@ def add_parsers(command) -> dict:
         help="calibrate again from a recorded calibration's raw images (recorded board and settings "
         "unless --board / --distortion are given)",
     )
+    src.add_argument(
+        "--source",
+        choices=("basler", "opencv"),
+        help="live cameras through that acquire plugin; its options as for `crossfield run` "
+        "(-c CONFIG [acquire] table, --option acquire.KEY=VALUE); Enter takes a pair, q ends",
+    )
+    live = cal.add_argument_group("live cameras (--source)")
+    live.add_argument(
+        "-c", "--config", metavar="FILE", help="session config whose [acquire] table has the source's options"
+    )
+    live.add_argument(
+        "--option", action="append", default=[], metavar="acquire.KEY=VALUE",
+        help="set a source option, e.g. acquire.upper='\"40012345\"' (repeatable)",
+    )
+    when = live.add_mutually_exclusive_group()
+    when.add_argument(
+        "--every", type=float, metavar="SECONDS", help="take a pair every SECONDS (no key needed)"
+    )
+    when.add_argument(
+        "--trigger", action="store_true",
+        help="take every pair the source delivers (basler: trigger = hardware, a pair per trigger pulse)",
+    )
+    live.add_argument(
+        "--pairs", type=int, default=0, metavar="N", help="end after N pairs (default: until q or Ctrl-C)"
+    )
+    live.add_argument(
+        "--view", nargs="?", const="new", metavar="URL",
+        help="show the coverage live in a Rerun viewer: a new native one, or the running one at URL",
+    )
+    live.add_argument("--rrd", metavar="FILE.rrd", help="save the live coverage view to a Rerun file")
+    live.add_argument("--no-window", action="store_true", help="no OpenCV window even if a display is there")
     cal.add_argument(
         "--board",
         metavar="BOARD.toml",
@@ -60,10 +94,11 @@ def add_parsers(command) -> dict:
         metavar="K",
         help="simulated views in which the board moves between the two exposures",
     )
-    cal.add_argument("--save-images", metavar="DIR", help="also write the simulated views as image pairs")
+    cal.add_argument("--save-images", metavar="DIR", help="also write the simulated or live views as image pairs")
     cal.add_argument("--no-report", action="store_true", help="do not write the report")
     cal.add_argument(
-        "--record", metavar="CAL.mcap", help="record the session (images, detections, result) to MCAP"
+        "--record", metavar="CAL.mcap",
+        help="record the session (images, detections, result) to MCAP (--source: default <CALIB>.mcap)",
     )
 
     ver = command(
@@ -124,6 +159,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from crossfield.camera.calibrate import calibrate_images
 
     board, settings = _board_and_settings(args.board, args.distortion)
+    if not args.source:
+        live_only = {"--config": args.config, "--option": args.option, "--every": args.every is not None,
+                     "--trigger": args.trigger, "--pairs": args.pairs, "--view": args.view, "--rrd": args.rrd}  # fmt: skip
+        given = [flag for flag, value in live_only.items() if value]
+        if given:
+            raise ConfigError(f"{given[0]} applies to live cameras (--source) only")
     if args.replay:
         from dataclasses import replace
 
@@ -152,6 +193,21 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             from crossfield.camera.calib_images import write_image_pairs
 
             write_image_pairs(args.save_images, images)
+    elif args.source:
+        images, bit_depth, names, source = _live_pairs(args, board, settings)
+        if args.record is None:
+            args.record = str(Path(args.output).with_suffix(".mcap"))
+        if args.save_images:
+            from crossfield.camera.calib_images import write_image_pairs
+
+            write_image_pairs(args.save_images, images)
+        if len(images) < settings.min_views:
+            print(
+                f"crossfield: {len(images)} pairs taken, at least {settings.min_views} needed "
+                f"(min_views): no calibration written",
+                file=sys.stderr,
+            )
+            return 2
     else:
         from crossfield.camera.calib_images import read_image_pairs
 
@@ -193,6 +249,110 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     if args.record:
         print(f"  recorded to {args.record}")
     return 0
+
+
+def _live_options(args: argparse.Namespace) -> dict:
+    """The source's options as `crossfield run` reads them (the config file's [acquire] table, then
+    --option acquire.KEY=VALUE), plus the live defaults: frames = 0 (until stopped); --trigger:
+    trigger = hardware (basler). The table's plugin, if named, must be the --source."""
+    from crossfield.config import DEFAULT_PLUGINS, load_config, parse_option
+
+    acquire = load_config(args.config).stages["acquire"]
+    if acquire.plugin not in (args.source, DEFAULT_PLUGINS["acquire"]):
+        raise ConfigError(
+            f"{args.config}: [acquire] plugin is {acquire.plugin!r}, but --source is {args.source!r}"
+        )
+    options = dict(acquire.options)
+    for text in args.option:
+        stage, key, value = parse_option(text)
+        if stage != "acquire":
+            raise ConfigError(f"--option {text!r}: calibrate takes source options only (acquire.KEY=VALUE)")
+        options[key] = value
+    options.setdefault("frames", 0)
+    if args.trigger and args.source == "basler":
+        options.setdefault("trigger", "hardware")
+    return options
+
+
+def _live_pairs(args: argparse.Namespace, board, settings):
+    """Open the live source, take pairs (crossfield.camera.calib_live), close it:
+    (images, bit_depth, names, source text)."""
+    from crossfield.camera.calib_coverage import coverage_line
+    from crossfield.camera.calib_live import (
+        CoverageLog,
+        CoverageWindow,
+        KeyEvents,
+        capture_live,
+        print_pair,
+        window_available,
+        write_provisional_calibration,
+    )
+    from crossfield.registry import get_implementation, make_plugin_manager
+
+    if args.pairs < 0:
+        raise ConfigError(f"--pairs must be >= 0, got {args.pairs}")
+    if args.every is not None and not args.every > 0:
+        raise ConfigError(f"--every must be a positive number of seconds, got {args.every}")
+    options = _live_options(args)
+    mode = "trigger" if args.trigger else "every" if args.every is not None else "key"
+    upper, lower = options.get("upper"), options.get("lower")
+    free_running = (args.source == "basler" and options.get("trigger") == "hardware") or (
+        args.source == "opencv" and (isinstance(upper, int) or isinstance(lower, int))
+    )
+    implementation = get_implementation(make_plugin_manager(), "acquire", args.source)
+    views = []
+    with tempfile.TemporaryDirectory(prefix="crossfield-calibrate-") as tmp:
+        if "calibration" not in options:
+            options["calibration"] = str(write_provisional_calibration(Path(tmp) / "provisional.yml"))
+        source = implementation.create(options, f"--source {args.source}")
+        try:
+            events = KeyEvents(sys.stdin)
+            window = None if args.no_window or not window_available() else CoverageWindow(events)
+            if window is not None:
+                views.append(window)
+            if args.view or args.rrd:
+                viewer = None
+                if args.view:
+                    from crossfield.viz.view import spawn_live_viewer
+
+                    viewer = spawn_live_viewer() if args.view == "new" else args.view
+                views.append(CoverageLog(args.rrd, viewer=viewer))
+
+            def on_pair(pair, coverage):
+                print_pair(pair, coverage)
+                for view in views:
+                    view(pair, coverage)
+
+            if mode == "key":
+                how = "Enter" + (" (or space in the window)" if window else "")
+                how += " takes a pair, q then Enter ends"
+            elif mode == "every":
+                how = f"a pair every {args.every:g} s, q then Enter ends"
+            else:
+                how = "a pair per trigger, q then Enter or Ctrl-C ends"
+            print(f"calibrate from the {args.source} source: {how}", flush=True)
+            frames = source.frames()
+            try:
+                live = capture_live(
+                    frames, board, events, mode=mode, every_s=args.every or 0.0, pairs=args.pairs,
+                    free_running=free_running, min_points=min(settings.min_points, 6), on_pair=on_pair,
+                    idle=None if window is None else window.poll, stop=source.stop,
+                )
+            finally:
+                with contextlib.suppress(ValueError):  # a reader thread that did not end in time
+                    frames.close()
+        finally:
+            source.close()
+            for view in views:
+                close = getattr(view, "close", None)
+                if close is not None:
+                    close()
+    print(f"{len(live.images)} pairs taken (ended by {live.ended_by})")
+    if live.coverage:
+        print(f"  coverage: {coverage_line(live.coverage)}")
+    text = f"crossfield calibrate --source {args.source} ({mode}"
+    text += f" every {args.every:g} s)" if mode == "every" else ")"
+    return list(live.images), live.bit_depth, list(live.names), text
 
 
 def cmd_verify(args: argparse.Namespace) -> int:

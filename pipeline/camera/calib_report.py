@@ -18,26 +18,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from crossfield.camera.calib_coverage import COVERAGE_GRID, coverage_cells
 from crossfield.camera.calib_covariance import triangulation_sensitivity
 from crossfield.camera.calibrate import CalibrationResult
 from crossfield.types import CAMERAS
 
-#: The image is divided into COVERAGE_GRID x COVERAGE_GRID cells for the coverage figure.
-COVERAGE_GRID = 8
-
 
 def coverage_fraction(points: np.ndarray, image_size: tuple[int, int], grid: int = COVERAGE_GRID) -> float:
     """Fraction of the grid x grid image cells that hold at least one board point (points (N, 2) px)."""
-    if len(points) == 0:
-        return 0.0
-    w, h = image_size
-    cells = set(
-        zip(
-            np.clip((points[:, 0] / w * grid).astype(int), 0, grid - 1),
-            np.clip((points[:, 1] / h * grid).astype(int), 0, grid - 1),
-        )
-    )
-    return len(cells) / grid**2
+    return float(np.mean(coverage_cells(points, image_size, grid) > 0))
 
 
 def _used_points(result: CalibrationResult, camera: str) -> np.ndarray:
