@@ -73,11 +73,12 @@ def monte_carlo(summary: Any, registrar: Any, measurer: Any, n_draws: int, seed:
     inflation = 1.0 if aggregate.consistency is None else aggregate.consistency.cmm_inflation
     scale_u = aggregate.calibration_scale_u
     spec_u = plan.uncertainty
-    from crossfield.plugins.measure_plan import eccentricity_sigma_mm
+    from crossfield.plugins.measure_plan import eccentricity_sigma_mm, off_axis_rad
 
     ecc_factor = spec_u.eccentricity_residual if spec_u.eccentricity_corrected else 1.0
     ecc = np.array([
-        ecc_factor * eccentricity_sigma_mm(float(np.linalg.norm(p)), spec_u.target_radius_mm, spec_u.max_tilt_deg)
+        ecc_factor * eccentricity_sigma_mm(float(np.linalg.norm(p)), spec_u.target_radius_mm, spec_u.max_tilt_deg,
+                                          off_axis_rad(p))
         for p in np.asarray(points.xyz)
     ])
     rng = np.random.default_rng(seed)
