@@ -165,7 +165,8 @@ def table(lines: list[dict], by_name: bool = False) -> str:
             targets = f"{radius} / {tilt:g}" if radius else "-"
             out.append(
                 f"| {scenario}{label} | {plugins} | {arm} | {stated} | {targets} | {len(sessions)} | {n} | "
-                f"{within_u / n:.1%} | {within_U / n:.1%} +/- {se:.1%} | {worst:.2f} | {median_U:.4f} | "
+                f"{within_u / n:.1%} | {within_U / n:.1%}{f' +/- {se:.1%}' if np.isfinite(se) else ''} | {worst:.2f} | "
+                f"{median_U:.4f} | "
                 f"{warned}/{len(sessions)} |"
             )
     return "\n".join(out)
@@ -206,6 +207,8 @@ def main(argv: list[str] | None = None) -> int:
     corrected = args.plugins == "camera"
     if not args.no_scene_cache:
         share_scenes()
+    if args.jsonl:
+        Path(args.jsonl).parent.mkdir(parents=True, exist_ok=True)
     pm = make_plugin_manager()
     lines = []
     start = time.perf_counter()
