@@ -148,7 +148,7 @@ class MonteCarloProblem:
 
 
 def _frame_inputs(frame: Any, plan: MeasurementPlan) -> MonteCarloFrame:
-    from crossfield.plugins.measure_plan import eccentricity_sigma_mm
+    from crossfield.plugins.measure_plan import eccentricity_sigma_mm, off_axis_rad
 
     points: CameraPoints = frame.points
     registration: Registration = frame.registration
@@ -156,7 +156,9 @@ def _frame_inputs(frame: Any, plan: MeasurementPlan) -> MonteCarloFrame:
     factor = spec_u.eccentricity_residual if spec_u.eccentricity_corrected else 1.0
     xyz = np.asarray(points.xyz)
     ecc = np.array([
-        factor * eccentricity_sigma_mm(float(np.linalg.norm(p)), spec_u.target_radius_mm, spec_u.max_tilt_deg)
+        factor * eccentricity_sigma_mm(
+            float(np.linalg.norm(p)), spec_u.target_radius_mm, spec_u.max_tilt_deg, off_axis_rad(p)
+        )
         for p in xyz
     ])
     labels = [""] * len(xyz)
