@@ -1,4 +1,4 @@
-"""The budget's eccentricity term (plugins/measure_plan.py eccentricity_sigma_mm).
+"""The budget's eccentricity term (crossfield.uncertainty.eccentricity.eccentricity_sigma_mm).
 
 u^2 per axis = E|e|^2 / 2, e = X_e - C the shift of the triangulated centre of a tilted
 circle (imaging.eccentricity.ellipse_centre_point, H&Z result 2.13), over normals uniform
@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 
 from crossfield.camera.stereo_model import linear_triangulation, refine_points, stereo_geometry, undistort
 from crossfield.imaging.eccentricity import ellipse_centre_point
-from crossfield.plugins.measure_plan import eccentricity_sigma_mm, off_axis_rad
+from crossfield.uncertainty.eccentricity import eccentricity_sigma_mm, off_axis_rad
 from crossfield.simulator.scenarios import build_scene
 
 

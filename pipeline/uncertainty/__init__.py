@@ -6,5 +6,6 @@
 * :mod:`.decision`: ISO 14253-1 decision rules;
 * :mod:`.temperature`: the correction of lengths to 20 degC (ISO 1);
 * :mod:`.calibration`: the calibration's parameter uncertainty;
+* :mod:`.eccentricity`: the perspective eccentricity term of circle targets;
 * :mod:`.montecarlo`: the GUM Supplement 1 check.
 """

@@ -63,6 +63,7 @@ import numpy as np
 
 from crossfield.errors import CrossfieldError
 from crossfield.plan import MeasurementPlan
+from crossfield.uncertainty.eccentricity import eccentricity_sigma_mm, off_axis_rad
 from crossfield.types import CameraPoints, Correspondence, ReferenceData, Registration
 from crossfield.uncertainty.temperature import LENGTH_KINDS, Temperature, correction
 
@@ -148,8 +149,6 @@ class MonteCarloProblem:
 
 
 def _frame_inputs(frame: Any, plan: MeasurementPlan) -> MonteCarloFrame:
-    from crossfield.plugins.measure_plan import eccentricity_sigma_mm, off_axis_rad
-
     points: CameraPoints = frame.points
     registration: Registration = frame.registration
     spec_u = plan.uncertainty
