@@ -310,8 +310,8 @@ class PlanMeasurer:
         elif spec.kind == "point_line":
             line = self.reference_line(plan, reference, spec.b)
             measured, line_sd, g_p = point_line_distance(a.xyz, line, None)
-            line_var = line_sd**2  # the axis fit's own covariance (its CMM probes)
-            line_sigma = max((p.sigma_mm for p in reference.labelled(spec.b)), default=0.0)
+            line_var = line_sd**2  # the axis fit's own covariance (its CMM probes, posterior sigma)
+            line_sigma = line.sigma_mm  # max(stated, observed): geometry.fit_cylinder_axis
             gradients = [(a, g_p)]
             if truth is not None and spec.a in truth.points_global and spec.b in truth.lines_global:
                 actual = truth.lines_global[spec.b].distance(truth.points_global[spec.a])
@@ -352,7 +352,6 @@ class PlanMeasurer:
         (the registration is shared by the points: its effect enters through the sum of
         their Jacobians, GUM eq. (13)); calibration ``(u_s sum_j g_j . d_cal,j)^2``."""
         variance = dict.fromkeys(("camera", "eccentricity", "control_cmm", "reference_cmm"), 0.0)
-        variance["reference_cmm"] += line_var
         J_sum = np.zeros(6)
         c_cal = 0.0
         for point, g in gradients:
@@ -363,7 +362,7 @@ class PlanMeasurer:
         for src in _REGISTRATION_SOURCES:
             variance[src] += float(J_sum @ C_reg[src] @ J_sum)
         cmm_points = [p for p, _ in gradients if "reference_cmm" in p.cov]
-        ref_u = max([float(np.sqrt(p.cov["reference_cmm"][0, 0])) for p in cmm_points] + [line_sigma])
+        ref_u = max([float(np.sqrt(p.cov["reference_cmm"][0, 0])) for p in cmm_points], default=0.0)
         u_cal = inputs["calibration"][0]
         table = {
             "camera": (*inputs["camera"], variance["camera"]),
@@ -372,6 +371,8 @@ class PlanMeasurer:
             "control_cmm": (*inputs["control_cmm"], variance["control_cmm"]),
             "reference_cmm": (ref_u, "mm", variance["reference_cmm"]),
         }
+        if spec.kind == "point_line":  # the axis fit's own covariance, its sigma data-supported
+            table["reference_line"] = (line_sigma, "mm", line_var)
         return merge(table)
 
 

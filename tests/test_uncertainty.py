@@ -51,7 +51,8 @@ def test_budget_adds_up_and_matches_finite_difference_propagation():
     corr = registration.correspondence
     base = _measure_with(station, np.array(points.xyz), reference, corr)
     h = 1e-4
-    variance = {name: dict.fromkeys(("camera", "control_cmm", "reference_cmm"), 0.0) for name in base}
+    variance = {name: dict.fromkeys(("camera", "control_cmm", "reference_cmm", "reference_line"), 0.0)
+                for name in base}
     # Camera points: each coordinate of the camera frame, sigma CAMERA_SIGMA.
     for i in range(len(points.xyz)):
         for axis in range(3):
@@ -60,8 +61,10 @@ def test_budget_adds_up_and_matches_finite_difference_propagation():
             moved = _measure_with(station, xyz, reference, corr)
             for name in base:
                 variance[name]["camera"] += ((moved[name] - base[name]) / h * CAMERA_SIGMA[axis]) ** 2
-    # CMM points: each global coordinate, sigma_mm; controls -> control_cmm, the rest reference_cmm.
+    # CMM points: each global coordinate, sigma_mm; controls -> control_cmm, the probes of a
+    # fitted line -> reference_line, the rest reference_cmm.
     controls = set(corr.control_ids)
+    lines = {spec.b for spec in station.plan.characteristics if spec.kind == "point_line"}
     for k, probe in enumerate(reference.points):
         for axis in range(3):
             xyz = np.array(probe.xyz)
@@ -69,7 +72,8 @@ def test_budget_adds_up_and_matches_finite_difference_propagation():
             probes = list(reference.points)
             probes[k] = ProbedPoint(probe.label, xyz, probe.sigma_mm)
             moved = _measure_with(station, np.array(points.xyz), ReferenceData(tuple(probes)), corr)
-            source = "control_cmm" if probe.label in controls else "reference_cmm"
+            source = ("control_cmm" if probe.label in controls
+                      else "reference_line" if probe.label.split(".")[0] in lines else "reference_cmm")
             for name in base:
                 variance[name][source] += ((moved[name] - base[name]) / h * probe.sigma_mm) ** 2
     for name, result in results.items():
@@ -84,6 +88,9 @@ def test_budget_adds_up_and_matches_finite_difference_propagation():
             # model treats them as independent of the registration (documented)
             continue
         for source, expected in variance[name].items():
+            if source not in terms:  # no line in a point-point length: nothing moved it
+                assert expected == 0.0, (name, source)
+                continue
             assert terms[source].u_mm == pytest.approx(math.sqrt(expected), rel=0.02, abs=2e-6), (name, source)
 
 

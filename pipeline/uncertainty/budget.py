@@ -39,7 +39,10 @@ SOURCE_TEXT: dict[str, str] = {
     "calibration": "the stereo calibration's parameter uncertainty, as a relative scale of camera-frame "
     "distances (from the calibration file's std_* keys, else the stated default)",
     "control_cmm": "CMM coordinates of the common control points, through the shared registration",
-    "reference_cmm": "CMM coordinates of the reference points and of the probes of fitted reference lines",
+    "reference_cmm": "CMM coordinates of the reference points used directly (inflated, like control_cmm, "
+    "when the residual check finds the stated sigma too small)",
+    "reference_line": "fitted reference lines (cylinder or line axes): their probes' scatter, the larger of the "
+    "stated sigma and the fit's own residuals (data-supported already: not inflated again)",
     "repeatability": "scatter over the frames beyond the modelled per-frame (camera) noise of the mean: "
     "sqrt(max(0, s^2 / n - u_camera^2))",
     "temperature": "correction to 20 degC (ISO 1): part and reference temperatures and expansion "
