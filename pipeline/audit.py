@@ -89,6 +89,8 @@ class AuditReport:
     reproduction: dict[str, Any]
     seal: dict[str, Any] = field(default_factory=lambda: {"passed": True, "level": "self-consistency"})
     notes: list[str] = field(default_factory=list)
+    #: "session", or "calibration" for a calibration recording (:mod:`crossfield.camera.calib_audit`).
+    kind: str = "session"
 
     @property
     def intact(self) -> bool:
@@ -107,6 +109,7 @@ class AuditReport:
 
     def to_json(self) -> dict[str, Any]:
         return {
+            "kind": self.kind,
             "path": self.path,
             "file_sha256": self.file_sha256,
             "passed": self.passed,
@@ -511,6 +514,10 @@ def audit(
 ) -> AuditReport:
     """Run the checks on ``path`` (``RecordingError`` if it is not a crossfield recording).
 
+    A calibration recording (``crossfield calibrate --record``) is audited by
+    :func:`crossfield.camera.calib_audit.audit_calibration`: the same chain and seal,
+    and the calibration solved again instead of a replay.
+
     expect_head: the chain head kept outside the file (printed by ``crossfield
     run``, in report.json and the seal); public_key: the station's Ed25519
     public key (PEM file or 64 hex digits). Both are checked before anything
@@ -522,6 +529,10 @@ def audit(
     if public_key is not None:
         seal.load_public_key(public_key)
     rec = open_recording(path)
+    if rec.profile == L.CALIBRATION_PROFILE:  # a calibration session: re-solved, not replayed
+        from crossfield.camera.calib_audit import audit_calibration
+
+        return audit_calibration(path, reproduce=reproduce, expect_head=expect_head, public_key=public_key)
     require_session(rec)
     integrity = verify(path)
     prov = provenance(path, pm)
@@ -562,6 +573,10 @@ def _section(title: str, ok: bool, text: str = "") -> str:
 
 def format_report(report: AuditReport, *, limit: int = 40) -> str:
     """The audit as text for the terminal."""
+    if report.kind == "calibration":
+        from crossfield.camera.calib_audit import format_calibration_report
+
+        return format_calibration_report(report, limit=limit)
     lines = [f"Audit of {report.path}", f"  file SHA-256 {report.file_sha256}"]
     prov = report.provenance
     session = prov.get("session") or {}

@@ -163,7 +163,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     if args.record:
         from crossfield.camera.calib_record import record_calibration
 
-        record_calibration(args.record, images, names, bit_depth, result, source)
+        sealed = record_calibration(args.record, images, names, bit_depth, result, source)
     c = result.calibration
     print(f"calibration written to {out}")
     print(
@@ -191,7 +191,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         for path in write_report(result, stem):
             print(f"  report: {path}")
     if args.record:
-        print(f"  recorded to {args.record}")
+        print(f"  recorded to {args.record} (chain head {sealed.chain_head}; audit: crossfield audit {args.record})")
     return 0
 
 
