@@ -26,17 +26,14 @@ calibration; it never trusts the recorded results.
 from __future__ import annotations
 
 import base64
+import hashlib
 import html
 import io
 import json
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-
-import hashlib
-from collections.abc import Mapping
-from dataclasses import field
 
 import numpy as np
 from crossfield.errors import CrossfieldError, RecordingError

@@ -12,8 +12,6 @@ import json
 
 import numpy as np
 import pytest
-from session_tools import edit_json, rewrite_mcap
-
 from crossfield.audit import audit, format_report
 from crossfield.camera.calib_audit import PARAMETER_TOLERANCE_STD, parameter_vector
 from crossfield.camera.calib_record import (
@@ -29,6 +27,7 @@ from crossfield.recording.reader import open_recording
 from crossfield.recording.seal import read_sidecar, sidecar_path
 from crossfield.registry import make_plugin_manager
 from crossfield.simulator.board_views import cached_calibration_views
+from session_tools import edit_json, rewrite_mcap
 
 NAMES = [f"sim view {k}" for k in range(10)]
 
@@ -112,7 +111,9 @@ def test_edited_result_is_named_by_chain_and_re_solve(recorded, solved, tmp_path
 
     def edit(ms):
         return [
-            edit_json(m, lambda d: d["parameters"][k].update(value=value + 0.001)) if m.topic == TOPIC_RESULT else m
+            edit_json(m, lambda d: d["parameters"][k].update(value=value + 0.001))
+            if m.topic == TOPIC_RESULT
+            else m
             for m in ms
         ]
 
@@ -126,7 +127,7 @@ def test_edited_result_is_named_by_chain_and_re_solve(recorded, solved, tmp_path
     assert diffs[0]["recorded"] == value + 0.001
     assert diffs[0]["replayed"] == pytest.approx(value, abs=diffs[0]["tolerance"])
     assert diffs[0]["tolerance"] == pytest.approx(PARAMETER_TOLERANCE_STD * result.std[k])
-    assert "parameters[%d].value (rig.Tx): recorded" % k in format_report(report)
+    assert f"parameters[{k}].value (rig.Tx): recorded" in format_report(report)
 
 
 def test_a_consistent_forgery_is_caught_by_the_re_solve(recorded, solved, tmp_path):
@@ -147,7 +148,9 @@ def test_a_consistent_forgery_is_caught_by_the_re_solve(recorded, solved, tmp_pa
     diffs = report.reproduction["differences"]
     in_result = {d["path"] for d in diffs if d.get("topic") == TOPIC_RESULT}
     in_file = {d["path"] for d in diffs if d.get("attachment") == "calibration.yml"}
-    assert {f"parameters[{i}].value (rig.T{c})" for i, c in zip(range(len(params) - 3, len(params)), "xyz")} <= in_result
+    assert {
+        f"parameters[{i}].value (rig.T{c})" for i, c in zip(range(len(params) - 3, len(params)), "xyz")
+    } <= in_result
     assert "baseline_mm" in in_result
     assert {"R/T rig.Tx", "R/T rig.Ty", "R/T rig.Tz"} <= in_file
     assert not any(p.startswith(("M1", "M2")) for p in in_file)  # the intrinsics were not touched

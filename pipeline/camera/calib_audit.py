@@ -156,7 +156,9 @@ def _provenance(path: Path) -> dict[str, Any]:
     current = package_versions()
     for name, version in packages.items():
         if current.get(name, "not installed") != version:
-            notes.append(f"package {name}: recorded {version}, installed {current.get(name, 'not installed')}")
+            notes.append(
+                f"package {name}: recorded {version}, installed {current.get(name, 'not installed')}"
+            )
     return {
         "passed": not problems,
         "problems": problems,
@@ -181,7 +183,9 @@ def _provenance(path: Path) -> dict[str, Any]:
 # --------------------------------------------------------------------------
 
 
-def _difference(topic: str, sequence: int, log_time: int, path: str, recorded: Any, replayed: Any, tol: Any) -> dict:
+def _difference(
+    topic: str, sequence: int, log_time: int, path: str, recorded: Any, replayed: Any, tol: Any
+) -> dict:
     return {
         "topic": topic,
         "sequence": sequence,
@@ -283,8 +287,12 @@ def _reproduction(path: Path, *, limit: int = 500) -> dict[str, Any]:
         return {"passed": False, "error": f"the calibration cannot be read back: {exc}", "differences": []}
     try:
         result = calibrate_images(
-            recorded.images, recorded.board, recorded.bit_depth, recorded.settings,
-            names=recorded.names, source=recorded.source,
+            recorded.images,
+            recorded.board,
+            recorded.bit_depth,
+            recorded.settings,
+            names=recorded.names,
+            source=recorded.source,
         )
     except CrossfieldError as exc:
         return {"passed": False, "error": f"the calibration cannot be solved again: {exc}", "differences": []}
@@ -299,7 +307,9 @@ def _reproduction(path: Path, *, limit: int = 500) -> dict[str, Any]:
                 detections[(int(doc["view"]), str(doc["camera"]))] = (m, doc)
             except (ValueError, KeyError, TypeError) as exc:
                 differences.append(
-                    _difference(m.topic, m.sequence, m.log_time_ns, "<data>", f"not a detection: {exc}", None, "exact")
+                    _difference(
+                        m.topic, m.sequence, m.log_time_ns, "<data>", f"not a detection: {exc}", None, "exact"
+                    )
                 )
     missing: list[str] = []
     if len(results) != 1:
@@ -353,8 +363,11 @@ def _reproduction(path: Path, *, limit: int = 500) -> dict[str, Any]:
             "corners_px": CORNER_TOLERANCE_PX,
         },
         "replayed": {
-            "rms_px": {"upper": result.cameras["upper"].rms_px, "lower": result.cameras["lower"].rms_px,
-                       "stereo": result.rms_stereo_px},
+            "rms_px": {
+                "upper": result.cameras["upper"].rms_px,
+                "lower": result.cameras["lower"].rms_px,
+                "stereo": result.rms_stereo_px,
+            },
             "baseline_mm": result.baseline_mm,
         },
     }
@@ -423,7 +436,10 @@ def format_calibration_report(report: AuditReport, *, limit: int = 40) -> str:
     ]
     lines += [f"  {n}" for n in report.notes]
     lines.append("")
-    ok = lambda flag: "PASS" if flag else "FAIL"  # noqa: E731
+
+    def ok(flag: bool) -> str:
+        return "PASS" if flag else "FAIL"
+
     if integ.passed:
         text = (
             f"{integ.messages} messages and {integ.entries - integ.messages} other records chained "
@@ -435,8 +451,10 @@ def format_calibration_report(report: AuditReport, *, limit: int = 40) -> str:
     lines += [f"  - {p.detail}" for p in integ.problems[:limit]]
     cal = prov.get("calibration") or {}
     lines.append(f"{'provenance':<14} {ok(prov.get('passed', False))}")
-    lines.append(f"  calibration  {cal.get('source')} SHA-256 {cal.get('sha256')} "
-                 f"{'matches the record' if cal.get('ok') else 'MISMATCH'}")
+    lines.append(
+        f"  calibration  {cal.get('source')} SHA-256 {cal.get('sha256')} "
+        f"{'matches the record' if cal.get('ok') else 'MISMATCH'}"
+    )
     lines += [f"  - {p}" for p in prov.get("problems", [])]
     lines += [f"  note: {n}" for n in prov.get("notes", [])]
     if repro.get("error") or repro.get("skipped"):

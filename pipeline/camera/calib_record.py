@@ -48,14 +48,12 @@ from crossfield.types import CAMERAS
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
 # The names of a calibration recording, defined with every other topic in the layout.
-from crossfield.recording.layout import (  # noqa: E402
-    CALIBRATION_ATTACHMENT as ATTACHMENT_CALIBRATION,
-    CALIBRATION_METADATA as METADATA_NAME,
-    CALIBRATION_PROFILE as PROFILE,
-    TOPIC_CALIBRATION_DETECTIONS as TOPIC_DETECTIONS,
-    TOPIC_CALIBRATION_IMAGE as TOPIC_IMAGE,
-    TOPIC_CALIBRATION_RESULT as TOPIC_RESULT,
-)
+ATTACHMENT_CALIBRATION = L.CALIBRATION_ATTACHMENT
+METADATA_NAME = L.CALIBRATION_METADATA
+PROFILE = L.CALIBRATION_PROFILE
+TOPIC_DETECTIONS = L.TOPIC_CALIBRATION_DETECTIONS
+TOPIC_IMAGE = L.TOPIC_CALIBRATION_IMAGE
+TOPIC_RESULT = L.TOPIC_CALIBRATION_RESULT
 
 #: The JSON channels (schema-less JSON: the documents are described in docs/calibration.md).
 DETECTIONS_CHANNEL = ChannelSpec(TOPIC_DETECTIONS, "json", None)
