@@ -432,7 +432,9 @@ def format_calibration_report(report: AuditReport, *, limit: int = 40) -> str:
     lines = [
         f"Audit of calibration recording {report.path}",
         f"  file SHA-256 {report.file_sha256}",
-        f"  source {record.get('source')}  OpenCV {record.get('opencv_version')}  writer {prov.get('writer')}",
+        f"  source {record.get('source')}  recorded {record.get('recorded_utc')}",
+        f"  OpenCV {record.get('opencv_version')}",
+        f"  writer {prov.get('writer')}",
     ]
     lines += [f"  {n}" for n in report.notes]
     lines.append("")

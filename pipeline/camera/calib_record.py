@@ -11,7 +11,9 @@ MCAP profile ``CALIBRATION_PROFILE``;
 * ``TOPIC_DETECTIONS``: per view and camera the ids and pixel positions found (JSON);
 * ``TOPIC_RESULT``: the report (:func:`crossfield.camera.calib_report.report_dict`, JSON);
 * metadata ``METADATA_NAME``: board (JSON), solver settings, bit depth, view
-  names, source, OpenCV version, the SHA-256 of the calibration file;
+  names, source, OpenCV version, the SHA-256 of the calibration file, the
+  wall-clock time of the recording (``recorded_utc``; the log times are view
+  indices, not clock times);
   ``crossfield.packages`` and ``crossfield.machine`` as a session's;
   attachment ``ATTACHMENT_CALIBRATION``: the calibration file written.
 
@@ -26,6 +28,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -40,7 +43,7 @@ from crossfield.camera.calibrate import CalibrationResult, CalibrationSettings, 
 from crossfield.errors import RecordingError
 from crossfield.provenance import machine_info, package_versions
 from crossfield.recording import layout as L
-from crossfield.recording.codec import decode_image, dump_json, metadata_record, raw_image_message
+from crossfield.recording.codec import decode_image, dump_json, metadata_record, raw_image_message, utc_text
 from crossfield.recording.reader import Recording, open_recording
 from crossfield.recording.seal import Seal
 from crossfield.recording.writer import ChannelSpec, McapFileSink, protobuf_channel
@@ -112,6 +115,7 @@ def record_calibration(
                 "source": source,
                 "opencv_version": cv2.__version__,
                 "calibration_sha256": hashlib.sha256(yaml_text).hexdigest(),
+                "recorded_utc": utc_text(time.time_ns()),
             },
         )
         sink.metadata(L.META_PACKAGES, {str(k): str(v) for k, v in package_versions().items()})
