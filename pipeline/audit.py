@@ -702,6 +702,64 @@ def format_report(report: AuditReport, *, limit: int = 40) -> str:
     return "\n".join(lines)
 
 
+def format_checks(
+    report: AuditReport, header: list[str], summary: str, *, replayed: str = "replayed", limit: int = 40
+) -> str:
+    """The text of an audit of a recording that is not a measurement session (a calibration,
+    a verification): ``header`` lines, then integrity, provenance, reproduction (``summary``:
+    its one-line result; each difference named by message or attachment, with its tolerance;
+    ``replayed`` names how the value was obtained again) and seal, then PASS/FAIL."""
+    prov, integ, repro, sealed = report.provenance, report.integrity, report.reproduction, report.seal
+    lines = [*header, *(f"  {n}" for n in report.notes), ""]
+    if integ.passed:
+        text = (
+            f"{integ.messages} messages and {integ.entries - integ.messages} other records chained "
+            f"in {integ.records} {L.TOPIC_INTEGRITY} records, chain head {integ.chain_sha256}"
+        )
+    else:
+        text = f"{len(integ.problems)} finding(s)"
+    lines.append(_section("integrity", integ.passed, text))
+    lines += [f"  - {p.detail}" for p in integ.problems[:limit]]
+    cal = prov.get("calibration") or {}
+    lines.append(_section("provenance", prov.get("passed", False)))
+    lines.append(
+        f"  calibration  {cal.get('source')} SHA-256 {cal.get('sha256')} "
+        f"{'matches the record' if cal.get('ok') else 'MISMATCH'}"
+    )
+    lines += [f"  - {p}" for p in prov.get("problems", [])]
+    lines += [f"  note: {n}" for n in prov.get("notes", [])]
+    if repro.get("error") or repro.get("skipped"):
+        lines.append(_section("reproduction", False, repro.get("error") or repro.get("skipped")))
+    else:
+        lines.append(_section("reproduction", repro["passed"], summary))
+        for d in repro["differences"][:limit]:
+            where = (
+                f"attachment {d['attachment']}"
+                if "attachment" in d
+                else name_message(d["topic"], d["sequence"], d["log_time_ns"])
+            )
+            lines.append(
+                f"  - {where}: {d['path']}: recorded {_short(d['recorded'])}, "
+                f"{replayed} {_short(d['replayed'])} (tolerance {_short(d['tolerance'])})"
+            )
+        if repro["differences_total"] > limit:
+            lines.append(f"  ... and {repro['differences_total'] - limit} more (see --json)")
+        lines += [f"  - missing from the recording: {m}" for m in repro.get("missing", [])]
+        lines += [f"  - only in the recording: {m}" for m in repro.get("only_recorded", [])]
+    lines.append(
+        _section(
+            "seal",
+            sealed.get("passed", False),
+            f"chain head {sealed.get('chain_head')}; proves: {sealed.get('level')}",
+        )
+    )
+    lines += [f"  - {p}" for p in sealed.get("problems", [])]
+    lines += [f"  note: {n}" for n in sealed.get("notes", [])]
+    verdict = f"Audit: {'PASS' if report.passed else 'FAIL'}"
+    lines += ["", verdict + ("" if report.complete else " (incomplete recording)")]
+    return "\n".join(lines)
+
+
 def _short(value: Any) -> str:
     text = (
         repr(value)

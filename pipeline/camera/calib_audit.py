@@ -44,7 +44,7 @@ from typing import Any
 
 import cv2
 import numpy as np
-from crossfield.audit import AuditReport, json_differences, parse_head, seal_check
+from crossfield.audit import AuditReport, format_checks, json_differences, parse_head, seal_check
 from crossfield.camera.calib_record import (
     ATTACHMENT_CALIBRATION,
     METADATA_NAME,
@@ -60,7 +60,7 @@ from crossfield.errors import CrossfieldError, RecordingError
 from crossfield.provenance import package_versions
 from crossfield.recording import layout as L
 from crossfield.recording import seal
-from crossfield.recording.integrity import file_sha256, name_message, verify
+from crossfield.recording.integrity import file_sha256, verify
 from crossfield.types import CAMERAS, StereoCalibration
 
 __all__ = [
@@ -420,74 +420,24 @@ def audit_calibration(
     return report
 
 
-def _short(value: Any) -> str:
-    text = value if isinstance(value, str) else repr(value) if isinstance(value, float) else json.dumps(value)
-    return text if len(text) <= 80 else text[:77] + "..."
-
-
 def format_calibration_report(report: AuditReport, *, limit: int = 40) -> str:
-    """The calibration audit as text for the terminal."""
-    prov, integ, repro, sealed = report.provenance, report.integrity, report.reproduction, report.seal
-    record = prov.get("calibration_record") or {}
-    lines = [
+    """The calibration audit as text for the terminal (:func:`crossfield.audit.format_checks`)."""
+    record = report.provenance.get("calibration_record") or {}
+    repro = report.reproduction
+    header = [
         f"Audit of calibration recording {report.path}",
         f"  file SHA-256 {report.file_sha256}",
         f"  source {record.get('source')}  recorded {record.get('recorded_utc')}",
         f"  OpenCV {record.get('opencv_version')}",
-        f"  writer {prov.get('writer')}",
+        f"  writer {report.provenance.get('writer')}",
     ]
-    lines += [f"  {n}" for n in report.notes]
-    lines.append("")
-
-    def ok(flag: bool) -> str:
-        return "PASS" if flag else "FAIL"
-
-    if integ.passed:
-        text = (
-            f"{integ.messages} messages and {integ.entries - integ.messages} other records chained "
-            f"in {integ.records} {L.TOPIC_INTEGRITY} records, chain head {integ.chain_sha256}"
-        )
-    else:
-        text = f"{len(integ.problems)} finding(s)"
-    lines.append(f"{'integrity':<14} {ok(integ.passed)}  {text}")
-    lines += [f"  - {p.detail}" for p in integ.problems[:limit]]
-    cal = prov.get("calibration") or {}
-    lines.append(f"{'provenance':<14} {ok(prov.get('passed', False))}")
-    lines.append(
-        f"  calibration  {cal.get('source')} SHA-256 {cal.get('sha256')} "
-        f"{'matches the record' if cal.get('ok') else 'MISMATCH'}"
-    )
-    lines += [f"  - {p}" for p in prov.get("problems", [])]
-    lines += [f"  note: {n}" for n in prov.get("notes", [])]
-    if repro.get("error") or repro.get("skipped"):
-        lines.append(f"{'reproduction':<14} FAIL  {repro.get('error') or repro.get('skipped')}")
-    else:
+    summary = ""
+    if "tolerances" in repro:
         tol = repro["tolerances"]
-        lines.append(
-            f"{'reproduction':<14} {ok(repro['passed'])}  {repro['messages_identical']} of "
-            f"{repro['messages_compared']} recorded results reproduced ({repro['views_replayed']} views solved "
-            f"again; parameters within {tol['parameters_std']:g} sigma, standard deviations "
-            f"{tol['std_relative']:g} and other numbers {tol['relative']:g} relative, corners {tol['corners_px']:g} px)"
+        summary = (
+            f"{repro['messages_identical']} of {repro['messages_compared']} recorded results reproduced "
+            f"({repro['views_replayed']} views solved again; parameters within {tol['parameters_std']:g} "
+            f"sigma, standard deviations {tol['std_relative']:g} and other numbers {tol['relative']:g} "
+            f"relative, corners {tol['corners_px']:g} px)"
         )
-        for d in repro["differences"][:limit]:
-            where = (
-                f"attachment {d['attachment']}"
-                if "attachment" in d
-                else name_message(d["topic"], d["sequence"], d["log_time_ns"])
-            )
-            lines.append(
-                f"  - {where}: {d['path']}: recorded {_short(d['recorded'])}, "
-                f"solved again {_short(d['replayed'])} (tolerance {_short(d['tolerance'])})"
-            )
-        if repro["differences_total"] > limit:
-            lines.append(f"  ... and {repro['differences_total'] - limit} more (see --json)")
-        lines += [f"  - missing from the recording: {m}" for m in repro.get("missing", [])]
-        lines += [f"  - only in the recording: {m}" for m in repro.get("only_recorded", [])]
-    lines.append(
-        f"{'seal':<14} {ok(sealed.get('passed', False))}  chain head {sealed.get('chain_head')}; "
-        f"proves: {sealed.get('level')}"
-    )
-    lines += [f"  - {p}" for p in sealed.get("problems", [])]
-    lines += [f"  note: {n}" for n in sealed.get("notes", [])]
-    lines += ["", f"Audit: {ok(report.passed)}" + ("" if report.complete else " (incomplete recording)")]
-    return "\n".join(lines)
+    return format_checks(report, header, summary, replayed="solved again", limit=limit)
