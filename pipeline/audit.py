@@ -89,7 +89,8 @@ class AuditReport:
     reproduction: dict[str, Any]
     seal: dict[str, Any] = field(default_factory=lambda: {"passed": True, "level": "self-consistency"})
     notes: list[str] = field(default_factory=list)
-    #: "session", or "calibration" for a calibration recording (:mod:`crossfield.camera.calib_audit`).
+    #: "session", "calibration" (:mod:`crossfield.camera.calib_audit`) or "verification"
+    #: (:mod:`crossfield.verification_audit`).
     kind: str = "session"
 
     @property
@@ -516,7 +517,8 @@ def audit(
 
     A calibration recording (``crossfield calibrate --record``) is audited by
     :func:`crossfield.camera.calib_audit.audit_calibration`: the same chain and seal,
-    and the calibration solved again instead of a replay.
+    and the calibration solved again instead of a replay; a verification recording
+    (``crossfield verify --record``) by :func:`crossfield.verification_audit.audit_verification`.
 
     expect_head: the chain head kept outside the file (printed by ``crossfield
     run``, in report.json and the seal); public_key: the station's Ed25519
@@ -533,6 +535,10 @@ def audit(
         from crossfield.camera.calib_audit import audit_calibration
 
         return audit_calibration(path, reproduce=reproduce, expect_head=expect_head, public_key=public_key)
+    if rec.profile == L.VERIFICATION_PROFILE:  # a verification session: evaluated again
+        from crossfield.verification_audit import audit_verification
+
+        return audit_verification(path, reproduce=reproduce, expect_head=expect_head, public_key=public_key)
     require_session(rec)
     integrity = verify(path)
     prov = provenance(path, pm)
@@ -577,6 +583,10 @@ def format_report(report: AuditReport, *, limit: int = 40) -> str:
         from crossfield.camera.calib_audit import format_calibration_report
 
         return format_calibration_report(report, limit=limit)
+    if report.kind == "verification":
+        from crossfield.verification_audit import format_verification_report
+
+        return format_verification_report(report, limit=limit)
     lines = [f"Audit of {report.path}", f"  file SHA-256 {report.file_sha256}"]
     prov = report.provenance
     session = prov.get("session") or {}

@@ -263,11 +263,12 @@ class RecordedVerification:
     metadata: Mapping[str, str] = field(default_factory=dict)
 
 
-def read_verification_recording(path: str | Path) -> RecordedVerification:
+def read_verification_recording(path: str | Path, *, validate_crcs: bool = True) -> RecordedVerification:
     """Read a ``crossfield verify --record`` file back: raw pairs and recorded inputs
-    (identifiers are data; nothing is evaluated). Errors name the file and the record."""
+    (identifiers are data; nothing is evaluated). Errors name the file and the record.
+    validate_crcs=False (the audit) reads what the file holds, damaged chunks included."""
     path = Path(path)
-    rec = open_recording(path)
+    rec = open_recording(path, validate_crcs=validate_crcs)
     if rec.profile != L.VERIFICATION_PROFILE:
         raise RecordingError(f"{path}: not a crossfield verification recording (profile {rec.profile!r})")
     meta = rec.metadata().get(L.VERIFICATION_METADATA)
@@ -365,7 +366,7 @@ Calibration: {html.escape(result.calibration_source)}.</p>
     return json_path, html_path
 
 
-def _stages(specs: Mapping[str, Mapping[str, Any]], where: str) -> dict[str, Any]:
+def create_stages(specs: Mapping[str, Mapping[str, Any]], where: str) -> dict[str, Any]:
     """The centroid and triangulate implementations named in ``specs`` ({stage: {plugin, options}})."""
     from crossfield.registry import get_implementation, make_plugin_manager
 
@@ -414,7 +415,7 @@ def run_verification_cli(args) -> int:
         sizes = (truth.upper.image_size, truth.lower.image_size)
         source = f"crossfield verify --scenario {scenario} --frames {args.frames} --seed {args.seed}"
     calibration = read_stereo_calibration(args.calibration, image_sizes=sizes)
-    stages = _stages(specs, args.recording or "the config")
+    stages = create_stages(specs, args.recording or "the config")
     result = evaluate(
         frames,
         calibration,

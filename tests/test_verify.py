@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 import pytest
+from crossfield.audit import audit, format_report
 from crossfield.camera.calibration_io import write_stereo_calibration
 from crossfield.cli import main
 from crossfield.config import load_config
@@ -15,6 +16,14 @@ from crossfield.registry import get_implementation, make_plugin_manager
 from crossfield.simulator.scale_bar import bar_scene, scale_bar_positions
 from crossfield.simulator.scenarios import station_calibration
 from crossfield.verification import MIN_POSITIONS, evaluate, simulate_positions
+from session_tools import edit_json, rewrite_mcap
+
+
+def message_data(path, topic, sequence) -> bytes:
+    from crossfield.recording.reader import open_recording
+
+    with open_recording(path) as rec:
+        return next(m.data for m in rec.messages(topic, decode=False) if m.sequence == sequence)
 
 
 @pytest.fixture(scope="module")
@@ -90,6 +99,31 @@ def test_verify_records_and_re_evaluates_from_the_recording(tmp_path, capsys):
     assert [n for n, _ in recorded.named_frames] == [p.name for p in scale_bar_positions()]
     assert recorded.certified_mm == 100.0 and recorded.mpe_mm == 0.05
     assert recorded.stages["centroid"]["plugin"] == "weighted"
+    # auditable like a session: chain, seal, and the positions evaluated again bit for bit
+    report = audit(mcap, make_plugin_manager(), expect_head=integrity.chain_sha256)
+    assert report.kind == "verification" and report.passed, format_report(report)
+    assert report.reproduction["messages_identical"] == report.reproduction["messages_compared"] == 8
+    e = json.loads(message_data(mcap, "/verification/position", 2))["error_mm"]
+    edited = tmp_path / "edited.mcap"
+    rewrite_mcap(
+        mcap,
+        edited,
+        lambda ms: [
+            edit_json(m, lambda d: d.update(error_mm=e + 0.01))
+            if m.topic == "/verification/position" and m.sequence == 2
+            else m
+            for m in ms
+        ],
+    )
+    report = audit(edited, make_plugin_manager())
+    assert not report.passed
+    assert [(p.kind, p.topic, p.sequence) for p in report.integrity.problems] == [
+        ("changed", "/verification/position", 2)
+    ]
+    assert [
+        (d["topic"], d["sequence"], d["path"], d["recorded"], d["replayed"])
+        for d in report.reproduction["differences"]
+    ] == [("/verification/position", 2, "error_mm", e + 0.01, e)]
     again = tmp_path / "again"
     assert main(["verify", "--recording", str(mcap), "--calibration", str(calib), "-o", str(again)]) == 0
     a = json.loads(first.with_suffix(".json").read_text())
@@ -115,5 +149,7 @@ def test_verify_recording_errors_are_one_line(tmp_path, capsys):
     assert main(["verify", "--recording", str(other), "--calibration", str(calib)]) == 2
     err = capsys.readouterr().err
     assert err.startswith("crossfield: error:") and "other.mcap" in err and "Traceback" not in err
-    assert main(["verify", "--recording", str(other), "--scenario", "station", "--calibration", str(calib)]) == 2
+    assert (
+        main(["verify", "--recording", str(other), "--scenario", "station", "--calibration", str(calib)]) == 2
+    )
     assert "give one" in capsys.readouterr().err
