@@ -392,7 +392,8 @@ def test_calibrate_then_run_table3_then_verify(tmp_path, capsys):
     assert unc["calibration_scale_u"] == pytest.approx(np.sqrt(np.sum(np.square(terms))), rel=1e-6)
     for c in characteristics:
         budget = {t["source"]: t for t in c["budget"]}
-        assert budget["calibration"]["u"] == unc["calibration_scale_u"] and budget["calibration"]["u_mm"] > 0
+        assert budget["calibration"]["u"] == pytest.approx(unc["calibration_scale_u"], rel=1e-12)
+        assert budget["calibration"]["u_mm"] > 0
         u_c = np.sqrt(sum(t["u_mm"] ** 2 for t in c["budget"]))
         assert c["expanded_uncertainty_mm"] == pytest.approx(c["coverage_factor"] * u_c, rel=1e-9)
     out = tmp_path / "verification"
