@@ -29,6 +29,7 @@ from __future__ import annotations
 import hashlib
 import json
 import tempfile
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -129,6 +130,67 @@ class AuditReport:
 # --------------------------------------------------------------------------
 
 
+def attachment_check(
+    attachments: Mapping[str, Any], name: str, recorded: str | None, problems: list[str], notes: list[str]
+) -> dict[str, Any]:
+    """Attachment ``name`` against the SHA-256 recorded for it (None: none recorded, a note);
+    a missing attachment or another digest is appended to ``problems``."""
+    found = attachments.get(name)
+    actual = hashlib.sha256(found.data).hexdigest() if found else None
+    ok = found is not None and (recorded is None or recorded == actual)
+    if found is None:
+        problems.append(f"attachment {name!r} is missing")
+    elif recorded is not None and recorded != actual:
+        problems.append(f"attachment {name!r}: SHA-256 {actual} differs from the recorded {recorded}")
+    elif recorded is None:
+        notes.append(f"no recorded SHA-256 for {name!r} (recorded before it was recorded)")
+    return {"recorded_sha256": recorded, "sha256": actual, "ok": ok}
+
+
+def package_notes(packages: Mapping[str, str]) -> list[str]:
+    """A note per recorded package version that differs from the one installed now."""
+    current = package_versions()
+    return [
+        f"package {name}: recorded {version}, installed {current.get(name, 'not installed')}"
+        for name, version in packages.items()
+        if current.get(name, "not installed") != version
+    ]
+
+
+def recording_provenance(path: Path, record_name: str, source_key: str) -> dict[str, Any]:
+    """Provenance of a calibration or verification recording: its metadata record
+    ``record_name`` (``record``), the ``calibration.yml`` attachment against the record's
+    ``calibration_sha256`` (its source under ``source_key``), package notes, the machine."""
+    problems: list[str] = []
+    notes: list[str] = []
+    rec = open_recording(path, validate_crcs=False)
+    try:
+        meta = rec.metadata()
+        attachments = rec.attachments()
+    except RecordingError as exc:
+        return {"passed": False, "problems": [str(exc)], "notes": [], "record": {}, "calibration": {}}
+    record = meta.get(record_name) or {}
+    if not record:
+        problems.append(f"metadata record {record_name!r} is missing")
+    calibration = attachment_check(
+        attachments, L.ATTACHMENT_CALIBRATION, record.get("calibration_sha256"), problems, notes
+    )
+    calibration["source"] = record.get(source_key)
+    packages = meta.get(L.META_PACKAGES, {})
+    return {
+        "passed": not problems,
+        "problems": problems,
+        "notes": notes + package_notes(packages),
+        "record": dict(record),
+        "packages": dict(packages),
+        "machine": dict(meta.get(L.META_MACHINE, {})),
+        "calibration": calibration,
+        "attachments": sorted(attachments),
+        "writer": rec.library,
+        "profile": rec.profile,
+    }
+
+
 def provenance(path: Path, pm: pluggy.PluginManager | None) -> dict[str, Any]:
     """The session's recorded facts and their consistency (hashes, versions)."""
     rec = open_recording(path, validate_crcs=False)
@@ -148,23 +210,11 @@ def provenance(path: Path, pm: pluggy.PluginManager | None) -> dict[str, Any]:
     session = docs.get(L.META_SESSION, {})
     attachments = rec.attachments()
 
-    def digest_check(attachment: str, recorded: str | None) -> dict[str, Any]:
-        found = attachments.get(attachment)
-        actual = hashlib.sha256(found.data).hexdigest() if found else None
-        ok = found is not None and (recorded is None or recorded == actual)
-        if found is None:
-            problems.append(f"attachment {attachment!r} is missing")
-        elif recorded is not None and recorded != actual:
-            problems.append(
-                f"attachment {attachment!r}: SHA-256 {actual} differs from the recorded {recorded}"
-            )
-        elif recorded is None:
-            notes.append(f"no recorded SHA-256 for {attachment!r} (recorded before it was recorded)")
-        return {"recorded_sha256": recorded, "sha256": actual, "ok": ok}
-
-    plan = digest_check(L.ATTACHMENT_PLAN, session.get("plan_sha256"))
+    plan = attachment_check(attachments, L.ATTACHMENT_PLAN, session.get("plan_sha256"), problems, notes)
     plan.update({"name": session.get("plan_name"), "source": session.get("plan_source")})
-    calibration = digest_check(L.ATTACHMENT_CALIBRATION, session.get("calibration_sha256"))
+    calibration = attachment_check(
+        attachments, L.ATTACHMENT_CALIBRATION, session.get("calibration_sha256"), problems, notes
+    )
     calibration["source"] = session.get("calibration_source")
 
     plugins = docs.get(L.META_PLUGINS, {})
@@ -185,12 +235,7 @@ def provenance(path: Path, pm: pluggy.PluginManager | None) -> dict[str, Any]:
                     f"installed {impl.package} {impl.version}"
                 )
     packages = docs.get(L.META_PACKAGES, {})
-    current = package_versions()
-    for name, version in packages.items():
-        if current.get(name, "not installed") != version:
-            notes.append(
-                f"package {name}: recorded {version}, installed {current.get(name, 'not installed')}"
-            )
+    notes += package_notes(packages)
     return {
         "passed": not problems,
         "problems": problems,
@@ -559,6 +604,58 @@ def audit(
     )
     if not report.complete:
         report.notes.append(f"INCOMPLETE recording: {incomplete_reason(report)}")
+    return report
+
+
+def audit_recording(
+    path: str | Path,
+    kind: str,
+    profile: str,
+    provenance_of: Callable[[Path], dict[str, Any]],
+    reproduction_of: Callable[[Path], dict[str, Any]],
+    result_topic: str,
+    *,
+    reproduce: bool = True,
+    expect_head: str | None = None,
+    public_key: str | Path | None = None,
+) -> AuditReport:
+    """The audit of a recording that is not a measurement session (a calibration, a
+    verification: MCAP ``profile``): the chain, ``provenance_of(path)``,
+    ``reproduction_of(path)`` unless not ``reproduce``, the seal; complete when the file
+    was finished and holds a ``result_topic`` message. ``RecordingError`` if ``path``
+    is not of ``profile``; ``expect_head`` / ``public_key`` as :func:`audit`."""
+    path = Path(path)
+    if expect_head is not None:
+        parse_head(expect_head)
+    if public_key is not None:
+        seal.load_public_key(public_key)
+    rec = open_recording(path)
+    if rec.profile != profile:
+        raise RecordingError(f"{path}: not a crossfield {kind} recording (profile {rec.profile!r})")
+    integrity = verify(path)
+    prov = provenance_of(path)
+    if reproduce:
+        repro = reproduction_of(path)
+    else:
+        repro = {"passed": False, "skipped": "not run (--no-replay)", "differences": []}
+    digest = file_sha256(path)
+    try:
+        has_result = any(True for _ in rec.messages(result_topic, decode=False))
+    except RecordingError:
+        has_result = False
+    report = AuditReport(
+        path=str(path),
+        file_sha256=digest,
+        complete=rec.complete and integrity.complete and has_result,
+        integrity=integrity,
+        provenance=prov,
+        reproduction=repro,
+        seal=seal_check(path, integrity, digest, expect_head=expect_head, public_key=public_key),
+        kind=kind,
+    )
+    if not report.complete:
+        why = integrity.ends if not integrity.complete else f"no {result_topic} message"
+        report.notes.append(f"INCOMPLETE recording: {why}")
     return report
 
 

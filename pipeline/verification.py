@@ -38,12 +38,11 @@ from typing import Any
 import numpy as np
 from crossfield.errors import CrossfieldError, RecordingError
 from crossfield.jsonable import plain
-from crossfield.provenance import machine_info, package_versions
 from crossfield.recording import layout as L
-from crossfield.recording.codec import decode_image, dump_json, metadata_record, raw_image_message
+from crossfield.recording.codec import decode_image, dump_json, raw_image_message
 from crossfield.recording.reader import open_recording
 from crossfield.recording.seal import Seal
-from crossfield.recording.writer import ChannelSpec, McapFileSink, protobuf_channel
+from crossfield.recording.writer import ChannelSpec, McapFileSink, protobuf_channel, write_provenance
 from crossfield.types import CAMERAS, StereoCalibration, StereoCentroids, StereoFrame
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
@@ -219,8 +218,7 @@ def record_verification(
                 "calibration_sha256": hashlib.sha256(yaml_bytes).hexdigest(),
             },
         )
-        sink.metadata(L.META_PACKAGES, {str(k): str(v) for k, v in package_versions().items()})
-        sink.metadata(L.META_MACHINE, metadata_record(machine_info()))
+        write_provenance(sink)
         sink.attachment(L.ATTACHMENT_CALIBRATION, "application/x-yaml", yaml_bytes, 0)
         if len(bit_depths) != 1:
             raise CrossfieldError(f"the scale-bar pairs have bit depths {sorted(bit_depths)}; one is expected")

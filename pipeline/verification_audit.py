@@ -18,18 +18,20 @@ The checks of a session audit (:mod:`crossfield.audit`), for a
 
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 from typing import Any
 
-from crossfield.audit import AuditReport, format_checks, json_differences, parse_head, seal_check
+from crossfield.audit import (
+    AuditReport,
+    audit_recording,
+    format_checks,
+    json_differences,
+    recording_provenance,
+)
 from crossfield.errors import CrossfieldError, RecordingError
-from crossfield.provenance import package_versions
 from crossfield.recording import layout as L
-from crossfield.recording import seal
 from crossfield.recording.codec import dump_json
-from crossfield.recording.integrity import file_sha256, verify
 from crossfield.recording.reader import open_recording
 from crossfield.verification import (
     POSITION_CHANNEL,
@@ -41,55 +43,6 @@ from crossfield.verification import (
 )
 
 __all__ = ["audit_verification", "format_verification_report"]
-
-
-def _provenance(path: Path) -> dict[str, Any]:
-    problems: list[str] = []
-    notes: list[str] = []
-    rec = open_recording(path, validate_crcs=False)
-    try:
-        meta = rec.metadata()
-        attachments = rec.attachments()
-    except RecordingError as exc:
-        return {"passed": False, "problems": [str(exc)], "notes": [], "calibration": {}}
-    record = meta.get(L.VERIFICATION_METADATA) or {}
-    if not record:
-        problems.append(f"metadata record {L.VERIFICATION_METADATA!r} is missing")
-    found = attachments.get(L.ATTACHMENT_CALIBRATION)
-    recorded_sha, actual_sha = record.get("calibration_sha256"), None
-    if found is None:
-        problems.append(f"attachment {L.ATTACHMENT_CALIBRATION!r} is missing")
-    else:
-        actual_sha = hashlib.sha256(found.data).hexdigest()
-        if recorded_sha != actual_sha:
-            problems.append(
-                f"attachment {L.ATTACHMENT_CALIBRATION!r}: SHA-256 {actual_sha} differs from the "
-                f"recorded {recorded_sha}"
-            )
-    packages = meta.get(L.META_PACKAGES, {})
-    current = package_versions()
-    for name, version in packages.items():
-        if current.get(name, "not installed") != version:
-            notes.append(
-                f"package {name}: recorded {version}, installed {current.get(name, 'not installed')}"
-            )
-    return {
-        "passed": not problems,
-        "problems": problems,
-        "notes": notes,
-        "verification_record": dict(record),
-        "packages": dict(packages),
-        "machine": dict(meta.get(L.META_MACHINE, {})),
-        "calibration": {
-            "source": record.get("calibration_source"),
-            "recorded_sha256": recorded_sha,
-            "sha256": actual_sha,
-            "ok": found is not None and recorded_sha == actual_sha,
-        },
-        "attachments": sorted(attachments),
-        "writer": rec.library,
-        "profile": rec.profile,
-    }
 
 
 def _reproduction(path: Path, *, limit: int = 500) -> dict[str, Any]:
@@ -178,44 +131,26 @@ def audit_verification(
 ) -> AuditReport:
     """Audit the verification recording ``path`` (module docstring); ``RecordingError`` if it
     is not one. ``expect_head`` / ``public_key`` as :func:`crossfield.audit.audit`."""
-    path = Path(path)
-    if expect_head is not None:
-        parse_head(expect_head)
-    if public_key is not None:
-        seal.load_public_key(public_key)
-    rec = open_recording(path)
-    if rec.profile != L.VERIFICATION_PROFILE:
-        raise RecordingError(f"{path}: not a crossfield verification recording (profile {rec.profile!r})")
-    integrity = verify(path)
-    prov = _provenance(path)
-    if reproduce:
-        repro = _reproduction(path)
-    else:
-        repro = {"passed": False, "skipped": "not run (--no-replay)", "differences": []}
-    digest = file_sha256(path)
-    try:
-        has_result = any(True for _ in rec.messages(RESULT_CHANNEL.topic, decode=False))
-    except RecordingError:
-        has_result = False
-    report = AuditReport(
-        path=str(path),
-        file_sha256=digest,
-        complete=rec.complete and integrity.complete and has_result,
-        integrity=integrity,
-        provenance=prov,
-        reproduction=repro,
-        seal=seal_check(path, integrity, digest, expect_head=expect_head, public_key=public_key),
-        kind="verification",
+
+    def provenance(p: Path) -> dict[str, Any]:
+        return recording_provenance(p, L.VERIFICATION_METADATA, "calibration_source")
+
+    return audit_recording(
+        path,
+        "verification",
+        L.VERIFICATION_PROFILE,
+        provenance,
+        _reproduction,
+        RESULT_CHANNEL.topic,
+        reproduce=reproduce,
+        expect_head=expect_head,
+        public_key=public_key,
     )
-    if not report.complete:
-        why = integrity.ends if not integrity.complete else f"no {RESULT_CHANNEL.topic} message"
-        report.notes.append(f"INCOMPLETE recording: {why}")
-    return report
 
 
 def format_verification_report(report: AuditReport, *, limit: int = 40) -> str:
     """The verification audit as text for the terminal (:func:`crossfield.audit.format_checks`)."""
-    record = report.provenance.get("verification_record") or {}
+    record = report.provenance.get("record") or {}
     repro = report.reproduction
     header = [
         f"Audit of verification recording {report.path}",

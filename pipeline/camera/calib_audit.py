@@ -36,7 +36,6 @@ settings exactly.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 from pathlib import Path
@@ -44,10 +43,17 @@ from typing import Any
 
 import cv2
 import numpy as np
-from crossfield.audit import AuditReport, format_checks, json_differences, parse_head, seal_check
+from crossfield.audit import (
+    AuditReport,
+    audit_recording,
+    format_checks,
+    json_differences,
+    recording_provenance,
+)
 from crossfield.camera.calib_record import (
     ATTACHMENT_CALIBRATION,
     METADATA_NAME,
+    PROFILE,
     TOPIC_DETECTIONS,
     TOPIC_RESULT,
     detection_doc,
@@ -57,10 +63,6 @@ from crossfield.camera.calib_record import (
 from crossfield.camera.calib_report import report_dict
 from crossfield.camera.calibrate import CalibrationResult, calibrate_images
 from crossfield.errors import CrossfieldError, RecordingError
-from crossfield.provenance import package_versions
-from crossfield.recording import layout as L
-from crossfield.recording import seal
-from crossfield.recording.integrity import file_sha256, verify
 from crossfield.types import CAMERAS, StereoCalibration
 
 __all__ = [
@@ -116,66 +118,15 @@ def _close(a: Any, b: Any, tolerance: float | None = None, relative: float = REL
     return math.isfinite(a) and math.isfinite(b) and abs(a - b) <= tolerance
 
 
-# --------------------------------------------------------------------------
-# Provenance
-# --------------------------------------------------------------------------
-
-
 def _provenance(path: Path) -> dict[str, Any]:
-    problems: list[str] = []
-    notes: list[str] = []
-    rec = open_calibration_recording(path, validate_crcs=False)
-    try:
-        meta = rec.metadata()
-        attachments = rec.attachments()
-    except RecordingError as exc:
-        return {"passed": False, "problems": [str(exc)], "notes": [], "calibration": {}}
-    record = meta.get(METADATA_NAME) or {}
-    if not record:
-        problems.append(f"metadata record {METADATA_NAME!r} is missing")
-    attachment = attachments.get(ATTACHMENT_CALIBRATION)
-    recorded_sha = record.get("calibration_sha256")
-    actual_sha = None
-    if attachment is None:
-        problems.append(f"attachment {ATTACHMENT_CALIBRATION!r} is missing")
-    else:
-        actual_sha = hashlib.sha256(attachment.data).hexdigest()
-        if recorded_sha is None:
-            notes.append(f"no recorded SHA-256 for {ATTACHMENT_CALIBRATION!r}")
-        elif recorded_sha != actual_sha:
-            problems.append(
-                f"attachment {ATTACHMENT_CALIBRATION!r}: SHA-256 {actual_sha} differs from the recorded {recorded_sha}"
-            )
-    recorded_cv = record.get("opencv_version")
+    prov = recording_provenance(path, METADATA_NAME, "source")
+    recorded_cv = prov["record"].get("opencv_version")
     if recorded_cv and recorded_cv != cv2.__version__:
-        notes.append(
+        prov["notes"].append(
             f"recorded with OpenCV {recorded_cv}, installed {cv2.__version__}: another solver build may "
             f"reproduce the parameters only to its own rounding"
         )
-    packages = meta.get(L.META_PACKAGES, {})
-    current = package_versions()
-    for name, version in packages.items():
-        if current.get(name, "not installed") != version:
-            notes.append(
-                f"package {name}: recorded {version}, installed {current.get(name, 'not installed')}"
-            )
-    return {
-        "passed": not problems,
-        "problems": problems,
-        "notes": notes,
-        "calibration_record": dict(record),
-        "packages": dict(packages),
-        "machine": dict(meta.get(L.META_MACHINE, {})),
-        "calibration": {
-            "source": record.get("source"),
-            "recorded_sha256": recorded_sha,
-            "sha256": actual_sha,
-            "ok": attachment is not None and recorded_sha in (None, actual_sha),
-        },
-        "attachments": sorted(attachments),
-        "writer": rec.library,
-        "profile": rec.profile,
-    }
+    return prov
 
 
 # --------------------------------------------------------------------------
@@ -387,42 +338,22 @@ def audit_calibration(
 ) -> AuditReport:
     """Audit the calibration recording ``path`` (module docstring); ``RecordingError``
     if it is not one. ``expect_head`` / ``public_key`` as :func:`crossfield.audit.audit`."""
-    path = Path(path)
-    if expect_head is not None:
-        parse_head(expect_head)
-    if public_key is not None:
-        seal.load_public_key(public_key)
-    rec = open_calibration_recording(path)
-    integrity = verify(path)
-    prov = _provenance(path)
-    if reproduce:
-        repro = _reproduction(path)
-    else:
-        repro = {"passed": False, "skipped": "not run (--no-replay)", "differences": []}
-    digest = file_sha256(path)
-    try:
-        has_result = any(True for _ in rec.messages(TOPIC_RESULT, decode=False))
-    except RecordingError:
-        has_result = False
-    report = AuditReport(
-        path=str(path),
-        file_sha256=digest,
-        complete=rec.complete and integrity.complete and has_result,
-        integrity=integrity,
-        provenance=prov,
-        reproduction=repro,
-        seal=seal_check(path, integrity, digest, expect_head=expect_head, public_key=public_key),
-        kind="calibration",
+    return audit_recording(
+        path,
+        "calibration",
+        PROFILE,
+        _provenance,
+        _reproduction,
+        TOPIC_RESULT,
+        reproduce=reproduce,
+        expect_head=expect_head,
+        public_key=public_key,
     )
-    if not report.complete:
-        why = integrity.ends if not integrity.complete else f"no {TOPIC_RESULT} message"
-        report.notes.append(f"INCOMPLETE recording: {why}")
-    return report
 
 
 def format_calibration_report(report: AuditReport, *, limit: int = 40) -> str:
     """The calibration audit as text for the terminal (:func:`crossfield.audit.format_checks`)."""
-    record = report.provenance.get("calibration_record") or {}
+    record = report.provenance.get("record") or {}
     repro = report.reproduction
     header = [
         f"Audit of calibration recording {report.path}",

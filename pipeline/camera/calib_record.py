@@ -41,12 +41,11 @@ from crossfield.camera.calib_file import calibration_result_yaml
 from crossfield.camera.calib_report import report_dict
 from crossfield.camera.calibrate import CalibrationResult, CalibrationSettings, settings_from_dict
 from crossfield.errors import RecordingError
-from crossfield.provenance import machine_info, package_versions
 from crossfield.recording import layout as L
-from crossfield.recording.codec import decode_image, dump_json, metadata_record, raw_image_message, utc_text
+from crossfield.recording.codec import decode_image, dump_json, raw_image_message, utc_text
 from crossfield.recording.reader import Recording, open_recording
 from crossfield.recording.seal import Seal
-from crossfield.recording.writer import ChannelSpec, McapFileSink, protobuf_channel
+from crossfield.recording.writer import ChannelSpec, McapFileSink, protobuf_channel, write_provenance
 from crossfield.types import CAMERAS
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
@@ -118,8 +117,7 @@ def record_calibration(
                 "recorded_utc": utc_text(time.time_ns()),
             },
         )
-        sink.metadata(L.META_PACKAGES, {str(k): str(v) for k, v in package_versions().items()})
-        sink.metadata(L.META_MACHINE, metadata_record(machine_info()))
+        write_provenance(sink)
         for k, view in enumerate(images):
             t = view_time_ns(k)
             for cam in CAMERAS:

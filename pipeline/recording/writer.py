@@ -440,6 +440,15 @@ class McapFileSink:
 # --------------------------------------------------------------------------
 
 
+def write_provenance(sink: Sink) -> None:
+    """The ``crossfield.packages`` (installed versions now) and ``crossfield.machine``
+    records, for a recording that is not a session (calibration, verification)."""
+    from crossfield.provenance import package_versions
+
+    sink.metadata(L.META_PACKAGES, {str(k): str(v) for k, v in package_versions().items()})
+    sink.metadata(L.META_MACHINE, metadata_record(machine_info()))
+
+
 def global_points(points: CameraPoints, registration: Any) -> tuple[np.ndarray, np.ndarray]:
     """Camera points of a frame in the global frame, with propagated sigmas (mm).
 
