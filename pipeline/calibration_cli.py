@@ -131,6 +131,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from crossfield.camera.calibrate import calibrate_images
 
     board, settings = _board_and_settings(args.board, args.distortion)
+    if args.record and Path(args.record).exists():  # refused before the solve, not after it
+        raise ConfigError(f"--record: {args.record} exists; a recording is not overwritten")
     if args.replay:
         from dataclasses import replace
 

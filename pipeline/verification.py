@@ -387,6 +387,8 @@ def run_verification_cli(args) -> int:
 
     if args.recording and args.scenario:
         raise CrossfieldError("--recording and --scenario: give one (the recording holds its own pairs)")
+    if args.record and Path(args.record).exists():
+        raise CrossfieldError(f"--record: {args.record} exists; a recording is not overwritten")
     recorded = read_verification_recording(args.recording) if args.recording else None
     bar_mm = args.bar_mm if args.bar_mm is not None else recorded.certified_mm if recorded else 100.0
     bar_u_mm = args.bar_u_mm if args.bar_u_mm is not None else recorded.certified_u_mm if recorded else 0.002

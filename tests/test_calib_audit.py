@@ -155,3 +155,12 @@ def test_a_consistent_forgery_is_caught_by_the_re_solve(recorded, solved, tmp_pa
     assert {"R/T rig.Tx", "R/T rig.Ty", "R/T rig.Tz"} <= in_file
     assert not any(p.startswith(("M1", "M2")) for p in in_file)  # the intrinsics were not touched
     assert not report.seal["passed"]  # and the head kept elsewhere is the original's
+
+
+def test_an_existing_recording_is_not_overwritten(recorded, tmp_path, capsys):
+    path, _ = recorded
+    before = path.read_bytes()
+    out = tmp_path / "x.yml"
+    assert main(["calibrate", "--replay", str(path), "-o", str(out), "--record", str(path)]) == 2
+    assert "exists; a recording is not overwritten" in capsys.readouterr().err
+    assert path.read_bytes() == before and not out.exists()  # refused before solving

@@ -153,3 +153,5 @@ def test_verify_recording_errors_are_one_line(tmp_path, capsys):
         main(["verify", "--recording", str(other), "--scenario", "station", "--calibration", str(calib)]) == 2
     )
     assert "give one" in capsys.readouterr().err
+    assert main(["verify", "--calibration", str(calib), "--record", str(other)]) == 2
+    assert "other.mcap exists; a recording is not overwritten" in capsys.readouterr().err
