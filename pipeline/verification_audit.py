@@ -33,11 +33,10 @@ from crossfield.errors import CrossfieldError, RecordingError
 from crossfield.recording import layout as L
 from crossfield.recording.codec import dump_json
 from crossfield.recording.reader import open_recording
-from crossfield.verification import (
+from crossfield.verification import create_stages, evaluate
+from crossfield.verification_record import (
     POSITION_CHANNEL,
     RESULT_CHANNEL,
-    create_stages,
-    evaluate,
     position_doc,
     read_verification_recording,
 )

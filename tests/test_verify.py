@@ -85,7 +85,7 @@ def test_verify_records_and_re_evaluates_from_the_recording(tmp_path, capsys):
     with another calibration the E of that calibration."""
     from crossfield.recording.integrity import verify
     from crossfield.recording.seal import read_sidecar
-    from crossfield.verification import read_verification_recording
+    from crossfield.verification_record import read_verification_recording
 
     truth = station_calibration()
     calib = write_stereo_calibration(tmp_path / "truth.yml", truth)
