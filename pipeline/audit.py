@@ -29,6 +29,7 @@ from __future__ import annotations
 import hashlib
 import json
 import tempfile
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -89,6 +90,9 @@ class AuditReport:
     reproduction: dict[str, Any]
     seal: dict[str, Any] = field(default_factory=lambda: {"passed": True, "level": "self-consistency"})
     notes: list[str] = field(default_factory=list)
+    #: "session", "calibration" (:mod:`crossfield.camera.calib_audit`) or "verification"
+    #: (:mod:`crossfield.verification_audit`).
+    kind: str = "session"
 
     @property
     def intact(self) -> bool:
@@ -107,6 +111,7 @@ class AuditReport:
 
     def to_json(self) -> dict[str, Any]:
         return {
+            "kind": self.kind,
             "path": self.path,
             "file_sha256": self.file_sha256,
             "passed": self.passed,
@@ -123,6 +128,67 @@ class AuditReport:
 # --------------------------------------------------------------------------
 # Provenance
 # --------------------------------------------------------------------------
+
+
+def attachment_check(
+    attachments: Mapping[str, Any], name: str, recorded: str | None, problems: list[str], notes: list[str]
+) -> dict[str, Any]:
+    """Attachment ``name`` against the SHA-256 recorded for it (None: none recorded, a note);
+    a missing attachment or another digest is appended to ``problems``."""
+    found = attachments.get(name)
+    actual = hashlib.sha256(found.data).hexdigest() if found else None
+    ok = found is not None and (recorded is None or recorded == actual)
+    if found is None:
+        problems.append(f"attachment {name!r} is missing")
+    elif recorded is not None and recorded != actual:
+        problems.append(f"attachment {name!r}: SHA-256 {actual} differs from the recorded {recorded}")
+    elif recorded is None:
+        notes.append(f"no recorded SHA-256 for {name!r} (recorded before it was recorded)")
+    return {"recorded_sha256": recorded, "sha256": actual, "ok": ok}
+
+
+def package_notes(packages: Mapping[str, str]) -> list[str]:
+    """A note per recorded package version that differs from the one installed now."""
+    current = package_versions()
+    return [
+        f"package {name}: recorded {version}, installed {current.get(name, 'not installed')}"
+        for name, version in packages.items()
+        if current.get(name, "not installed") != version
+    ]
+
+
+def recording_provenance(path: Path, record_name: str, source_key: str) -> dict[str, Any]:
+    """Provenance of a calibration or verification recording: its metadata record
+    ``record_name`` (``record``), the ``calibration.yml`` attachment against the record's
+    ``calibration_sha256`` (its source under ``source_key``), package notes, the machine."""
+    problems: list[str] = []
+    notes: list[str] = []
+    rec = open_recording(path, validate_crcs=False)
+    try:
+        meta = rec.metadata()
+        attachments = rec.attachments()
+    except RecordingError as exc:
+        return {"passed": False, "problems": [str(exc)], "notes": [], "record": {}, "calibration": {}}
+    record = meta.get(record_name) or {}
+    if not record:
+        problems.append(f"metadata record {record_name!r} is missing")
+    calibration = attachment_check(
+        attachments, L.ATTACHMENT_CALIBRATION, record.get("calibration_sha256"), problems, notes
+    )
+    calibration["source"] = record.get(source_key)
+    packages = meta.get(L.META_PACKAGES, {})
+    return {
+        "passed": not problems,
+        "problems": problems,
+        "notes": notes + package_notes(packages),
+        "record": dict(record),
+        "packages": dict(packages),
+        "machine": dict(meta.get(L.META_MACHINE, {})),
+        "calibration": calibration,
+        "attachments": sorted(attachments),
+        "writer": rec.library,
+        "profile": rec.profile,
+    }
 
 
 def provenance(path: Path, pm: pluggy.PluginManager | None) -> dict[str, Any]:
@@ -144,23 +210,11 @@ def provenance(path: Path, pm: pluggy.PluginManager | None) -> dict[str, Any]:
     session = docs.get(L.META_SESSION, {})
     attachments = rec.attachments()
 
-    def digest_check(attachment: str, recorded: str | None) -> dict[str, Any]:
-        found = attachments.get(attachment)
-        actual = hashlib.sha256(found.data).hexdigest() if found else None
-        ok = found is not None and (recorded is None or recorded == actual)
-        if found is None:
-            problems.append(f"attachment {attachment!r} is missing")
-        elif recorded is not None and recorded != actual:
-            problems.append(
-                f"attachment {attachment!r}: SHA-256 {actual} differs from the recorded {recorded}"
-            )
-        elif recorded is None:
-            notes.append(f"no recorded SHA-256 for {attachment!r} (recorded before it was recorded)")
-        return {"recorded_sha256": recorded, "sha256": actual, "ok": ok}
-
-    plan = digest_check(L.ATTACHMENT_PLAN, session.get("plan_sha256"))
+    plan = attachment_check(attachments, L.ATTACHMENT_PLAN, session.get("plan_sha256"), problems, notes)
     plan.update({"name": session.get("plan_name"), "source": session.get("plan_source")})
-    calibration = digest_check(L.ATTACHMENT_CALIBRATION, session.get("calibration_sha256"))
+    calibration = attachment_check(
+        attachments, L.ATTACHMENT_CALIBRATION, session.get("calibration_sha256"), problems, notes
+    )
     calibration["source"] = session.get("calibration_source")
 
     plugins = docs.get(L.META_PLUGINS, {})
@@ -181,12 +235,7 @@ def provenance(path: Path, pm: pluggy.PluginManager | None) -> dict[str, Any]:
                     f"installed {impl.package} {impl.version}"
                 )
     packages = docs.get(L.META_PACKAGES, {})
-    current = package_versions()
-    for name, version in packages.items():
-        if current.get(name, "not installed") != version:
-            notes.append(
-                f"package {name}: recorded {version}, installed {current.get(name, 'not installed')}"
-            )
+    notes += package_notes(packages)
     return {
         "passed": not problems,
         "problems": problems,
@@ -511,6 +560,11 @@ def audit(
 ) -> AuditReport:
     """Run the checks on ``path`` (``RecordingError`` if it is not a crossfield recording).
 
+    A calibration recording (``crossfield calibrate --record``) is audited by
+    :func:`crossfield.camera.calib_audit.audit_calibration`: the same chain and seal,
+    and the calibration solved again instead of a replay; a verification recording
+    (``crossfield verify --record``) by :func:`crossfield.verification_audit.audit_verification`.
+
     expect_head: the chain head kept outside the file (printed by ``crossfield
     run``, in report.json and the seal); public_key: the station's Ed25519
     public key (PEM file or 64 hex digits). Both are checked before anything
@@ -522,6 +576,14 @@ def audit(
     if public_key is not None:
         seal.load_public_key(public_key)
     rec = open_recording(path)
+    if rec.profile == L.CALIBRATION_PROFILE:  # a calibration session: re-solved, not replayed
+        from crossfield.camera.calib_audit import audit_calibration
+
+        return audit_calibration(path, reproduce=reproduce, expect_head=expect_head, public_key=public_key)
+    if rec.profile == L.VERIFICATION_PROFILE:  # a verification session: evaluated again
+        from crossfield.verification_audit import audit_verification
+
+        return audit_verification(path, reproduce=reproduce, expect_head=expect_head, public_key=public_key)
     require_session(rec)
     integrity = verify(path)
     prov = provenance(path, pm)
@@ -545,6 +607,58 @@ def audit(
     return report
 
 
+def audit_recording(
+    path: str | Path,
+    kind: str,
+    profile: str,
+    provenance_of: Callable[[Path], dict[str, Any]],
+    reproduction_of: Callable[[Path], dict[str, Any]],
+    result_topic: str,
+    *,
+    reproduce: bool = True,
+    expect_head: str | None = None,
+    public_key: str | Path | None = None,
+) -> AuditReport:
+    """The audit of a recording that is not a measurement session (a calibration, a
+    verification: MCAP ``profile``): the chain, ``provenance_of(path)``,
+    ``reproduction_of(path)`` unless not ``reproduce``, the seal; complete when the file
+    was finished and holds a ``result_topic`` message. ``RecordingError`` if ``path``
+    is not of ``profile``; ``expect_head`` / ``public_key`` as :func:`audit`."""
+    path = Path(path)
+    if expect_head is not None:
+        parse_head(expect_head)
+    if public_key is not None:
+        seal.load_public_key(public_key)
+    rec = open_recording(path)
+    if rec.profile != profile:
+        raise RecordingError(f"{path}: not a crossfield {kind} recording (profile {rec.profile!r})")
+    integrity = verify(path)
+    prov = provenance_of(path)
+    if reproduce:
+        repro = reproduction_of(path)
+    else:
+        repro = {"passed": False, "skipped": "not run (--no-replay)", "differences": []}
+    digest = file_sha256(path)
+    try:
+        has_result = any(True for _ in rec.messages(result_topic, decode=False))
+    except RecordingError:
+        has_result = False
+    report = AuditReport(
+        path=str(path),
+        file_sha256=digest,
+        complete=rec.complete and integrity.complete and has_result,
+        integrity=integrity,
+        provenance=prov,
+        reproduction=repro,
+        seal=seal_check(path, integrity, digest, expect_head=expect_head, public_key=public_key),
+        kind=kind,
+    )
+    if not report.complete:
+        why = integrity.ends if not integrity.complete else f"no {result_topic} message"
+        report.notes.append(f"INCOMPLETE recording: {why}")
+    return report
+
+
 def incomplete_reason(report: AuditReport) -> str:
     """Why the audited session is incomplete: the file was cut short, or the
     session did not end normally (interrupted: no ``crossfield.result`` record)."""
@@ -562,6 +676,14 @@ def _section(title: str, ok: bool, text: str = "") -> str:
 
 def format_report(report: AuditReport, *, limit: int = 40) -> str:
     """The audit as text for the terminal."""
+    if report.kind == "calibration":
+        from crossfield.camera.calib_audit import format_calibration_report
+
+        return format_calibration_report(report, limit=limit)
+    if report.kind == "verification":
+        from crossfield.verification_audit import format_verification_report
+
+        return format_verification_report(report, limit=limit)
     lines = [f"Audit of {report.path}", f"  file SHA-256 {report.file_sha256}"]
     prov = report.provenance
     session = prov.get("session") or {}
@@ -684,6 +806,64 @@ def format_report(report: AuditReport, *, limit: int = 40) -> str:
         f"Audit: {'PASS' if report.passed else 'FAIL'}"
         + ("" if report.complete else " (incomplete recording)")
     )
+    return "\n".join(lines)
+
+
+def format_checks(
+    report: AuditReport, header: list[str], summary: str, *, replayed: str = "replayed", limit: int = 40
+) -> str:
+    """The text of an audit of a recording that is not a measurement session (a calibration,
+    a verification): ``header`` lines, then integrity, provenance, reproduction (``summary``:
+    its one-line result; each difference named by message or attachment, with its tolerance;
+    ``replayed`` names how the value was obtained again) and seal, then PASS/FAIL."""
+    prov, integ, repro, sealed = report.provenance, report.integrity, report.reproduction, report.seal
+    lines = [*header, *(f"  {n}" for n in report.notes), ""]
+    if integ.passed:
+        text = (
+            f"{integ.messages} messages and {integ.entries - integ.messages} other records chained "
+            f"in {integ.records} {L.TOPIC_INTEGRITY} records, chain head {integ.chain_sha256}"
+        )
+    else:
+        text = f"{len(integ.problems)} finding(s)"
+    lines.append(_section("integrity", integ.passed, text))
+    lines += [f"  - {p.detail}" for p in integ.problems[:limit]]
+    cal = prov.get("calibration") or {}
+    lines.append(_section("provenance", prov.get("passed", False)))
+    lines.append(
+        f"  calibration  {cal.get('source')} SHA-256 {cal.get('sha256')} "
+        f"{'matches the record' if cal.get('ok') else 'MISMATCH'}"
+    )
+    lines += [f"  - {p}" for p in prov.get("problems", [])]
+    lines += [f"  note: {n}" for n in prov.get("notes", [])]
+    if repro.get("error") or repro.get("skipped"):
+        lines.append(_section("reproduction", False, repro.get("error") or repro.get("skipped")))
+    else:
+        lines.append(_section("reproduction", repro["passed"], summary))
+        for d in repro["differences"][:limit]:
+            where = (
+                f"attachment {d['attachment']}"
+                if "attachment" in d
+                else name_message(d["topic"], d["sequence"], d["log_time_ns"])
+            )
+            lines.append(
+                f"  - {where}: {d['path']}: recorded {_short(d['recorded'])}, "
+                f"{replayed} {_short(d['replayed'])} (tolerance {_short(d['tolerance'])})"
+            )
+        if repro["differences_total"] > limit:
+            lines.append(f"  ... and {repro['differences_total'] - limit} more (see --json)")
+        lines += [f"  - missing from the recording: {m}" for m in repro.get("missing", [])]
+        lines += [f"  - only in the recording: {m}" for m in repro.get("only_recorded", [])]
+    lines.append(
+        _section(
+            "seal",
+            sealed.get("passed", False),
+            f"chain head {sealed.get('chain_head')}; proves: {sealed.get('level')}",
+        )
+    )
+    lines += [f"  - {p}" for p in sealed.get("problems", [])]
+    lines += [f"  note: {n}" for n in sealed.get("notes", [])]
+    verdict = f"Audit: {'PASS' if report.passed else 'FAIL'}"
+    lines += ["", verdict + ("" if report.complete else " (incomplete recording)")]
     return "\n".join(lines)
 
 

@@ -110,20 +110,27 @@ def add_parsers(command) -> dict:
         "station passes if every |E| <= MPE. Writes <OUT>.json/.html (plot). Exit status 0 pass, 1 fail.",
     )
     ver.add_argument(
-        "--scenario", default="station", help="simulator scenario providing the scale-bar positions"
+        "--scenario", help="simulator scenario providing the scale-bar positions (default station)"
+    )
+    ver.add_argument(
+        "--recording",
+        metavar="VERIFY.mcap",
+        help="evaluate the scale-bar pairs of a recorded verification (crossfield verify --record) again, "
+        "with --calibration; bar length, its u and the MPE as recorded unless given",
     )
     ver.add_argument("--calibration", metavar="CALIB.yml", required=True, help="the calibration to verify")
     ver.add_argument(
-        "--mpe", type=float, default=0.1, help="maximum permissible length error E_MPE (mm, default 0.1)"
+        "--mpe", type=float, help="maximum permissible length error E_MPE (mm, default 0.1)"
     )
+    ver.add_argument("--bar-mm", type=float, help="certified scale-bar length (mm, default 100)")
     ver.add_argument(
-        "--bar-mm", type=float, default=100.0, help="certified scale-bar length (mm, default 100)"
-    )
-    ver.add_argument(
-        "--bar-u-mm", type=float, default=0.002, help="standard uncertainty of the certified length (mm)"
+        "--bar-u-mm", type=float, help="standard uncertainty of the certified length (mm, default 0.002)"
     )
     ver.add_argument("--frames", type=int, default=3, help="stereo pairs per position (default 3)")
     ver.add_argument("--seed", type=int, default=1, help="noise seed (default 1)")
+    ver.add_argument(
+        "--record", metavar="VERIFY.mcap", help="record the session (pairs, bar, results) to MCAP"
+    )
     ver.add_argument(
         "-o", "--output", metavar="OUT", default="verification", help="report stem (default verification)"
     )
@@ -165,6 +172,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         given = [flag for flag, value in live_only.items() if value]
         if given:
             raise ConfigError(f"{given[0]} applies to live cameras (--source) only")
+    if args.record and Path(args.record).exists():  # refused before the solve, not after it
+        raise ConfigError(f"--record: {args.record} exists; a recording is not overwritten")
     if args.replay:
         from dataclasses import replace
 
@@ -219,7 +228,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     if args.record:
         from crossfield.camera.calib_record import record_calibration
 
-        record_calibration(args.record, images, names, bit_depth, result, source)
+        sealed = record_calibration(args.record, images, names, bit_depth, result, source)
     c = result.calibration
     print(f"calibration written to {out}")
     print(
@@ -247,7 +256,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         for path in write_report(result, stem):
             print(f"  report: {path}")
     if args.record:
-        print(f"  recorded to {args.record}")
+        print(f"  recorded to {args.record} (chain head {sealed.chain_head}; audit: crossfield audit {args.record})")
     return 0
 
 

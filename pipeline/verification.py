@@ -11,6 +11,17 @@ MPE, and VDI/VDE 2634-1 wants u_L small against it).
 
 Centroiding and triangulation are the session's own stages (by default
 ``weighted`` and ``epipolar``), with the calibration under test.
+
+A verification is a session (``crossfield verify --record VERIFY.mcap``):
+the raw scale-bar pairs, the bar's certified length and the MPE, which pairs
+belong to which position, the stage plugins and the calibration file under
+test, and the per-position results go into one MCAP file with the integrity
+chain and seal of a measurement session
+(:mod:`crossfield.verification_record`).
+``crossfield verify --recording VERIFY.mcap --calibration CALIB.yml``
+evaluates the recorded pairs again,
+e.g. a real bar measured at a real station, verified later or with another
+calibration; it never trusts the recorded results.
 """
 
 from __future__ import annotations
@@ -19,7 +30,7 @@ import base64
 import html
 import io
 import json
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -135,6 +146,9 @@ def simulate_positions(
     return out
 
 
+# ---- the report -----------------------------------------------------------------------------------
+
+
 def _plot_png(result: VerificationResult) -> str:
     import matplotlib
 
@@ -188,42 +202,73 @@ Calibration: {html.escape(result.calibration_source)}.</p>
     return json_path, html_path
 
 
+def create_stages(specs: Mapping[str, Mapping[str, Any]], where: str) -> dict[str, Any]:
+    """The centroid and triangulate implementations named in ``specs`` ({stage: {plugin, options}})."""
+    from crossfield.registry import get_implementation, make_plugin_manager
+
+    pm = make_plugin_manager(entry_points=True)
+    out = {}
+    for stage in ("centroid", "triangulate"):
+        spec = specs.get(stage)
+        if not isinstance(spec, Mapping) or not isinstance(spec.get("plugin"), str):
+            raise CrossfieldError(f"{where}: no {stage} plugin named")
+        out[stage] = get_implementation(pm, stage, spec["plugin"]).create(dict(spec.get("options") or {}), stage)
+    return out
+
+
 def run_verification_cli(args) -> int:
-    """``crossfield verify`` (see :mod:`crossfield.calibration_cli`)."""
+    """``crossfield verify`` (see :mod:`crossfield.calibration_cli`): the simulated bar of
+    ``--scenario`` (default station) or the pairs of ``--recording``; ``--record`` writes the session."""
     from crossfield.camera.calibration_io import read_stereo_calibration
     from crossfield.config import load_config
-    from crossfield.registry import get_implementation, make_plugin_manager
     from crossfield.simulator.scenarios import SCENARIOS, station_calibration
 
-    if args.scenario not in SCENARIOS:
-        raise CrossfieldError(
-            f"--scenario: unknown scenario {args.scenario!r}; scenarios: {', '.join(SCENARIOS)}"
-        )
-    if not args.mpe > 0 or not args.bar_mm > 0 or args.frames < 1:
+    if args.recording and args.scenario:
+        raise CrossfieldError("--recording and --scenario: give one (the recording holds its own pairs)")
+    if args.record and Path(args.record).exists():
+        raise CrossfieldError(f"--record: {args.record} exists; a recording is not overwritten")
+    from crossfield.verification_record import read_verification_recording, record_verification
+
+    recorded = read_verification_recording(args.recording) if args.recording else None
+    bar_mm = args.bar_mm if args.bar_mm is not None else recorded.certified_mm if recorded else 100.0
+    bar_u_mm = args.bar_u_mm if args.bar_u_mm is not None else recorded.certified_u_mm if recorded else 0.002
+    mpe = args.mpe if args.mpe is not None else recorded.mpe_mm if recorded else 0.1
+    if not mpe > 0 or not bar_mm > 0 or args.frames < 1:
         raise CrossfieldError("--mpe and --bar-mm must be > 0 and --frames >= 1")
-    truth = station_calibration()
-    calibration = read_stereo_calibration(
-        args.calibration, image_sizes=(truth.upper.image_size, truth.lower.image_size)
-    )
-    config = load_config(None)
-    pm = make_plugin_manager(entry_points=True)
-    stages = {}
-    for stage in ("centroid", "triangulate"):
-        spec = config.stages[stage]
-        stages[stage] = get_implementation(pm, stage, spec.plugin).create(dict(spec.options), stage)
-    frames = simulate_positions(truth, args.bar_mm, args.frames, args.seed, args.scenario)
+    if recorded is not None:
+        frames = recorded.named_frames
+        specs = recorded.stages
+        first = frames[0][1][0] if frames and frames[0][1] else None
+        sizes = None if first is None else tuple((f.shape[1], f.shape[0]) for f in (first.upper, first.lower))
+        source = f"crossfield verify --recording {args.recording}"
+    else:
+        scenario = args.scenario or "station"
+        if scenario not in SCENARIOS:
+            raise CrossfieldError(f"--scenario: unknown scenario {scenario!r}; scenarios: {', '.join(SCENARIOS)}")
+        truth = station_calibration()
+        config = load_config(None)
+        specs = {
+            stage: {"plugin": config.stages[stage].plugin, "options": dict(config.stages[stage].options)}
+            for stage in ("centroid", "triangulate")
+        }
+        frames = simulate_positions(truth, bar_mm, args.frames, args.seed, scenario)
+        sizes = (truth.upper.image_size, truth.lower.image_size)
+        source = f"crossfield verify --scenario {scenario} --frames {args.frames} --seed {args.seed}"
+    calibration = read_stereo_calibration(args.calibration, image_sizes=sizes)
+    stages = create_stages(specs, args.recording or "the config")
     result = evaluate(
         frames,
         calibration,
         stages["centroid"],
         stages["triangulate"],
-        certified_mm=args.bar_mm,
-        certified_u_mm=args.bar_u_mm,
-        mpe_mm=args.mpe,
+        certified_mm=bar_mm,
+        certified_u_mm=bar_u_mm,
+        mpe_mm=mpe,
     )
     print(
-        f"length verification, scale bar {args.bar_mm:g} mm (u {args.bar_u_mm * 1000:g} um), "
-        f"MPE {args.mpe * 1000:g} um, calibration {args.calibration}"
+        f"length verification, scale bar {bar_mm:g} mm (u {bar_u_mm * 1000:g} um), "
+        f"MPE {mpe * 1000:g} um, calibration {args.calibration}"
+        + (f", pairs from {args.recording}" if args.recording else "")
     )
     for p in result.positions:
         print(
@@ -232,4 +277,8 @@ def run_verification_cli(args) -> int:
     print(f"max |E| = {result.max_abs_error_mm * 1000:.1f} um: {'PASS' if result.passed else 'FAIL'}")
     for path in write_verification(result, args.output):
         print(f"  report: {path}")
+    if args.record:
+        text = Path(args.calibration).read_text(encoding="utf-8", errors="replace")
+        sealed = record_verification(args.record, frames, result, text, specs, source)
+        print(f"  recorded to {args.record} (chain head {sealed.chain_head})")
     return 0 if result.passed else 1

@@ -855,6 +855,7 @@ def test_compressed_chunks_stay_lossless(tmp_path, compression):
 TOPIC_PREFIXES = (
     "/camera/",
     "/calibration/",
+    "/verification/",
     "/points/",
     "/cmm/raw",
     "/tf",

@@ -60,6 +60,18 @@ CALIBRATION_METADATA = "crossfield.calibration"
 CALIBRATION_ATTACHMENT = "calibration.yml"
 CALIBRATION_PROFILE = "crossfield-calibration"
 
+# ---- a verification session (crossfield verify --record; docs/calibration.md) ----
+
+#: Raw scale-bar pairs, one per camera and pair (foxglove.RawImage, lossless);
+#: sequence: the pair's index over all positions.
+TOPIC_VERIFICATION_IMAGE = "/verification/{camera}/image"
+#: Per bar position its lengths and E (JSON, sequence: the position's index).
+TOPIC_VERIFICATION_POSITION = "/verification/position"
+#: The verification result (JSON, ``VerificationResult.to_dict``).
+TOPIC_VERIFICATION_RESULT = "/verification/result"
+VERIFICATION_METADATA = "crossfield.verification"
+VERIFICATION_PROFILE = "crossfield-verification"
+
 
 def image_topic(camera: str) -> str:
     """``/camera/<camera>/image`` (foxglove.RawImage)."""

@@ -126,19 +126,31 @@ class Recording:
 
     # ---- basics ---------------------------------------------------------
 
-    @property
-    def library(self) -> str:
-        """The writer named in the file's MCAP header (``""`` if it has none);
-        crossfield writes ``crossfield/<version> crossfield-mcap/1 mcap-python/<version>``."""
+    def _header(self) -> Any:
+        """The file's MCAP header record, or None if it has none."""
         from mcap.records import Header
 
         with self._open() as f:
             try:
                 for record in StreamReader(f).records:
-                    return record.library if isinstance(record, Header) else ""
+                    return record if isinstance(record, Header) else None
             except _DAMAGE:
-                return ""
-        return ""
+                return None
+        return None
+
+    @property
+    def library(self) -> str:
+        """The writer named in the file's MCAP header (``""`` if it has none);
+        crossfield writes ``crossfield/<version> crossfield-mcap/1 mcap-python/<version>``."""
+        header = self._header()
+        return header.library if header is not None else ""
+
+    @property
+    def profile(self) -> str:
+        """The MCAP header's profile: ``""`` for a session, else the kind of
+        recording (:data:`crossfield.recording.layout.CALIBRATION_PROFILE`, ...)."""
+        header = self._header()
+        return header.profile if header is not None else ""
 
     @property
     def complete(self) -> bool:

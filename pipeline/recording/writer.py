@@ -215,17 +215,18 @@ class _McapFile:
         flush_interval_s: float,
         library: str,
         compression: CompressionType,
+        profile: str = "",
     ):
         self.stream = stream
         self.writer = Writer(stream, chunk_size=chunk_size, compression=compression)
-        self.writer.start(profile="", library=library)
+        self.writer.start(profile=profile, library=library)
         self.schemas: dict[SchemaSpec, int] = {}
         self.channels: dict[ChannelSpec, int] = {}
         self.flush_interval_s = flush_interval_s
         self.last_flush = time.monotonic()
         # Every record is chained in the order it lands in the file (integrity.py).
         self.chain = IntegrityChain()
-        self.chain.add_header("", library)
+        self.chain.add_header(profile, library)
 
     def _channel_id(self, spec: ChannelSpec) -> int:
         channel_id = self.channels.get(spec)
@@ -305,6 +306,8 @@ class McapFileSink:
     bytes). queue_size: items the queue holds before callers wait for the
     writer. flush_interval_s: longest time a message stays in the open
     chunk. compression: one of :data:`COMPRESSIONS` (lossless in every case).
+    profile: the MCAP header's profile ("" for a session; a calibration or
+    verification recording names its kind, :mod:`crossfield.recording.layout`).
 
     An error writing the file is raised as :class:`RecordingError` from the
     next call (and from :meth:`close`).
@@ -321,6 +324,7 @@ class McapFileSink:
         flush_interval_s: float = 1.0,
         compression: str = "none",
         signing_key: str | Path | None = None,
+        profile: str = "",
     ):
         self.path = Path(path)
         #: The seal (chain head, file SHA-256, signature, sidecar) once closed.
@@ -335,7 +339,9 @@ class McapFileSink:
         except OSError as exc:
             raise RecordingError(f"{self.path}: cannot create the recording: {exc.strerror}") from None
         library = f"crossfield/{crossfield_version()} {L.RECORDING_FORMAT} mcap-python/{metadata.version('mcap')}"
-        self._file = _McapFile(self._stream, chunk_size, flush_interval_s, library, COMPRESSIONS[compression])
+        self._file = _McapFile(
+            self._stream, chunk_size, flush_interval_s, library, COMPRESSIONS[compression], profile
+        )
         self._closed = False
         self._error: BaseException | None = None
         self._lock = threading.Lock()
@@ -432,6 +438,15 @@ class McapFileSink:
 # --------------------------------------------------------------------------
 # Message building
 # --------------------------------------------------------------------------
+
+
+def write_provenance(sink: Sink) -> None:
+    """The ``crossfield.packages`` (installed versions now) and ``crossfield.machine``
+    records, for a recording that is not a session (calibration, verification)."""
+    from crossfield.provenance import package_versions
+
+    sink.metadata(L.META_PACKAGES, {str(k): str(v) for k, v in package_versions().items()})
+    sink.metadata(L.META_MACHINE, metadata_record(machine_info()))
 
 
 def global_points(points: CameraPoints, registration: Any) -> tuple[np.ndarray, np.ndarray]:
