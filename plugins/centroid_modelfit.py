@@ -23,7 +23,7 @@ import numpy as np
 
 from crossfield.hookspecs import hookimpl
 from crossfield.imaging.blobs import BlobDetector, DetectorOptions, sort_order, sort_rejected
-from crossfield.imaging.disc_model import PSF_ORDERS, edge_profile, fit_discs, pack_windows, shape_from_moments
+from crossfield.imaging.disc_model import PSF_ORDERS, edge_profile, fit_discs, pack_stacks, shape_from_moments
 from crossfield.types import CentroidSet, RejectedBlob
 
 #: a fitted centre further than this from its seed (px) is a failed fit
@@ -98,29 +98,17 @@ class ModelFitCentroids:
         the fitted edge conics (``ellipse``, ``ellipse_cov``). A blob whose fit
         does not converge to a disc near its seed is rejected as ``"fit_failed"``.
         """
-        blobs, rejected, background = self.detector.detect(image)
-        n = len(blobs)
+        stacks, rejected, background = self.detector.detect_stacks(image)
+        seeds = np.concatenate([st.uv for st in stacks]) if stacks else np.zeros((0, 2))
+        n = len(seeds)
         sigma_e = float(np.sqrt(self.blur_sigma_px**2 + 1.0 / 12.0))
         if n:
-            seeds = np.array([b.uv for b in blobs])
-            du, dv, values, mask = pack_windows(
-                [b.roi for b in blobs], [b.window for b in blobs], [(b.x0, b.y0) for b in blobs], seeds
-            )
+            moments = np.concatenate([st.moments for st in stacks])
+            du, dv, values, mask = pack_stacks(stacks, seeds)
             start = np.zeros((n, 7))  # centre relative to the seed (the weighted centroid)
-            moments = np.empty((n, 3))
-            for i, b in enumerate(blobs):
-                M, N, bg = b.window_moments, b.mask_moments, b.background_dn
-                total = M["m00"] - bg * N["m00"]
-                su, sv = M["m10"] - bg * N["m10"], M["m01"] - bg * N["m01"]
-                uc, vc = su / total, sv / total
-                moments[i] = (
-                    (M["m20"] - bg * N["m20"] - uc * su) / total,
-                    (M["m11"] - bg * N["m11"] - uc * sv) / total,
-                    (M["m02"] - bg * N["m02"] - vc * sv) / total,
-                )
-                start[i, 5] = b.peak_dn
-                start[i, 6] = bg
             start[:, 2:5] = shape_from_moments(moments[:, 0], moments[:, 1], moments[:, 2], sigma_e)
+            start[:, 5] = np.concatenate([st.peak_dn for st in stacks])
+            start[:, 6] = np.concatenate([st.background_dn for st in stacks])
             fit = fit_discs(
                 du, dv, values, mask, start,
                 profile=self.profile,
@@ -133,7 +121,7 @@ class ModelFitCentroids:
         else:
             good = np.zeros(0, bool)
         for i in np.flatnonzero(~good):
-            rejected.append(RejectedBlob(blobs[i].uv, "fit_failed"))
+            rejected.append(RejectedBlob((float(seeds[i, 0]), float(seeds[i, 1])), "fit_failed"))
         keep = np.flatnonzero(good)
         if keep.size:
             params, cov = fit.params[keep], fit.cov[keep]
@@ -141,14 +129,16 @@ class ModelFitCentroids:
             params, cov = np.zeros((0, 7)), np.zeros((0, 7, 7))
         order = sort_order(params[:, :2])
         params, cov = params[order], cov[order]
-        kept = [blobs[keep[i]] for i in order]
+        kept = keep[order]
+        area = np.concatenate([st.area_px for st in stacks]).astype(np.float64) if n else np.zeros(0)
+        roundness = np.concatenate([st.roundness for st in stacks]) if n else np.zeros(0)
         return CentroidSet(
             camera=camera,
             sequence=sequence,
             uv=params[:, :2],
             sigma_uv=np.sqrt(np.stack((cov[:, 0, 0], cov[:, 1, 1]), axis=-1)) if len(cov) else np.zeros((0, 2)),
-            area_px=np.array([b.area_px for b in kept], dtype=np.float64),
-            roundness=np.array([b.roundness for b in kept], dtype=np.float64),
+            area_px=area[kept],
+            roundness=roundness[kept],
             peak=params[:, 5],
             rejected=sort_rejected(rejected),
             method=self.method,
