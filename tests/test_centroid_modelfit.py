@@ -107,4 +107,4 @@ def test_model_jacobian_matches_finite_differences():
         hi[0, k] += h
         lo[0, k] -= h
         numeric = (model(hi, du, dv, profile, False)[0] - model(lo, du, dv, profile, False)[0]) / (2 * h)
-        assert np.abs(numeric - J[k]).max() < tol * np.abs(numeric).max() + 1e-6
+        assert np.abs(numeric - J[:, k]).max() < tol * np.abs(numeric).max() + 1e-6
