@@ -70,7 +70,6 @@ __all__ = [
     "fit_discs",
     "model",
     "pack_stacks",
-    "pack_windows",
     "shape_from_moments",
 ]
 
@@ -429,32 +428,3 @@ def pack_stacks(stacks, refs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nd
     mask = np.zeros((n_all, width))
     mask[t_all, pos] = 1.0
     return out[0], out[1], out[2], mask
-
-
-def pack_windows(rois, windows, offsets, refs) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Pack the window pixels of N targets into padded (N, P) arrays.
-
-    rois: (h, w) DN arrays; windows: (h, w) 0/1 masks; offsets: (x0, y0)
-    image pixel of each ROI's top-left pixel; refs: (N, 2) reference point
-    of each target (image px). Returns du, dv (N, P) pixel coordinates minus
-    the target's reference, values (N, P) DN and mask (N, P) (1 = pixel,
-    0 = padding, which repeats the target's first pixel).
-    """
-    picks = [np.flatnonzero(win.ravel()) for win in windows]
-    n = len(picks)
-    width = max((k.size for k in picks), default=0)
-    du = np.empty((n, width))
-    dv = np.empty((n, width))
-    values = np.empty((n, width))
-    mask = np.zeros((n, width))
-    for i, (k, roi, (x0, y0), (ru, rv)) in enumerate(zip(picks, rois, offsets, refs)):
-        m = k.size
-        r, c = np.divmod(k, roi.shape[1])
-        du[i, :m] = c + (x0 - ru)
-        dv[i, :m] = r + (y0 - rv)
-        values[i, :m] = roi.ravel()[k]
-        mask[i, :m] = 1.0
-        du[i, m:] = du[i, 0]
-        dv[i, m:] = dv[i, 0]
-        values[i, m:] = values[i, 0]
-    return du, dv, values, mask
