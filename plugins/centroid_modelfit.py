@@ -111,7 +111,7 @@ class ModelFitCentroids:
             moments = np.concatenate([st.moments for st in stacks])
             start = np.zeros((n, 7))  # centre relative to the seed (the weighted centroid)
             start[:, 2:5] = shape_from_moments(moments[:, 0], moments[:, 1], moments[:, 2], sigma_e)
-            du, dv, values, mask = pack_stacks(edge_windows(stacks, start[:, 2:5], INSIDE_SIGMAS * sigma_e, OUTSIDE_SIGMAS * sigma_e), seeds)
+            du, dv, values, mask = pack_stacks(edge_windows(stacks, start[:, 2:5], INSIDE_SIGMAS * sigma_e, OUTSIDE_SIGMAS * sigma_e), seeds, np.float32)
             start[:, 5] = np.concatenate([st.peak_dn for st in stacks])
             start[:, 6] = np.concatenate([st.background_dn for st in stacks])
             fit = fit_discs(

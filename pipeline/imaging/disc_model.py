@@ -382,9 +382,9 @@ def edge_windows(stacks, shapes: np.ndarray, inside_px: float, outside_px: float
     out, start = [], 0
     for st in stacks:
         n, sh, sw = st.window.shape
-        s11, s12, s22 = (shapes[start : start + n, k, None, None] for k in range(3))
-        x = np.arange(sw)[None, None, :] + (st.x0 - st.uv[:, 0])[:, None, None]
-        y = np.arange(sh)[None, :, None] + (st.y0 - st.uv[:, 1])[:, None, None]
+        s11, s12, s22 = (shapes[start : start + n, k, None, None].astype(np.float32) for k in range(3))
+        x = np.arange(sw, dtype=np.float32)[None, None, :] + (st.x0 - st.uv[:, 0]).astype(np.float32)[:, None, None]
+        y = np.arange(sh, dtype=np.float32)[None, :, None] + (st.y0 - st.uv[:, 1]).astype(np.float32)[:, None, None]
         w1 = s11 * x + s12 * y
         w2 = s12 * x + s22 * y
         q = x * w1 + y * w2
@@ -394,37 +394,45 @@ def edge_windows(stacks, shapes: np.ndarray, inside_px: float, outside_px: float
     return out
 
 
-def pack_stacks(stacks, refs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def pack_stacks(
+    stacks, refs: np.ndarray, dtype: type = np.float64
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Pack the window pixels of the blobs of :class:`crossfield.imaging.blobs.BlobStack` s
     into padded (N, P) arrays, N = all their blobs in stack order, P = the largest window.
 
     refs: (N, 2) reference point of each target (image px). Returns du, dv
     (N, P) pixel coordinates (px) minus the target's reference, values (N, P)
     DN and mask (N, P) (1 = pixel, 0 = padding, which repeats the target's
-    first pixel). Vectorised: one ``np.nonzero`` per stack, one scatter.
+    first pixel), all in ``dtype``. Vectorised: one ``np.nonzero`` per stack,
+    one scatter per array.
     """
-    parts = []
+    ts, us, vs, zs, offset = [], [], [], [], 0
     for st in stacks:
-        n, sh, sw = st.window.shape
-        t, k = np.nonzero(st.window.reshape(n, -1))
+        n, _, sw = st.window.shape
+        t, k = np.nonzero(st.window.reshape(n, -1))  # row-major: grouped by target
         r, c = np.divmod(k, sw)
-        parts.append((t, c + st.x0[t], r + st.y0[t], st.roi.reshape(n, -1)[t, k], n))
-    n_all = sum(part[4] for part in parts)
-    t_all = np.concatenate([part[0] + off for part, off in zip(parts, np.cumsum([0] + [q[4] for q in parts])[:-1])]) if parts else np.zeros(0, np.intp)
-    u_all = np.concatenate([part[1] for part in parts]) if parts else np.zeros(0)
-    v_all = np.concatenate([part[2] for part in parts]) if parts else np.zeros(0)
-    z_all = np.concatenate([part[3] for part in parts]) if parts else np.zeros(0)
+        ts.append(t + offset)
+        us.append(c + st.x0[t])
+        vs.append(r + st.y0[t])
+        zs.append(st.roi.reshape(n, -1)[t, k])
+        offset += n
+    n_all = offset
+    if sum(t.size for t in ts) == 0:  # no blob, or no pixel at all: all padding
+        empty = np.zeros((n_all, 1 if n_all else 0), dtype)
+        return empty, empty.copy(), empty.copy(), empty.copy()
+    t_all, u_all, v_all, z_all = (np.concatenate(a) for a in (ts, us, vs, zs))
     counts = np.bincount(t_all, minlength=n_all)
-    width = int(counts.max()) if n_all else 0
+    width = max(int(counts.max()), 1)
     starts = np.concatenate(([0], np.cumsum(counts)[:-1]))
-    pos = np.arange(t_all.size) - starts[t_all]
+    pos = np.arange(t_all.size) - starts[t_all]  # each pixel's place in its target's row
     refs = np.asarray(refs, dtype=np.float64).reshape(n_all, 2)
     out = []
     for col, ref in ((u_all, refs[:, 0]), (v_all, refs[:, 1]), (z_all, None)):
-        first = col[starts] if n_all else np.zeros(0)
-        a = np.repeat((first if ref is None else first - ref).astype(np.float64)[:, None], width, axis=1)
-        a[t_all, pos] = col if ref is None else col - ref[t_all]
+        rel = col if ref is None else col - ref[t_all]
+        first = rel[np.minimum(starts, rel.size - 1)]  # padding: the first pixel (any, if none)
+        a = np.repeat(first.astype(dtype)[:, None], width, axis=1)
+        a[t_all, pos] = rel
         out.append(a)
-    mask = np.zeros((n_all, width))
+    mask = np.zeros((n_all, width), dtype)
     mask[t_all, pos] = 1.0
     return out[0], out[1], out[2], mask
