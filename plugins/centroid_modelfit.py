@@ -1,11 +1,13 @@
 """Centroid plugin "modelfit": maximum-likelihood fit of a blurred elliptical disc per target.
 
 Detection (threshold, contours, rejection, local background, the window of
-each blob) is the shared :class:`crossfield.imaging.blobs.BlobDetector`; the
+each blob) is the shared :class:`crossfield.imaging.blobs.BlobDetector` in
+its batched form (``detect_stacks``: one gather per ROI size class); the
 intensity-weighted centroid and second moments of each blob seed the fit.
 The sub-pixel step is :func:`crossfield.imaging.disc_model.fit_discs`: all
 targets of the image at once, Gauss-Newton on the Gaussian likelihood of
-the window pixels under the model ``B + A Phi(signed distance / sigma_e)``
+the window pixels in the edge band (3.7 sigma_e inside to 3.2 sigma_e
+outside the seed's edge) under the model ``B + A E(signed distance)``
 (``docs/centroids.md``, "modelfit").
 
 Uncertainty: the inverse Fisher information of the model at the solution,

@@ -29,10 +29,12 @@ two image-formation orders:
   integration over the pixel (a real camera): E = Gaussian (x) trapezoid;
 * ``"pixel"``: pixel integration first, then a sampled Gaussian kernel on
   the pixel grid (``cv2.GaussianBlur`` of the coverage: how crossfield's
-  simulator and the synthetic test images are rendered). Its edge profile
-  has kinks at half-pixel offsets that a smooth profile misses by up to
-  ~1e-3 of the amplitude, enough to bias the centre by ~0.004 px with the
-  sub-pixel phase.
+  simulator and the synthetic test images are rendered). The difference is
+  not the order (a continuous Gaussian and the pixel box commute) but the
+  sampled kernel: a comb of point masses at integer offsets, which leaves
+  the box's kinks at half-pixel offsets in the profile; the two profiles
+  differ by up to 2 % of the amplitude (edge along a pixel axis; 0.1 % at
+  45 degrees), enough to bias the centre with the sub-pixel phase.
 
 The model is point-symmetric about (u_0, v_0) in both cases.
 
@@ -46,10 +48,12 @@ have zero mean at the truth). Its covariance is the inverse Fisher
 information ``(J^T W J)^-1`` at the solution (the Cramer-Rao bound of the
 model, Kay, Fundamentals of Statistical Signal Processing I, 3.7).
 
-All targets are solved together: their pixels are packed into (N, P)
-arrays (padding has weight 0) and the normal equations are one batched
-matrix product, so each iteration is a handful of array operations whatever
-the number of targets.
+All targets are solved together: the pixels of their edge bands
+(:func:`edge_windows`) are packed into (N, P) arrays (:func:`pack_stacks`;
+padding has weight 0), the model and Jacobian are evaluated in float32 on
+coordinates relative to each target's seed and the normal equations are
+one batched matrix product, so each iteration is a few dozen array
+operations whatever the number of targets.
 """
 
 from __future__ import annotations
