@@ -25,7 +25,7 @@ import numpy as np
 
 from crossfield.hookspecs import hookimpl
 from crossfield.imaging.blobs import BlobDetector, DetectorOptions, sort_order, sort_rejected
-from crossfield.imaging.disc_model import PSF_ORDERS, edge_profile, edge_windows, fit_discs, pack_stacks, shape_from_moments
+from crossfield.imaging.disc_model import PSF_ORDERS, edge_profile, fit_discs, pack_stacks, shape_from_moments
 from crossfield.types import CentroidSet, RejectedBlob
 
 #: a fitted centre further than this from its seed (px) is a failed fit
@@ -113,7 +113,8 @@ class ModelFitCentroids:
             moments = np.concatenate([st.moments for st in stacks])
             start = np.zeros((n, 7))  # centre relative to the seed (the weighted centroid)
             start[:, 2:5] = shape_from_moments(moments[:, 0], moments[:, 1], moments[:, 2], sigma_e)
-            du, dv, values, mask = pack_stacks(edge_windows(stacks, start[:, 2:5], INSIDE_SIGMAS * sigma_e, OUTSIDE_SIGMAS * sigma_e), seeds, np.float32)
+            band = (start[:, 2:5], INSIDE_SIGMAS * sigma_e, OUTSIDE_SIGMAS * sigma_e)
+            du, dv, values, mask = pack_stacks(stacks, seeds, np.float32, band)
             start[:, 5] = np.concatenate([st.peak_dn for st in stacks])
             start[:, 6] = np.concatenate([st.background_dn for st in stacks])
             fit = fit_discs(

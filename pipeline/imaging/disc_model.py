@@ -48,9 +48,8 @@ have zero mean at the truth). Its covariance is the inverse Fisher
 information ``(J^T W J)^-1`` at the solution (the Cramer-Rao bound of the
 model, Kay, Fundamentals of Statistical Signal Processing I, 3.7).
 
-All targets are solved together: the pixels of their edge bands
-(:func:`edge_windows`) are packed into (N, P) arrays (:func:`pack_stacks`;
-padding has weight 0), the model and Jacobian are evaluated in float32 on
+All targets are solved together: the pixels of their edge bands are
+packed into (N, P) arrays (:func:`pack_stacks`; padding has weight 0), the model and Jacobian are evaluated in float32 on
 coordinates relative to each target's seed and the normal equations are
 one batched matrix product, so each iteration is a few dozen array
 operations whatever the number of targets.
@@ -59,7 +58,7 @@ operations whatever the number of targets.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from functools import lru_cache
 
 import cv2
@@ -70,7 +69,6 @@ __all__ = [
     "DiscFit",
     "EdgeProfile",
     "edge_profile",
-    "edge_windows",
     "fit_discs",
     "model",
     "pack_stacks",
@@ -376,30 +374,20 @@ def fit_discs(
     return DiscFit(p, cov, ok, iterations)
 
 
-def edge_windows(stacks, shapes: np.ndarray, inside_px: float, outside_px: float) -> list:
-    """The stacks with each window cut to the band of pixels less than
-    ``inside_px`` inside and ``outside_px`` outside the edge ``d^T S d = 1`` of
-    ``shapes`` (N, 3) px^-2 (centred on each blob's ``uv``), by the
-    first-order signed distance (module docstring). The pixels left out carry
-    no information on the centre or the shape (the profile's slope there is
-    nil), only on the amplitude (plateau) or the background (far outside)."""
-    out, start = [], 0
-    for st in stacks:
-        n, sh, sw = st.window.shape
-        s11, s12, s22 = (shapes[start : start + n, k, None, None].astype(np.float32) for k in range(3))
-        x = np.arange(sw, dtype=np.float32)[None, None, :] + (st.x0 - st.uv[:, 0]).astype(np.float32)[:, None, None]
-        y = np.arange(sh, dtype=np.float32)[None, :, None] + (st.y0 - st.uv[:, 1]).astype(np.float32)[:, None, None]
-        w1 = s11 * x + s12 * y
-        w2 = s12 * x + s22 * y
-        q = x * w1 + y * w2
-        dist = (np.sqrt(q) - q) / np.sqrt(np.maximum(w1 * w1 + w2 * w2, 1e-18))
-        out.append(replace(st, window=st.window & (dist < inside_px) & (dist > -outside_px)))
-        start += n
-    return out
+def _signed_distance(x: np.ndarray, y: np.ndarray, s11, s12, s22) -> np.ndarray:
+    """First-order signed distance (px, positive inside) of offsets (x, y) px from
+    the edge d^T S d = 1: (rho - rho^2) / |S d| (module docstring)."""
+    w1 = s11 * x + s12 * y
+    w2 = s12 * x + s22 * y
+    q = x * w1 + y * w2
+    return (np.sqrt(np.maximum(q, 0.0)) - q) / np.sqrt(np.maximum(w1 * w1 + w2 * w2, 1e-18))
 
 
 def pack_stacks(
-    stacks, refs: np.ndarray, dtype: type = np.float64
+    stacks,
+    refs: np.ndarray,
+    dtype: type = np.float64,
+    band: tuple[np.ndarray, float, float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Pack the window pixels of the blobs of :class:`crossfield.imaging.blobs.BlobStack` s
     into padded (N, P) arrays, N = all their blobs in stack order, P = the largest window.
@@ -409,6 +397,13 @@ def pack_stacks(
     DN and mask (N, P) (1 = pixel, 0 = padding, which repeats the target's
     first pixel), all in ``dtype``. Vectorised: one ``np.nonzero`` per stack,
     one scatter per array.
+
+    band: ``(shapes, inside_px, outside_px)`` keeps only the window pixels
+    less than ``inside_px`` inside and ``outside_px`` outside the edge
+    ``d^T S d = 1`` of ``shapes`` (N, 3) px^-2 centred on ``refs``, by the
+    first-order signed distance: the *edge band*. The pixels left out carry
+    no information on the centre or the shape (the profile's slope there is
+    nil), only on the amplitude (plateau) or the background (far outside).
     """
     ts, us, vs, zs, offset = [], [], [], [], 0
     for st in stacks:
@@ -425,11 +420,23 @@ def pack_stacks(
         empty = np.zeros((n_all, 1 if n_all else 0), dtype)
         return empty, empty.copy(), empty.copy(), empty.copy()
     t_all, u_all, v_all, z_all = (np.concatenate(a) for a in (ts, us, vs, zs))
+    refs = np.asarray(refs, dtype=np.float64).reshape(n_all, 2)
+    if band is not None:
+        shapes, inside_px, outside_px = band
+        sh = np.asarray(shapes, dtype=np.float32)[t_all]
+        dist = _signed_distance(
+            (u_all - refs[t_all, 0]).astype(np.float32), (v_all - refs[t_all, 1]).astype(np.float32),
+            sh[:, 0], sh[:, 1], sh[:, 2],
+        )
+        keep = (dist < inside_px) & (dist > -outside_px)
+        t_all, u_all, v_all, z_all = t_all[keep], u_all[keep], v_all[keep], z_all[keep]
+        if t_all.size == 0:
+            empty = np.zeros((n_all, 1), dtype)
+            return empty, empty.copy(), empty.copy(), empty.copy()
     counts = np.bincount(t_all, minlength=n_all)
     width = max(int(counts.max()), 1)
     starts = np.concatenate(([0], np.cumsum(counts)[:-1]))
     pos = np.arange(t_all.size) - starts[t_all]  # each pixel's place in its target's row
-    refs = np.asarray(refs, dtype=np.float64).reshape(n_all, 2)
     out = []
     for col, ref in ((u_all, refs[:, 0]), (v_all, refs[:, 1]), (z_all, None)):
         rel = col if ref is None else col - ref[t_all]
