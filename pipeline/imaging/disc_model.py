@@ -405,45 +405,47 @@ def pack_stacks(
     no information on the centre or the shape (the profile's slope there is
     nil), only on the amplitude (plateau) or the background (far outside).
     """
+    refs = np.asarray(refs, dtype=np.float64)
+    n_all = sum(len(st) for st in stacks)
+    refs = refs.reshape(n_all, 2)
     ts, us, vs, zs, offset = [], [], [], [], 0
     for st in stacks:
         n, _, sw = st.window.shape
-        t, k = np.nonzero(st.window.reshape(n, -1))  # row-major: grouped by target
+        win = st.window.reshape(n, -1)
+        t, k = np.nonzero(win)  # row-major: sorted by target
+        per = np.count_nonzero(win, axis=1)
         r, c = np.divmod(k, sw)
-        ts.append(t + offset)
-        us.append(c + st.x0[t])
-        vs.append(r + st.y0[t])
+        # coordinates relative to each target's reference: per-target offsets repeated
+        # over its (contiguous) pixels rather than gathered pixel by pixel
+        us.append((c + np.repeat(st.x0 - refs[offset : offset + n, 0], per)).astype(np.float32))
+        vs.append((r + np.repeat(st.y0 - refs[offset : offset + n, 1], per)).astype(np.float32))
         zs.append(st.roi.reshape(n, -1)[t, k])
+        ts.append(t + offset)
         offset += n
-    n_all = offset
     if sum(t.size for t in ts) == 0:  # no blob, or no pixel at all: all padding
         empty = np.zeros((n_all, 1 if n_all else 0), dtype)
         return empty, empty.copy(), empty.copy(), empty.copy()
     t_all, u_all, v_all, z_all = (np.concatenate(a) for a in (ts, us, vs, zs))
-    refs = np.asarray(refs, dtype=np.float64).reshape(n_all, 2)
+    counts = np.bincount(t_all, minlength=n_all)
     if band is not None:
         shapes, inside_px, outside_px = band
-        sh = np.asarray(shapes, dtype=np.float32)[t_all]
-        dist = _signed_distance(
-            (u_all - refs[t_all, 0]).astype(np.float32), (v_all - refs[t_all, 1]).astype(np.float32),
-            sh[:, 0], sh[:, 1], sh[:, 2],
-        )
+        sh = np.repeat(np.asarray(shapes, dtype=np.float32), counts, axis=0)
+        dist = _signed_distance(u_all, v_all, sh[:, 0], sh[:, 1], sh[:, 2])
         keep = (dist < inside_px) & (dist > -outside_px)
         t_all, u_all, v_all, z_all = t_all[keep], u_all[keep], v_all[keep], z_all[keep]
         if t_all.size == 0:
             empty = np.zeros((n_all, 1), dtype)
             return empty, empty.copy(), empty.copy(), empty.copy()
-    counts = np.bincount(t_all, minlength=n_all)
+        counts = np.bincount(t_all, minlength=n_all)
     width = max(int(counts.max()), 1)
     starts = np.concatenate(([0], np.cumsum(counts)[:-1]))
-    pos = np.arange(t_all.size) - starts[t_all]  # each pixel's place in its target's row
+    flat = np.arange(t_all.size) + np.repeat(np.arange(n_all) * width - starts, counts)  # row t, place in row
+    first = np.minimum(starts, t_all.size - 1)  # padding: the target's first pixel (any, if none)
     out = []
-    for col, ref in ((u_all, refs[:, 0]), (v_all, refs[:, 1]), (z_all, None)):
-        rel = col if ref is None else col - ref[t_all]
-        first = rel[np.minimum(starts, rel.size - 1)]  # padding: the first pixel (any, if none)
-        a = np.repeat(first.astype(dtype)[:, None], width, axis=1)
-        a[t_all, pos] = rel
-        out.append(a)
-    mask = np.zeros((n_all, width), dtype)
-    mask[t_all, pos] = 1.0
-    return out[0], out[1], out[2], mask
+    for col in (u_all, v_all, z_all):
+        a = np.repeat(col[first].astype(dtype), width)
+        a[flat] = col
+        out.append(a.reshape(n_all, width))
+    mask = np.zeros(n_all * width, dtype)
+    mask[flat] = 1.0
+    return out[0], out[1], out[2], mask.reshape(n_all, width)
