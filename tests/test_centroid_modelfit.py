@@ -114,7 +114,9 @@ def test_model_jacobian_matches_finite_differences():
 def test_float32_model_is_the_float64_model():
     """The fit evaluates the model in float32 on relative coordinates: same values and
     Jacobian as float64 to float32 resolution."""
-    p = np.array([[0.3, -0.2, 1 / 81 * 1.1, 0.004, 1 / 50, 3000.0, 150.0], [-0.1, 0.4, 1 / 40, 0.0, 1 / 40, 900.0, 60.0]])
+    p = np.array(
+        [[0.3, -0.2, 1 / 81 * 1.1, 0.004, 1 / 50, 3000.0, 150.0], [-0.1, 0.4, 1 / 40, 0.0, 1 / 40, 900.0, 60.0]]
+    )
     v, u = np.mgrid[-12:13, -12:13].astype(float)
     du, dv = np.repeat(u.ravel()[None], 2, 0), np.repeat(v.ravel()[None], 2, 0)
     for order in ("optical", "pixel"):

@@ -370,7 +370,9 @@ class BlobDetector:
         live = np.flatnonzero(reason < 0)
         for size in np.unique(side[live]):
             rows = live[side[live] == size]
-            stack = self._stack(image, mask, contours, boxes[rows], int(size), background, reason, where, rows)
+            stack = self._stack(
+                image, mask, contours, boxes[rows], int(size), background, reason, where, rows
+            )
             if len(stack):
                 stacks.append(stack)
         for i in np.flatnonzero(reason >= 0):
@@ -393,19 +395,23 @@ class BlobDetector:
         roi = np.lib.stride_tricks.sliding_window_view(image, (sh, sw))[ys, xs]
         mroi = roi > background.threshold_dn  # = the mask's slices
         # the ROI of detect(): bounding box + margin, clipped to the image, in slice coordinates
-        r_in = (r_idx >= np.maximum(y - margin, 0)[:, None]) & (r_idx < np.minimum(y + h + margin, height)[:, None])
-        c_in = (c_idx >= np.maximum(x - margin, 0)[:, None]) & (c_idx < np.minimum(x + w + margin, width)[:, None])
+        r_lo, r_hi = np.maximum(y - margin, 0)[:, None], np.minimum(y + h + margin, height)[:, None]
+        c_lo, c_hi = np.maximum(x - margin, 0)[:, None], np.minimum(x + w + margin, width)[:, None]
+        r_in = (r_idx >= r_lo) & (r_idx < r_hi)
+        c_in = (c_idx >= c_lo) & (c_idx < c_hi)
         rect = r_in[:, :, None] & c_in[:, None, :]
         # filled contours; d spare rows per slice keep the dilation of one slice out of the next
         d = opts.dilate_px
         filled = np.zeros((len(rows), sh + d, sw), np.uint8)
         for t, i in enumerate(rows):
-            cv2.drawContours(filled[t], (contours[i],), -1, 1, thickness=-1, offset=(-int(xs[t]), -int(ys[t])))
+            offset = (-int(xs[t]), -int(ys[t]))
+            cv2.drawContours(filled[t], (contours[i],), -1, 1, thickness=-1, offset=offset)
         component = filled[:, :sh].astype(bool)
         area = component.sum(axis=(1, 2))
         max_value = np.where(component, roi, 0).max(axis=(1, 2)).astype(np.float64)
         if self._kernel is not None:
-            dilated = cv2.dilate(filled.reshape(-1, sw), self._kernel).reshape(filled.shape)[:, :sh].astype(bool)
+            dilated = cv2.dilate(filled.reshape(-1, sw), self._kernel).reshape(filled.shape)
+            dilated = dilated[:, :sh].astype(bool)
         else:
             dilated = component
         others = mroi & ~component  # pixels of other blobs
@@ -431,7 +437,8 @@ class BlobDetector:
         c02 = (M[:, 5] - b * N[:, 5] - vc * sv) / safe
         root = np.sqrt((c20 - c02) ** 2 + 4.0 * c11 * c11)
         major, minor = c20 + c02 + root, c20 + c02 - root
-        roundness = np.where(major > 0, np.sqrt(np.maximum(minor, 0.0) / np.where(major > 0, major, 1.0)), 0.0)
+        ratio = np.maximum(minor, 0.0) / np.where(major > 0, major, 1.0)
+        roundness = np.where(major > 0, np.sqrt(ratio), 0.0)
         uv = np.column_stack((xs + uc, ys + vc))
         saturated = max_value >= opts.saturation_dn
         local = np.arange(len(rows))

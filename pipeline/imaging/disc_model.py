@@ -49,7 +49,8 @@ information ``(J^T W J)^-1`` at the solution (the Cramer-Rao bound of the
 model, Kay, Fundamentals of Statistical Signal Processing I, 3.7).
 
 All targets are solved together: the pixels of their edge bands are
-packed into (N, P) arrays (:func:`pack_stacks`; padding has weight 0), the model and Jacobian are evaluated in float32 on
+packed into (N, P) arrays (:func:`pack_stacks`; padding has weight 0),
+the model and Jacobian are evaluated in float32 on
 coordinates relative to each target's seed and the normal equations are
 one batched matrix product, so each iteration is a few dozen array
 operations whatever the number of targets.
