@@ -44,6 +44,7 @@ __all__ = [
     "Background",
     "Blob",
     "BlobDetector",
+    "BlobStack",
     "DetectorOptions",
     "estimate_background",
     "sort_order",
@@ -102,6 +103,36 @@ class Blob:
     peak_dn: float
     saturated: bool
     uv: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class BlobStack:
+    """Accepted blobs of one size class, as (T, S, S) stacks (``BlobDetector.detect_stacks``).
+
+    x0, y0: (T,) column and row of each stack slice's top-left pixel in the
+    image (the slice holds the blob's ROI, bounding box + ``dilate_px`` +
+    ``ring_px``, clipped to the image). roi: (T, S, S) the image pixels (DN,
+    a copy); window: (T, S, S) uint8 0/1 as :class:`Blob`'s, inside the
+    ROI. background_dn, area_px, roundness, peak_dn, saturated: (T,), as
+    :class:`Blob`'s; uv: (T, 2) intensity-weighted centroids (image px);
+    moments: (T, 3) the background-subtracted second central moments
+    (c20, c11, c02) over the window (px^2).
+    """
+
+    x0: np.ndarray
+    y0: np.ndarray
+    roi: np.ndarray
+    window: np.ndarray
+    background_dn: np.ndarray
+    area_px: np.ndarray
+    roundness: np.ndarray
+    peak_dn: np.ndarray
+    saturated: np.ndarray
+    uv: np.ndarray
+    moments: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.x0)
 
 
 @dataclass(frozen=True)
@@ -179,12 +210,8 @@ class BlobDetector:
         y, x = np.mgrid[-d : d + 1, -d : d + 1]
         self._kernel = (x * x + y * y <= (d + 0.5) ** 2).astype(np.uint8) if d > 0 else None
 
-    def detect(self, image: np.ndarray) -> tuple[list[Blob], list[RejectedBlob], Background]:
-        """Blobs of one (H, W) image (integer DN, any bit depth up to 16).
-
-        Returns the accepted blobs (in contour order), the rejected ones with
-        their reasons, and the global background estimate.
-        """
+    def _contours(self, image: np.ndarray) -> tuple[Background, np.ndarray, tuple]:
+        """Steps 1-3 (module docstring): background, 0/1 threshold mask, outer contours."""
         if not isinstance(image, np.ndarray) or image.ndim != 2:
             raise ValueError(f"expected a 2-D image array, got {getattr(image, 'shape', type(image))}")
         opts = self.options
@@ -194,6 +221,16 @@ class BlobDetector:
         if not mask.flags.c_contiguous:
             mask = np.ascontiguousarray(mask)
         contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+        return background, mask, contours
+
+    def detect(self, image: np.ndarray) -> tuple[list[Blob], list[RejectedBlob], Background]:
+        """Blobs of one (H, W) image (integer DN, any bit depth up to 16).
+
+        Returns the accepted blobs (in contour order), the rejected ones with
+        their reasons, and the global background estimate.
+        """
+        opts = self.options
+        background, mask, contours = self._contours(image)
 
         height, width = image.shape
         margin = opts.dilate_px + opts.ring_px
@@ -291,6 +328,145 @@ class BlobDetector:
                 )
             )
         return blobs, rejected, background
+
+
+    def detect_stacks(
+        self, image: np.ndarray, size_step: int = 8
+    ) -> tuple[list[BlobStack], list[RejectedBlob], Background]:
+        """The blobs of :meth:`detect` (same tests, reasons, windows, background
+        and moments), vectorised over blobs: one (T, S, S) gather per size class.
+
+        Blobs are grouped by ROI side rounded up to ``size_step`` px; within a
+        class every step is a whole-stack array operation, except one
+        ``cv2.drawContours`` per blob (the contour fill). Each ROI keeps its
+        :meth:`detect` extent (bounding box + margin, clipped to the image)
+        inside its slice, so the results do not depend on the class size
+        and stay exact under flips and transposition of the image.
+        Returns the stacks (accepted blobs, in contour order within a class),
+        the rejected blobs and the global background.
+        """
+        opts = self.options
+        background, mask, contours = self._contours(image)
+        rejected: list[RejectedBlob] = []
+        if not contours:
+            return [], rejected, background
+        boxes = np.array([cv2.boundingRect(c) for c in contours], dtype=np.int64).reshape(-1, 4)
+        x, y, w, h = boxes.T
+        height, width = image.shape
+        reason = np.full(len(boxes), -1)  # index into REASONS, -1: accepted so far
+        where = np.column_stack((x + (w - 1) / 2, y + (h - 1) / 2))  # the rejected blob's uv
+
+        def flag(bad: np.ndarray, code: int, rows: np.ndarray) -> None:
+            hit = rows[bad & (reason[rows] < 0)]
+            reason[hit] = code
+
+        everything = np.arange(len(boxes))
+        if opts.reject_border:
+            flag((x == 0) | (y == 0) | (x + w == width) | (y + h == height), 0, everything)
+        flag(w * h < opts.min_area_px, 1, everything)  # fewer pixels than its box: surely too small
+        margin = opts.dilate_px + opts.ring_px
+        side = -(-(np.maximum(w, h) + 2 * margin) // size_step) * size_step
+        stacks = []
+        live = np.flatnonzero(reason < 0)
+        for size in np.unique(side[live]):
+            rows = live[side[live] == size]
+            stack = self._stack(
+                image, mask, contours, boxes[rows], int(size), background, reason, where, rows
+            )
+            if len(stack):
+                stacks.append(stack)
+        for i in np.flatnonzero(reason >= 0):
+            rejected.append(RejectedBlob((float(where[i, 0]), float(where[i, 1])), REASONS[reason[i]]))
+        return stacks, rejected, background
+
+    def _stack(self, image, mask, contours, boxes, size, background, reason, where, rows) -> BlobStack:
+        """Steps 4-5 for the blobs ``rows`` (boxes (T, 4)) in (T, size, size) slices;
+        writes the rejection codes into ``reason`` and not_round centroids into ``where``."""
+        opts = self.options
+        height, width = image.shape
+        x, y, w, h = boxes.T
+        margin = opts.dilate_px + opts.ring_px
+        sh, sw = min(size, height), min(size, width)
+        xs = np.clip(x - margin, 0, width - sw)  # slice origin: the ROI inside, the slice inside the image
+        ys = np.clip(y - margin, 0, height - sh)
+        r_idx = ys[:, None] + np.arange(sh)
+        c_idx = xs[:, None] + np.arange(sw)
+        # one gather of whole slices (rows of contiguous pixels), not of single pixels
+        roi = np.lib.stride_tricks.sliding_window_view(image, (sh, sw))[ys, xs]
+        mroi = roi > background.threshold_dn  # = the mask's slices
+        # the ROI of detect(): bounding box + margin, clipped to the image, in slice coordinates
+        r_lo, r_hi = np.maximum(y - margin, 0)[:, None], np.minimum(y + h + margin, height)[:, None]
+        c_lo, c_hi = np.maximum(x - margin, 0)[:, None], np.minimum(x + w + margin, width)[:, None]
+        r_in = (r_idx >= r_lo) & (r_idx < r_hi)
+        c_in = (c_idx >= c_lo) & (c_idx < c_hi)
+        rect = r_in[:, :, None] & c_in[:, None, :]
+        # filled contours; d spare rows per slice keep the dilation of one slice out of the next
+        d = opts.dilate_px
+        filled = np.zeros((len(rows), sh + d, sw), np.uint8)
+        for t, i in enumerate(rows):
+            offset = (-int(xs[t]), -int(ys[t]))
+            cv2.drawContours(filled[t], (contours[i],), -1, 1, thickness=-1, offset=offset)
+        component = filled[:, :sh].astype(bool)
+        area = component.sum(axis=(1, 2))
+        max_value = np.where(component, roi, 0).max(axis=(1, 2)).astype(np.float64)
+        if self._kernel is not None:
+            dilated = cv2.dilate(filled.reshape(-1, sw), self._kernel).reshape(filled.shape)
+            dilated = dilated[:, :sh].astype(bool)
+        else:
+            dilated = component
+        others = mroi & ~component  # pixels of other blobs
+        window = dilated & ~others & rect
+        ring = rect & ~dilated & ~mroi
+        ring_count = ring.sum(axis=(1, 2))
+        ring_sum = np.where(ring, roi, 0).sum(axis=(1, 2), dtype=np.float64)
+        b = np.where(ring_count > 0, ring_sum / np.maximum(ring_count, 1), background.level_dn)
+        # raw moments of the image over the window and of the window (slice coordinates):
+        # one (T, S*S) x (S*S, 6) product each; sum(u^p v^q (I - b)) = M_pq - b N_pq
+        cc, rr = np.meshgrid(np.arange(sw, dtype=np.float64), np.arange(sh, dtype=np.float64))
+        cc, rr = cc.ravel(), rr.ravel()
+        basis = np.column_stack((np.ones_like(cc), cc, rr, cc * cc, cc * rr, rr * rr))
+        win = window.reshape(len(rows), -1)
+        M = np.where(win, roi.reshape(len(rows), -1), 0).astype(np.float64) @ basis
+        N = win.astype(np.float64) @ basis
+        total = M[:, 0] - b * N[:, 0]
+        su, sv = M[:, 1] - b * N[:, 1], M[:, 2] - b * N[:, 2]
+        safe = np.where(total > 0, total, 1.0)
+        uc, vc = su / safe, sv / safe
+        c20 = (M[:, 3] - b * N[:, 3] - uc * su) / safe
+        c11 = (M[:, 4] - b * N[:, 4] - uc * sv) / safe
+        c02 = (M[:, 5] - b * N[:, 5] - vc * sv) / safe
+        root = np.sqrt((c20 - c02) ** 2 + 4.0 * c11 * c11)
+        major, minor = c20 + c02 + root, c20 + c02 - root
+        ratio = np.maximum(minor, 0.0) / np.where(major > 0, major, 1.0)
+        roundness = np.where(major > 0, np.sqrt(ratio), 0.0)
+        uv = np.column_stack((xs + uc, ys + vc))
+        saturated = max_value >= opts.saturation_dn
+        local = np.arange(len(rows))
+        for code, bad in (
+            (1, area < opts.min_area_px),
+            (2, area > opts.max_area_px),
+            (3, saturated & opts.reject_saturated),
+            (4, ~(total > 0)),
+        ):
+            hit = bad & (reason[rows] < 0)
+            reason[rows[hit]] = code
+        hit = (roundness < opts.min_roundness) & (reason[rows] < 0)
+        where[rows[hit]] = uv[hit]
+        reason[rows[hit]] = 5
+        ok = local[reason[rows] < 0]
+        return BlobStack(
+            x0=xs[ok],
+            y0=ys[ok],
+            roi=roi[ok],
+            window=window[ok].view(np.uint8),
+            background_dn=b[ok],
+            area_px=area[ok],
+            roundness=roundness[ok],
+            peak_dn=max_value[ok] - b[ok],
+            saturated=saturated[ok],
+            uv=uv[ok],
+            moments=np.column_stack((c20, c11, c02))[ok],
+        )
 
 
 def sort_order(uv: np.ndarray) -> np.ndarray:
