@@ -44,7 +44,10 @@ DESIGN_POINTS = (
 )
 
 
-def run_sessions(scenario: str, arm_sigma: float, frames: int, sessions: int, out: str) -> dict[str, list[float]]:
+def run_sessions(scenario: str, arm_sigma: float, frames: int, sessions: int, out: str,
+                 log: Path | None = None, label: str = "") -> dict[str, list[float]]:
+    """Session errors (measured - true, mm) per characteristic; with ``log``, each session's errors
+    are appended to it as one JSON line ``{"design_point", "seed", "errors": {name: mm}}`` as it ends."""
     pm = make_plugin_manager()
     errors: dict[str, list[float]] = {}
     for seed in range(1, sessions + 1):
@@ -55,10 +58,41 @@ def run_sessions(scenario: str, arm_sigma: float, frames: int, sessions: int, ou
             "reference": {"plugin": "romer-serial", "port": "simulator"},
         }
         summary = run_session(parse_config(data, "<validation>"), pm)
-        for c in summary.characteristics:
-            if c.error_mm is not None and c.n == frames:
-                errors.setdefault(c.name, []).append(float(c.error_mm))
+        session = {c.name: float(c.error_mm) for c in summary.characteristics
+                   if c.error_mm is not None and c.n == frames}
+        for name, e in session.items():
+            errors.setdefault(name, []).append(e)
+        if log is not None:
+            with log.open("a") as f:
+                f.write(json.dumps({"design_point": label, "scenario": scenario, "arm_sigma_mm": arm_sigma,
+                                    "frames": frames, "seed": 1000 + seed, "errors": session}) + "\n")
     return errors
+
+
+def _stats(errors: dict[str, list[float]]) -> dict[str, dict]:
+    return {name: {"sessions": len(e), "rms_error_mm": float(np.sqrt(np.mean(np.square(e)))),
+                   "mean_error_mm": float(np.mean(e)), "std_error_mm": float(np.std(e, ddof=1))}
+            for name, e in errors.items() if len(e) > 1}
+
+
+def recorded_stats(path: Path, label: str) -> dict[str, dict]:
+    """Session statistics of design point ``label`` from FILE: a JSON-lines log of
+    ``--record-sessions`` (one line per session) or the ``--json`` rows of an earlier run."""
+    text = path.read_text()
+    if text.lstrip().startswith("["):
+        return {r["characteristic"]: r for r in json.loads(text) if r["design_point"] == label}
+    errors: dict[str, list[float]] = {}
+    seen: set[int] = set()
+    for line in text.splitlines():
+        if not line.strip():
+            continue
+        rec = json.loads(line)
+        if rec["design_point"] != label or rec["seed"] in seen:
+            continue
+        seen.add(rec["seed"])
+        for name, e in rec["errors"].items():
+            errors.setdefault(name, []).append(float(e))
+    return _stats(errors)
 
 
 def efficiency(frames: int = 40) -> None:
@@ -115,10 +149,22 @@ def main() -> int:
     parser.add_argument("--only", type=int, help="run only design point k (0-based)")
     parser.add_argument("--sessions-from", metavar="FILE",
                         help="do not run sessions: compare new predictions with the session errors in FILE "
-                        "(a --json output of an earlier run)")
+                        "(a --record-sessions log, or a --json output of an earlier run)")
+    parser.add_argument("--record-sessions", metavar="FILE",
+                        help="only run the sessions (no prediction), appending each session's errors to FILE "
+                        "(JSON lines) as it ends")
     args = parser.parse_args()
     if args.efficiency:
         efficiency()
+        return 0
+    if args.record_sessions:
+        order = [args.only] if args.only is not None else range(len(DESIGN_POINTS))
+        with tempfile.TemporaryDirectory() as out:
+            for k in order:
+                label, scenario, arm = DESIGN_POINTS[k]
+                t0 = time.perf_counter()
+                run_sessions(scenario, arm, args.frames, args.sessions, out, Path(args.record_sessions), label)
+                print(f"# {label}: {args.sessions} sessions in {time.perf_counter() - t0:.0f} s", flush=True)
         return 0
     rows = []
     with tempfile.TemporaryDirectory() as out:
@@ -129,15 +175,9 @@ def main() -> int:
             prediction = predict(station, sessions=args.mc_sessions)
             t0 = time.perf_counter()
             if args.sessions_from:
-                recorded = {(r["design_point"], r["characteristic"]): r
-                            for r in json.loads(Path(args.sessions_from).read_text())}
-                stats = {c["name"]: recorded[(label, c["name"])] for c in prediction["characteristics"]
-                         if (label, c["name"]) in recorded}
+                stats = recorded_stats(Path(args.sessions_from), label)
             else:
-                errors = run_sessions(scenario, arm, args.frames, args.sessions, out)
-                stats = {name: {"sessions": len(e), "rms_error_mm": float(np.sqrt(np.mean(np.square(e)))),
-                                "mean_error_mm": float(np.mean(e)), "std_error_mm": float(np.std(e, ddof=1))}
-                         for name, e in errors.items() if len(e) > 1}
+                stats = _stats(run_sessions(scenario, arm, args.frames, args.sessions, out))
             seconds = time.perf_counter() - t0
             for c in prediction["characteristics"]:
                 if c["name"] not in stats:
