@@ -87,6 +87,12 @@ class Station:
     source: str = ""
     design: dict[str, float] = field(default_factory=dict)
     perspective_bias: bool = True  # model the blob centres' perspective eccentricity (imaging.eccentricity)
+    #: how the fixed centroid bias is predicted: "rendered" (the simulator's renderer and the session's
+    #: centroid implementation, planning.image_bias) or "eccentricity" (the conic-centre model alone)
+    bias_model: str = "rendered"
+    centroid: str = "weighted"  # the session's centroid implementation (for the rendered bias)
+    point_signal_dn: np.ndarray | None = None  # (T + C,) DN per point (targets then controls); None: signal_dn
+    background_seed: int | None = None  # the simulator's vignetted background (its seed); None: flat background_dn
 
     @property
     def working_distance_mm(self) -> float:
@@ -104,6 +110,14 @@ class Station:
     @property
     def camera_normals(self) -> np.ndarray:
         return np.vstack([self.target_normal, self.control_normal])
+
+    @property
+    def point_signals(self) -> np.ndarray:
+        """(T + C,) DN above background of every target and control (targets then controls)."""
+        n = len(self.target_ids) + len(self.control_ids)
+        if self.point_signal_dn is not None and len(self.point_signal_dn) == n:
+            return np.asarray(self.point_signal_dn, dtype=np.float64)
+        return np.full(n, float(self.signal_dn))
 
     def to_global(self, xyz_camera: np.ndarray) -> np.ndarray:
         return np.asarray(xyz_camera) @ np.asarray(self.R_global_camera).T + np.asarray(self.t_global_camera)
@@ -166,7 +180,11 @@ def with_controls(station: Station, n: int) -> Station:
         xyz = np.vstack([station.control_xyz, extra])
         normal = np.vstack([station.control_normal, _facing(extra)])
         ids = station.control_ids + tuple(f"C{k + 1}" for k in range(C, n))
-    return dataclasses.replace(station, control_ids=tuple(ids), control_xyz=xyz, control_normal=normal)
+    T = len(station.target_ids)
+    signals = station.point_signals[: T + C]
+    signals = np.concatenate([signals[: T + n], np.full(max(n - C, 0), float(station.signal_dn))])
+    return dataclasses.replace(station, control_ids=tuple(ids), control_xyz=xyz, control_normal=normal,
+                               point_signal_dn=signals)
 
 
 def _scaled_intrinsics(intr: CameraIntrinsics, factor: float) -> CameraIntrinsics:
@@ -276,6 +294,8 @@ def station_from_scenario(
         control_normal=np.array([t.normal_camera for t in controls]),
         radius_mm=TARGET_RADIUS_MM,
         signal_dn=float(np.mean([t.signal_dn for t in scene.targets])),
+        point_signal_dn=np.array([t.signal_dn for t in targets + controls]),
+        background_seed=scene.background_seed,
         cmm_sigma_mm=float(arm_sigma_mm),
         reference_points={k: np.asarray(v, dtype=np.float64) for k, v in scene.reference_points_global.items()},
         reference_lines=tuple(lines),
