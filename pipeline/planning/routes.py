@@ -409,6 +409,8 @@ def predict(
         "characteristics": chars,
         "centroid_crb_px": float(np.mean(model.crb_sigma_uv)),
         "centroid_sigma_px": float(np.mean(model.sigma_uv)),
+        "bias_model": station.bias_model if station.perspective_bias else "none",
+        "centroid_bias_rms_px": float(np.sqrt(np.mean(model.bias_uv**2))),
         "camera_sigma_mm": np.sqrt(np.mean(np.diagonal(model.cov, axis1=1, axis2=2), axis=0)).tolist(),
     }
     if an is not None:

@@ -32,6 +32,8 @@ from crossfield.precision.centroid import NoiseModel
 from crossfield.types import CameraIntrinsics, Line3D, StereoCalibration
 
 KINDS = ("point_point", "point_line", "depth")
+#: How the fixed centroid bias is predicted (``Station.bias_model``, docs/planning.md).
+BIAS_MODELS = ("rendered", "eccentricity")
 
 
 @dataclass(frozen=True)
@@ -89,7 +91,7 @@ class Station:
     perspective_bias: bool = True  # model the blob centres' perspective eccentricity (imaging.eccentricity)
     #: how the fixed centroid bias is predicted: "rendered" (the simulator's renderer and the session's
     #: centroid implementation, planning.image_bias) or "eccentricity" (the conic-centre model alone)
-    bias_model: str = "rendered"
+    bias_model: str = "eccentricity"
     centroid: str = "weighted"  # the session's centroid implementation (for the rendered bias)
     point_signal_dn: np.ndarray | None = None  # (T + C,) DN per point (targets then controls); None: signal_dn
     background_seed: int | None = None  # the simulator's vignetted background (its seed); None: flat background_dn
@@ -253,13 +255,18 @@ def with_cmm_sigma(station: Station, sigma_mm: float) -> Station:
 
 
 def station_from_scenario(
-    name: str, *, arm_sigma_mm: float = 0.01, frames: int = 10, centroid_efficiency: float | None = None
+    name: str, *, arm_sigma_mm: float = 0.01, frames: int = 10, centroid_efficiency: float | None = None,
+    bias_model: str = "rendered", centroid: str = "weighted",
 ) -> Station:
     """The exact geometry of simulator scenario ``name`` (``station``, ``table3``) as a Station.
 
     centroid_efficiency: RMS / CRB of the centroid implementation (None: the
     default measured for the ``weighted`` centroid, :data:`WEIGHTED_CENTROID_EFFICIENCY`).
+    bias_model: ``rendered`` (default: the scenario's own images, its per-target signals and
+    vignetted background, through ``centroid``) or ``eccentricity`` (:data:`BIAS_MODELS`).
     """
+    if bias_model not in BIAS_MODELS:
+        raise ValueError(f"bias_model must be one of {', '.join(BIAS_MODELS)}, got {bias_model!r}")
     from crossfield.simulator.scenarios import (
         BASELINE_MM, FOCAL_LENGTH_MM, PIXEL_PITCH_MM, SCENARIOS, TARGET_RADIUS_MM, build_scene,
     )
@@ -296,6 +303,8 @@ def station_from_scenario(
         signal_dn=float(np.mean([t.signal_dn for t in scene.targets])),
         point_signal_dn=np.array([t.signal_dn for t in targets + controls]),
         background_seed=scene.background_seed,
+        bias_model=bias_model,
+        centroid=centroid,
         cmm_sigma_mm=float(arm_sigma_mm),
         reference_points={k: np.asarray(v, dtype=np.float64) for k, v in scene.reference_points_global.items()},
         reference_lines=tuple(lines),
@@ -447,6 +456,7 @@ def parse_station(text: str, source: str = "<station>") -> Station:
     blur = cam.number("blur_sigma_px", 0.9, minimum=0.0, strict=True)
     background = cam.number("background_dn", 150.0, minimum=0.0)
     efficiency = cam.number("centroid_efficiency", WEIGHTED_CENTROID_EFFICIENCY, minimum=1.0)
+    centroid = cam.string("centroid", "weighted")
     cam.check_unknown()
 
     # ---- targets and controls (upper camera frame) ------------------------------------------
@@ -459,6 +469,7 @@ def parse_station(text: str, source: str = "<station>") -> Station:
     tg.used.add("perspective_bias")
     if not isinstance(perspective, bool):
         raise ConfigError(f"{source}: key 'targets.perspective_bias' must be true or false, got {perspective!r}")
+    bias_model = tg.string("bias_model", "eccentricity", choices=BIAS_MODELS)
     target_ids, target_xyz, target_normal = [], [], []
     for t in tg.tables("point"):
         target_ids.append(t.string("id"))
@@ -553,7 +564,7 @@ def parse_station(text: str, source: str = "<station>") -> Station:
     return Station(
         name=name, calibration=calibration, R_global_camera=R_gc, t_global_camera=t_gc,
         target_ids=tuple(target_ids), target_xyz=target_xyz, target_normal=np.array(target_normal),
-        perspective_bias=perspective,
+        perspective_bias=perspective, bias_model=bias_model, centroid=centroid,
         control_ids=tuple(ids_c), control_xyz=control_xyz, control_normal=_facing(control_xyz),
         radius_mm=radius, signal_dn=signal, cmm_sigma_mm=sigma, reference_points=ref_points,
         reference_lines=tuple(lines), characteristics=tuple(chars), frames=frames, coverage_factor=k,
