@@ -80,13 +80,22 @@ def camera_model(station: Station) -> CameraModel:
     return CameraModel(X, uv, sigma, camera_point_covariance(J, sigma), crb, centroid_bias(station, uv), J)
 
 
-def centroid_bias(station: Station, uv: np.ndarray) -> np.ndarray:
+def runner_weights(station: Station, model: CameraModel) -> np.ndarray:
+    """(C,) the runner's registration weights of the controls, ``1 / (tr Sigma_cam / 3 + sigma^2)``
+    (docs/registration.md), sigma the CMM sigma the reference plugin states
+    (``Station.weight_cmm_sigma_mm``; unset: the arm's ``cmm_sigma_mm``)."""
+    T = len(station.target_ids)
+    stated = station.cmm_sigma_mm if station.weight_cmm_sigma_mm is None else station.weight_cmm_sigma_mm
+    return 1.0 / np.maximum(np.trace(model.cov[T:], axis1=1, axis2=2) / 3 + stated**2, 1e-12)
+
+
+def centroid_bias(station: Station, uv: np.ndarray, noise: str = "antithetic") -> np.ndarray:
     """(M, 4) px: the fixed bias of every centroid (targets then controls) from the projected
     true centre uv (M, 4) px, by the station's ``bias_model``: ``rendered``
     (:func:`crossfield.planning.image_bias.rendered_bias`: eccentricity, pixelisation and the
     centroid's own bias; a point whose blob the centroid does not find keeps the eccentricity
     model) or ``eccentricity`` (:func:`crossfield.imaging.eccentricity.centre_offsets` alone);
-    zeros when ``perspective_bias`` is off."""
+    zeros when ``perspective_bias`` is off. noise: the rendered image's (``rendered_bias``)."""
     X = station.camera_xyz
     if not station.perspective_bias:
         return np.zeros_like(uv)
@@ -97,7 +106,8 @@ def centroid_bias(station: Station, uv: np.ndarray) -> np.ndarray:
     sensor = SensorModel(station.noise.gain_dn_per_e, station.noise.read_noise_dn, 12, station.blur_sigma_px)
     rendered = rendered_bias(station.calibration, X, station.camera_normals, station.radius_mm,
                              station.point_signals, sensor, station.background_dn, uv,
-                             background_seed=station.background_seed, centroid=station.centroid).bias_uv
+                             background_seed=station.background_seed, centroid=station.centroid,
+                             noise=noise).bias_uv
     return np.where(np.isnan(rendered), ecc, rendered)
 
 
@@ -159,7 +169,7 @@ def analytic(station: Station, model: CameraModel | None = None) -> dict[str, An
     C_cam, g_bar = fitzpatrick_covariance(G, fle_cam)
     C_cmm, _ = fitzpatrick_covariance(G, fle_cmm)
     S_cam = R @ model.cov[T:] @ R.T
-    w = 1.0 / np.maximum(np.trace(model.cov[T:], axis1=1, axis2=2) / 3 + s2, 1e-12)  # the runner's weights
+    w = runner_weights(station, model)
     L_cam, g_w = registration_covariance(G, S_cam, w)
     L_cmm, _ = registration_covariance(G, np.broadcast_to(s2 * np.eye(3), S_cam.shape), w)
     fits = {line.id: line_fit(line, station.cmm_sigma_mm) for line in station.reference_lines}
@@ -301,7 +311,7 @@ def simulate_sessions(
     T, F = len(station.target_ids), station.frames
     C = len(station.control_ids)
     sigma = station.cmm_sigma_mm
-    w = 1.0 / np.maximum(np.trace(model.cov[T:], axis1=1, axis2=2) / 3 + sigma**2, 1e-12)  # runner's weights
+    w = runner_weights(station, model)
     truth = np.array([true_value(station, c) for c in station.characteristics])
     index = {tid: k for k, tid in enumerate(station.target_ids)}
     cmm_ids = list(station.control_ids) + list(station.reference_points)

@@ -95,6 +95,7 @@ class Station:
     centroid: str = "weighted"  # the session's centroid implementation (for the rendered bias)
     point_signal_dn: np.ndarray | None = None  # (T + C,) DN per point (targets then controls); None: signal_dn
     background_seed: int | None = None  # the simulator's vignetted background (its seed); None: flat background_dn
+    weight_cmm_sigma_mm: float | None = None  # the CMM sigma the reference plugin states (runner's weights); None: cmm_sigma_mm
 
     @property
     def working_distance_mm(self) -> float:
