@@ -49,12 +49,12 @@ DESIGN_POINTS = (
 
 
 def run_sessions(scenario: str, arm_sigma: float, frames: int, sessions: int, out: str,
-                 log: Path | None = None, label: str = "") -> dict[str, list[float]]:
+                 log: Path | None = None, label: str = "", first_seed: int = 1001) -> dict[str, list[float]]:
     """Session errors (measured - true, mm) per characteristic; with ``log``, each session's errors
     are appended to it as one JSON line ``{"design_point", "seed", "errors": {name: mm}}`` as it ends."""
     pm = make_plugin_manager()
     errors: dict[str, list[float]] = {}
-    for seed in range(1, sessions + 1):
+    for seed in range(first_seed - 1000, first_seed - 1000 + sessions):
         data = {
             "session": {"output_dir": out, "name": f"{scenario}-{arm_sigma}-{seed}", "record": False, "rerun": False},
             "acquire": {"plugin": "simulator", "scenario": scenario, "frames": frames, "seed": 1000 + seed,
@@ -154,6 +154,7 @@ def main() -> int:
     parser.add_argument("--sessions-from", metavar="FILE",
                         help="do not run sessions: compare new predictions with the session errors in FILE "
                         "(a --record-sessions log, or a --json output of an earlier run)")
+    parser.add_argument("--first-seed", type=int, default=1001, help="noise seed of the first session (1001)")
     parser.add_argument("--record-sessions", metavar="FILE",
                         help="only run the sessions (no prediction), appending each session's errors to FILE "
                         "(JSON lines) as it ends")
@@ -167,7 +168,8 @@ def main() -> int:
             for k in order:
                 label, scenario, arm = DESIGN_POINTS[k]
                 t0 = time.perf_counter()
-                run_sessions(scenario, arm, args.frames, args.sessions, out, Path(args.record_sessions), label)
+                run_sessions(scenario, arm, args.frames, args.sessions, out, Path(args.record_sessions), label,
+                             args.first_seed)
                 print(f"# {label}: {args.sessions} sessions in {time.perf_counter() - t0:.0f} s", flush=True)
         return 0
     rows = []
@@ -184,7 +186,8 @@ def main() -> int:
             if args.sessions_from:
                 stats = recorded_stats(Path(args.sessions_from), label)
             else:
-                stats = _stats(run_sessions(scenario, arm, args.frames, args.sessions, out))
+                stats = _stats(run_sessions(scenario, arm, args.frames, args.sessions, out,
+                                            first_seed=args.first_seed))
             seconds = time.perf_counter() - t0
             for c in prediction["characteristics"]:
                 if c["name"] not in stats:
