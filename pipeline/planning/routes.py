@@ -335,7 +335,7 @@ def simulate_sessions(
         cmm = cmm_true + sigma * rng.standard_normal((B,) + cmm_true.shape)  # (B, P, 3), once per session
         Q = np.broadcast_to(cmm[:, None, :C], (B, F, C, 3))
         R, t, _, _ = kabsch(X[:, :, T:], Q, w)
-        P = np.einsum("bfij,bfnj->bfni", R, X[:, :, :T]) + t[:, :, None, :]  # (B, F, T, 3) global
+        P = X[:, :, :T] @ np.swapaxes(R, -1, -2) + t[:, :, None, :]  # (B, F, T, 3) global: R x + t
         lines = {}
         for lid, fit in fits.items():
             delta = rng.multivariate_normal(np.zeros(4), fit.covariance, size=B, method="cholesky") \

@@ -102,7 +102,12 @@ class LinearTriangulation:
     def __call__(self, duv: np.ndarray) -> np.ndarray:
         """X (..., M, 3) mm of image points ``uv0 + duv``, duv (..., M, 4) px."""
         duv = np.asarray(duv, dtype=np.float64)
-        return self.X0 + np.matmul(self.G, duv[..., None])[..., 0]
+        shape = duv.shape[:-2]
+        M = self.G.shape[0]
+        # One (trials x 4) @ (4 x 3) product per point: (M, trials, 4) @ (M, 4, 3).
+        flat = np.ascontiguousarray(np.moveaxis(duv.reshape(-1, M, 4), 1, 0))
+        dX = np.matmul(flat, np.swapaxes(self.G, 1, 2))  # (M, trials, 3)
+        return (self.X0 + np.moveaxis(dX, 0, 1)).reshape(shape + (M, 3))
 
 
 def linearised_triangulation(
