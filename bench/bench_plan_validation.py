@@ -202,7 +202,10 @@ def main() -> int:
                     "ratio_mc": c["monte_carlo"]["u_mm"] / rms, "ratio_analytic": c["analytic"]["u_mm"] / rms,
                     "camera_share": c["analytic"]["u_camera_frame_mm"] ** 2 / args.frames / c["analytic"]["u_mm"] ** 2,
                 })
-            print(f"# {label}: {args.sessions} sessions in {seconds:.0f} s", flush=True)
+            if args.sessions_from:
+                print(f"# {label}: compared with the sessions recorded in {args.sessions_from}", flush=True)
+            else:
+                print(f"# {label}: {args.sessions} sessions in {seconds:.0f} s", flush=True)
             _table([r for r in rows if r["design_point"] == label])
     print("# all design points")
     _table(rows)

@@ -75,6 +75,9 @@ def test_example_station_is_the_papers(paper, scenario):
         (lambda t: t.replace("blur_sigma_px", "blur_px"), "unknown key(s) in [camera]: blur_px"),
         (lambda t: t.replace("count = 8", "count = 2"), "controls.count"),
         (lambda t: t.replace("[cmm]", "[cmm"), "invalid TOML"),
+        (lambda t: t.replace("radius_mm = 2.5", 'radius_mm = 2.5\nbias_model = "drawn"'), "targets.bias_model"),
+        (lambda t: t.replace("radius_mm = 2.5", 'radius_mm = 2.5\nbias_model = "rendered"')
+         .replace("[targets]", 'centroid = "magic"\n\n[targets]'), "camera.centroid': no centroid implementation"),
     ],
 )
 def test_bad_station_files_give_one_clear_error(edit, message):

@@ -40,7 +40,7 @@ import numpy as np
 
 from crossfield.simulator.render import SensorModel, background_image, compose_clean_image, render_disc
 
-__all__ = ["RenderedBias", "rendered_bias"]
+__all__ = ["RenderedBias", "centroid_implementation", "rendered_bias"]
 
 #: Sub-samples per pixel and axis of the disc coverage (the simulator's default).
 SUPERSAMPLE = 8
@@ -96,6 +96,13 @@ def _plugin_manager():
     from crossfield.registry import make_plugin_manager
 
     return make_plugin_manager()
+
+
+def centroid_implementation(name: str):
+    """The registered ``centroid`` implementation ``name`` (a PluginError listing the names if none)."""
+    from crossfield.registry import get_implementation
+
+    return get_implementation(_plugin_manager(), "centroid", name)
 
 
 def _match(found_uv: np.ndarray, expected_uv: np.ndarray) -> np.ndarray:
@@ -162,10 +169,7 @@ def rendered_bias(
     key = h.hexdigest()
     if key in _CACHE:
         return _CACHE[key]
-    from crossfield.registry import implementations
-
-    centroider = implementations(_plugin_manager(), "centroid")[centroid].create(dict(centroid_options or {}),
-                                                                               "<plan>")
+    centroider = centroid_implementation(centroid).create(dict(centroid_options or {}), "<plan>")
     if image_key not in _IMAGES:
         if len(_IMAGES) >= 4:  # two full frames of float32 each: keep a few layouts
             _IMAGES.pop(next(iter(_IMAGES)))

@@ -471,6 +471,14 @@ def parse_station(text: str, source: str = "<station>") -> Station:
     if not isinstance(perspective, bool):
         raise ConfigError(f"{source}: key 'targets.perspective_bias' must be true or false, got {perspective!r}")
     bias_model = tg.string("bias_model", "eccentricity", choices=BIAS_MODELS)
+    if bias_model == "rendered":
+        from crossfield.errors import PluginError
+        from crossfield.planning.image_bias import centroid_implementation
+
+        try:
+            centroid_implementation(centroid)
+        except PluginError as exc:
+            raise ConfigError(f"{source}: key 'camera.centroid': {exc}") from None
     target_ids, target_xyz, target_normal = [], [], []
     for t in tg.tables("point"):
         target_ids.append(t.string("id"))
