@@ -13,8 +13,10 @@ per session and does not. So ``u_session^2 = u_cmm^2 + u_camera,frame^2 / frames
   covariance, and 3 sigma_cmm^2 for the CMM), the reference-line fit's linear
   covariance, first-order propagation to each characteristic.
 * :func:`monte_carlo`: sessions simulated through the pipeline's kernels,
-  batched: true centroids plus Gaussian noise of the same sigma, the
-  ``epipolar`` triangulation steps (:func:`crossfield.precision.triangulate_batch`),
+  batched: biased true centroids plus Gaussian noise of the same sigma, the
+  ``epipolar`` triangulation (:func:`crossfield.precision.triangulate_batch`)
+  linearised about the biased true centroids
+  (:func:`crossfield.precision.linearised_triangulation`, exact to second order),
   the CMM control points plus N(0, sigma_cmm^2 I), the weighted Kabsch fit
   (:func:`crossfield.rigid.kabsch`, the runner's weights
   ``1 / (tr Sigma_cam / 3 + sigma_cmm^2)``), the characteristic evaluated per
@@ -22,13 +24,14 @@ per session and does not. So ``u_session^2 = u_cmm^2 + u_camera,frame^2 / frames
   lines are drawn from their fit's linear covariance (the cylinder fit itself
   is not batched).
 
-Both routes also carry the perspective eccentricity of the targets' blob centres
-(:func:`crossfield.imaging.eccentricity.centre_offsets`, the kernel of the
-triangulation's eccentricity correction): a fixed offset of every centroid, the
-same in every frame and session, so a fixed bias of each session result
-(``bias_mm``); the analytic route propagates it linearly, the Monte Carlo adds
-it to the true image positions. ``u_mm`` is the RMS session error
-``sqrt(u_random^2 + bias^2)``.
+Both routes also carry the fixed bias of every centroid (:func:`centroid_bias`):
+rendered (:mod:`crossfield.planning.image_bias`: the simulator's renderer and the
+session's centroid implementation; eccentricity, pixelisation and the centroid's
+own bias) or the perspective eccentricity alone
+(:func:`crossfield.imaging.eccentricity.centre_offsets`), the same in every frame
+and session, so a fixed bias of each session result (``bias_mm``); the analytic
+route propagates it linearly, the Monte Carlo adds it to the true image
+positions. ``u_mm`` is the RMS session error ``sqrt(u_random^2 + bias^2)``.
 
 Lengths mm, angles rad.
 """
