@@ -68,14 +68,14 @@ def test_rendered_bias_is_the_centroid_on_the_simulators_own_images(station, mod
         assert np.sqrt(np.mean((ecc[:, 2 * j : 2 * j + 2] - actual) ** 2)) > 0.0015
 
 
-def test_planner_bias_is_the_pipelines_error_on_a_noise_free_session(station, noise_free, scene):
+def test_planner_bias_is_the_pipelines_error_on_a_noise_free_session(station, noise_free, scene, tmp_path):
     """A session of noise-free images and an exact arm through the whole pipeline (weighted centroid,
     epipolar triangulation, weighted SVD registration, measurement): its errors are the fixed
     biases. The planner's rendered bias, propagated linearly (analytic) and through the Monte Carlo's
     kernels without noise, predicts every one to 0.0001 mm; the eccentricity model alone is off by
     up to ~0.0014 mm (P1-depth)."""
     data = {
-        "session": {"output_dir": "unused", "name": "noise-free", "record": False, "rerun": False},
+        "session": {"output_dir": str(tmp_path), "name": "noise-free", "record": False, "rerun": False},
         "acquire": {"plugin": "simulator", "scenario": "station", "frames": 2, "seed": 1, "arm_sigma_mm": 0.0},
         "reference": {"plugin": "romer-serial", "port": "simulator"},
     }
