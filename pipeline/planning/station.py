@@ -88,14 +88,17 @@ class Station:
     control_box: tuple[tuple[float, float, float], tuple[float, float, float]] = ((0, 0, 400), (80, 45, 18))
     source: str = ""
     design: dict[str, float] = field(default_factory=dict)
-    perspective_bias: bool = True  # model the blob centres' perspective eccentricity (imaging.eccentricity)
+    perspective_bias: bool = True  # carry the fixed centroid bias (how: bias_model)
     #: how the fixed centroid bias is predicted: "rendered" (the simulator's renderer and the session's
     #: centroid implementation, planning.image_bias) or "eccentricity" (the conic-centre model alone)
     bias_model: str = "eccentricity"
     centroid: str = "weighted"  # the session's centroid implementation (for the rendered bias)
-    point_signal_dn: np.ndarray | None = None  # (T + C,) DN per point (targets then controls); None: signal_dn
-    background_seed: int | None = None  # the simulator's vignetted background (its seed); None: flat background_dn
-    weight_cmm_sigma_mm: float | None = None  # the CMM sigma the reference plugin states (runner's weights); None: cmm_sigma_mm
+    #: (T + C,) DN above background per point (targets then controls); None: signal_dn for all
+    point_signal_dn: np.ndarray | None = None
+    #: the simulator's vignetted background (its seed, Scene.background_seed); None: flat background_dn
+    background_seed: int | None = None
+    #: the CMM sigma (mm) the reference plugin states, which the runner's weights use; None: cmm_sigma_mm
+    weight_cmm_sigma_mm: float | None = None
 
     @property
     def working_distance_mm(self) -> float:

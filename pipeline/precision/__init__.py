@@ -22,12 +22,16 @@ from crossfield.precision.registration import (
     registration_crb,
 )
 from crossfield.precision.stereo import (
-    LinearTriangulation, camera_point_covariance, linearised_triangulation, project_stereo, triangulate_batch,
+    LinearTriangulation,
+    camera_point_covariance,
+    linearised_triangulation,
+    project_stereo,
+    triangulate_batch,
 )
 
 __all__ = [
-    "CentroidBound", "ChainBound", "LinearTriangulation", "NoiseModel", "camera_point_covariance", "centroid_crb", "centroid_sigmas",
-    "chain_bound", "edge_limited_bound", "fitzpatrick_covariance", "fitzpatrick_tre", "global_point_covariance",
-    "image_radius_px", "linearised_triangulation", "point_jacobian", "project_stereo", "registration_covariance", "registration_crb",
-    "triangulate_batch",
+    "CentroidBound", "ChainBound", "LinearTriangulation", "NoiseModel", "camera_point_covariance",
+    "centroid_crb", "centroid_sigmas", "chain_bound", "edge_limited_bound", "fitzpatrick_covariance",
+    "fitzpatrick_tre", "global_point_covariance", "image_radius_px", "linearised_triangulation",
+    "point_jacobian", "project_stereo", "registration_covariance", "registration_crb", "triangulate_batch",
 ]
