@@ -24,7 +24,7 @@ so the detector meets the noise level it meets in a session (its threshold is
 ``threshold_sigma`` noise sigmas above the background) while the noise itself
 cancels in the centroid to first order. On the ``station`` scenario this pair
 reproduces the mean centroid over 80 noisy frames (40 other antithetic pairs) to
-0.00006 px RMS, against a bias of 0.02 px (``bench/bench_plan_validation.py
+0.00005 px RMS, against a bias of 0.02 px (``bench/bench_plan_validation.py
 --efficiency`` prints the check).
 
 Pixels: (0, 0) is the centre of the top-left pixel; lengths mm; points in the
