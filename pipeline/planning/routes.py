@@ -75,9 +75,12 @@ class CameraModel:
 
 
 def camera_model(station: Station) -> CameraModel:
+    """The camera side (:class:`CameraModel`): each point's centroid bound from its own image radius
+    and signal (``Station.point_signals``, DN), times the station's centroid efficiency."""
     X = station.camera_xyz
     radius_px = image_radius_px(station.calibration, X, station.camera_normals, np.full(len(X), station.radius_mm))
-    crb = centroid_sigmas(radius_px, station.blur_sigma_px, station.signal_dn, station.background_dn, station.noise)
+    crb = centroid_sigmas(radius_px, station.blur_sigma_px, station.point_signals, station.background_dn,
+                          station.noise)
     sigma = crb * station.centroid_efficiency
     uv, J = project_stereo(station.calibration, X)
     return CameraModel(X, uv, sigma, camera_point_covariance(J, sigma), crb, centroid_bias(station, uv), J)
