@@ -4,7 +4,10 @@ Run on demand (slow: every session renders its images and runs the whole
 pipeline, ~2 s per 10-pair session on this machine)::
 
     .venv/bin/python bench/bench_plan_validation.py [--sessions 100] [--frames 10] [--json out.json]
-    .venv/bin/python bench/bench_plan_validation.py --efficiency   # centroid RMS / CRB only
+    .venv/bin/python bench/bench_plan_validation.py --efficiency   # centroid RMS / CRB, the rendered bias
+    .venv/bin/python bench/bench_plan_validation.py --record-sessions LOG [--only K] [--first-seed S]
+    .venv/bin/python bench/bench_plan_validation.py --sessions-from LOG_OR_JSON   # new predictions, old sessions
+    .venv/bin/python bench/bench_plan_validation.py --split LOG [--only K]        # CMM part / camera part
 
 For each design point (the paper's station, table3, and the station with a
 more precise arm) it predicts the session uncertainty of every characteristic
@@ -35,8 +38,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from crossfield.config import parse_config  # noqa: E402
 from crossfield.planning.routes import camera_model, predict  # noqa: E402
 from crossfield.planning.station import station_from_scenario  # noqa: E402
+from crossfield.plugins.acquire_simulator import SimulatorSource  # noqa: E402
 from crossfield.registry import make_plugin_manager  # noqa: E402
 from crossfield.runner import run_session  # noqa: E402
+from crossfield.types import StereoFrame  # noqa: E402
 
 #: The romer-serial reference plugin's default stated sigma (mm per coordinate).
 ROMER_STATED_SIGMA_MM = 0.01
@@ -154,6 +159,67 @@ def bias_check(scene, station, model, centroider, ids, frames: int) -> None:
               f"RMS {np.sqrt(np.mean((planner - mean) ** 2)):.5f} px (the bias: RMS {np.sqrt(np.mean(mean**2)):.5f} px)")
 
 
+class NoiseFreeSource(SimulatorSource):
+    """The simulator source with every pair the scene's clean image (rounded to DN): the
+    session's errors are then the fixed bias plus what the arm's noise does. ``scene``: a built
+    scene to share (its images are rendered once for all the sessions)."""
+
+    def __init__(self, scene, **options):
+        super().__init__(**options)
+        self.scene = scene
+
+    def frames(self):
+        clean = {c: np.rint(self.scene.clean_images[c]).astype(np.uint16) for c in ("upper", "lower")}
+        for k in range(self.n_frames):
+            yield StereoFrame(k, 1_700_000_000_000_000_000 + k, clean["upper"], clean["lower"],
+                              self.scene.sensor.bit_depth)
+
+
+def split(k: int, log: Path, mc_sessions: int) -> None:
+    """The recorded sessions of design point k split into their CMM part and their camera part.
+
+    For each seed in ``log`` a session of noise-free images with the same arm draws (the arm's
+    noise comes from the seed alone) gives ``bias_nf + cmm part``; a session with an exact arm gives
+    ``bias_nf``. The camera part of a recorded session is its error minus its noise-free twin's.
+    Compared with the Monte Carlo's spread (std_mm) with the camera noise off (CMM part) and with
+    the arm's noise off (camera part)."""
+    from crossfield.simulator.scenarios import build_scene
+
+    label, scenario, arm = DESIGN_POINTS[k]
+    full: dict[int, dict] = {}
+    for line in log.read_text().splitlines():
+        rec = json.loads(line) if line.strip() else None
+        if rec and rec["design_point"] == label:
+            full[rec["seed"]] = rec["errors"]
+    pm = make_plugin_manager()
+    scenes = {a: build_scene(scenario, arm_sigma_mm=a) for a in (arm, 0.0)}
+
+    def session(seed: int, a: float, out: str) -> dict[str, float]:
+        data = {"session": {"output_dir": out, "name": f"split-{seed}", "record": False, "rerun": False},
+                "acquire": {"plugin": "simulator", "scenario": scenario, "frames": 1, "seed": seed, "arm_sigma_mm": a},
+                "reference": {"plugin": "romer-serial", "port": "simulator"}}
+        source = NoiseFreeSource(scenes[a], scenario=scenario, frames=1, seed=seed, arm_sigma_mm=a)
+        summary = run_session(parse_config(data, "<split>"), pm, source=source)
+        return {c.name: float(c.error_mm) for c in summary.characteristics}
+
+    with tempfile.TemporaryDirectory() as out:
+        bias_nf = session(1, 0.0, out)
+        cmm = {seed: session(seed, arm, out) for seed in sorted(full)}
+    station = dataclasses.replace(station_from_scenario(scenario, arm_sigma_mm=arm),
+                                  weight_cmm_sigma_mm=ROMER_STATED_SIGMA_MM)
+    mc_cmm = predict(dataclasses.replace(station, centroid_efficiency=1e-6), sessions=mc_sessions, route="monte-carlo")
+    mc_cam = predict(dataclasses.replace(station, cmm_sigma_mm=0.0), sessions=mc_sessions, route="monte-carlo")
+    print(f"# {label}: {len(cmm)} recorded sessions split (CMM part: noise-free images, the same arm draws)")
+    print(f"{'char':9s} {'CMM RMS':>9s} {'MC std':>9s} {'ratio':>6s}   {'cam std':>9s} {'MC std':>9s} {'ratio':>6s}")
+    for a, b in zip(mc_cmm["characteristics"], mc_cam["characteristics"]):
+        name = a["name"]
+        part_cmm = np.array([cmm[s][name] - bias_nf[name] for s in cmm])
+        part_cam = np.array([full[s][name] - cmm[s][name] for s in cmm])
+        rc, sc = np.sqrt(np.mean(part_cmm**2)), part_cam.std(ddof=1)
+        print(f"{name:9s} {rc:9.5f} {a['monte_carlo']['std_mm']:9.5f} {rc / max(a['monte_carlo']['std_mm'], 1e-12):6.3f}"
+              f"   {sc:9.5f} {b['monte_carlo']['std_mm']:9.5f} {sc / b['monte_carlo']['std_mm']:6.3f}", flush=True)
+
+
 def _table(rows: list[dict]) -> None:
     print(f"{'design point':24s} {'char':9s} {'n':>4s} {'RMS err':>9s} {'mean':>9s} {'bias MC':>9s} {'u MC':>9s} "
           f"{'u an.':>9s} {'MC/RMS':>7s} {'an/RMS':>7s} {'cam %':>6s}")
@@ -179,7 +245,13 @@ def main() -> int:
     parser.add_argument("--record-sessions", metavar="FILE",
                         help="only run the sessions (no prediction), appending each session's errors to FILE "
                         "(JSON lines) as it ends")
+    parser.add_argument("--split", metavar="LOG",
+                        help="split the sessions of design point --only (default 2) recorded in LOG (a "
+                        "--record-sessions log) into their CMM and camera parts")
     args = parser.parse_args()
+    if args.split:
+        split(2 if args.only is None else args.only, Path(args.split), args.mc_sessions)
+        return 0
     if args.efficiency:
         efficiency()
         return 0
