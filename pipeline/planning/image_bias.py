@@ -40,6 +40,7 @@ from functools import lru_cache
 import numpy as np
 
 from crossfield.simulator.render import SensorModel, background_image, compose_clean_image, render_disc
+from crossfield.types import StereoCalibration
 
 __all__ = ["RenderedBias", "antithetic_pair", "centroid_implementation", "rendered_bias"]
 
@@ -60,7 +61,7 @@ class RenderedBias:
     centroid: str
 
 
-def _images(calibration, X: np.ndarray, normals: np.ndarray, radius_mm: float, signals: np.ndarray,
+def _images(calibration: StereoCalibration, X: np.ndarray, normals: np.ndarray, radius_mm: float, signals: np.ndarray,
             sensor: SensorModel, background_dn: float, background_seed: int | None):
     """The clean (float32 DN) image of each camera: the simulator's scene composition."""
     R = np.asarray(calibration.R_lower_upper, dtype=np.float64)
@@ -123,7 +124,7 @@ _IMAGES: dict[str, dict[str, np.ndarray]] = {}
 
 
 def rendered_bias(
-    calibration,
+    calibration: StereoCalibration,
     X: np.ndarray,
     normals: np.ndarray,
     radius_mm: float,
