@@ -11,7 +11,12 @@ Measures, in one run on this machine:
   plugin's ``fit`` as the pipeline calls it per frame: validation, fit, reflection
   check); the ratio batched / one at a time;
 * triangulated points per second of the batched kernel
-  (``crossfield.precision.triangulate_batch``) vs the ``epipolar`` plugin per frame;
+  (``crossfield.precision.triangulate_batch``) vs the ``epipolar`` plugin per frame, and of
+  the Monte Carlo's linearised triangulation (``linearised_triangulation``);
+* Monte Carlo trials per second (one trial: a frame's centroid noise, its triangulated
+  targets and controls, the weighted Kabsch registration, the characteristics): ``--trials``
+  (10^6) through the linearised triangulation, against the full triangulation kernel per trial
+  (the previous route) on ``--full-trials`` in the same run, and the registration's share;
 * the time of a default sweep (every sweep of ``crossfield plan --sweep`` on
   the paper's station): analytic route only, and both routes with
   ``--sweep-sessions`` Monte Carlo sessions per point, with the number of
@@ -33,7 +38,8 @@ from crossfield.planning.station import load_station  # noqa: E402
 from crossfield.planning.sweeps import run_sweeps  # noqa: E402
 from crossfield.plugins.register_svd import SvdRegistrar  # noqa: E402
 from crossfield.plugins.triangulate_epipolar import EpipolarTriangulator  # noqa: E402
-from crossfield.precision import project_stereo, triangulate_batch  # noqa: E402
+from crossfield.planning.routes import camera_model, simulate_sessions  # noqa: E402
+from crossfield.precision import linearised_triangulation, project_stereo, triangulate_batch  # noqa: E402
 from crossfield.rigid import kabsch  # noqa: E402
 from crossfield.types import CentroidSet, StereoCentroids  # noqa: E402
 
@@ -89,10 +95,43 @@ def bench_triangulation(station, frames: int) -> None:
     for s in sets:
         tri.triangulate(s, station.calibration)
     t_plugin = time.perf_counter() - t
+    linear = linearised_triangulation(station.calibration, uv, 0.003)
+    t = time.perf_counter()
+    linear(noisy - uv)
+    t_lin = time.perf_counter() - t
     print(f"points, batched triangulation ({frames * n}): {_rate(frames * n, t_batch)}")
+    print(f"points, linearised triangulation ({frames * n}): {_rate(frames * n, t_lin)}  "
+          f"({t_batch / t_lin:.0f}x the batched kernel)")
     print(f"points, epipolar plugin per frame ({loop * n}):  {_rate(loop * n, t_plugin)}  "
           f"(matching included)")
     print(f"  ratio: {(frames * n / t_batch) / (loop * n / t_plugin):.1f}x")
+
+
+def bench_monte_carlo(station, trials: int, full_trials: int) -> None:
+    model = camera_model(station)
+    F = station.frames
+    t = time.perf_counter()
+    simulate_sessions(station, max(trials // F, 2), np.random.default_rng(2), model)
+    t_lin = time.perf_counter() - t
+    t = time.perf_counter()
+    simulate_sessions(station, max(full_trials // F, 2), np.random.default_rng(2), model, triangulation="full")
+    t_full = time.perf_counter() - t
+    n_lin, n_full = max(trials // F, 2) * F, max(full_trials // F, 2) * F
+    # The registration alone, on the same number of trials (the controls of every trial).
+    T = len(station.target_ids)
+    X = project_stereo(station.calibration, station.camera_xyz)[0]
+    P = station.camera_xyz[T:] + 0.001 * np.random.default_rng(3).standard_normal((n_lin,) + station.control_xyz.shape)
+    Q = station.to_global(station.control_xyz)
+    t = time.perf_counter()
+    for start in range(0, n_lin, 40000):
+        kabsch(P[start : start + 40000], np.broadcast_to(Q, P[start : start + 40000].shape), np.ones(len(Q)))
+    t_reg = time.perf_counter() - t
+    del X
+    print(f"Monte Carlo, linearised triangulation: {n_lin:,} trials in {t_lin:.2f} s ({n_lin / t_lin:,.0f} /s; "
+          f"{len(station.camera_xyz)} points per trial)")
+    print(f"Monte Carlo, full triangulation per trial: {n_full:,} trials in {t_full:.2f} s ({n_full / t_full:,.0f} /s)")
+    print(f"  ratio: {(n_lin / t_lin) / (n_full / t_full):.1f}x; the Kabsch registrations alone take {t_reg:.2f} s "
+          f"of the {t_lin:.2f} s ({100 * t_reg / t_lin:.0f} %)")
 
 
 def bench_sweep(station, sessions: int) -> None:
@@ -119,10 +158,13 @@ def main() -> int:
     parser.add_argument("--loop", type=int, default=5000)
     parser.add_argument("--frames", type=int, default=5000, help="frames for the triangulation benchmark")
     parser.add_argument("--sweep-sessions", type=int, default=300)
+    parser.add_argument("--trials", type=int, default=1_000_000, help="Monte Carlo trials, linearised route")
+    parser.add_argument("--full-trials", type=int, default=50_000, help="Monte Carlo trials, full triangulation")
     args = parser.parse_args()
     station = load_station(EXAMPLE)
     bench_registration(args.batch, args.loop)
     bench_triangulation(station, args.frames)
+    bench_monte_carlo(station, args.trials, args.full_trials)
     bench_sweep(station, args.sweep_sessions)
     return 0
 

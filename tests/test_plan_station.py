@@ -75,6 +75,9 @@ def test_example_station_is_the_papers(paper, scenario):
         (lambda t: t.replace("blur_sigma_px", "blur_px"), "unknown key(s) in [camera]: blur_px"),
         (lambda t: t.replace("count = 8", "count = 2"), "controls.count"),
         (lambda t: t.replace("[cmm]", "[cmm"), "invalid TOML"),
+        (lambda t: t.replace("radius_mm = 2.5", 'radius_mm = 2.5\nbias_model = "drawn"'), "targets.bias_model"),
+        (lambda t: t.replace("radius_mm = 2.5", 'radius_mm = 2.5\nbias_model = "rendered"')
+         .replace("[targets]", 'centroid = "magic"\n\n[targets]'), "camera.centroid': no centroid implementation"),
     ],
 )
 def test_bad_station_files_give_one_clear_error(edit, message):
@@ -228,11 +231,14 @@ def test_report_has_inline_svg_plots_and_json(tmp_path, paper, sweeps):
     assert [c["name"] for c in doc["characteristics"]] == [c.name for c in paper.characteristics]
 
 
-def test_plan_json_cli(capsys):
-    assert main(["plan", "--scenario", "table3", "--json", "--sessions", "200"]) == 0
+def test_plan_json_cli(capsys, scenario):
+    # The station scenario (its rendered bias is cached by the `scenario` fixture's predictions).
+    assert main(["plan", "--scenario", "station", "--json", "--sessions", "200"]) == 0
     doc = json.loads(capsys.readouterr().out)
     names = [c["name"] for c in doc["characteristics"]]
-    assert names == [f"L{k:02d}" for k in range(1, 11)]
+    assert names == [c.name for c in scenario.characteristics] == [
+        "P1-L3", "P2-L3", "P1-P2", "P1-R1", "P1-depth", "P2-depth"]
+    assert doc["bias_model"] == "rendered" and 0.01 < doc["centroid_bias_rms_px"] < 0.04
     for c in doc["characteristics"]:
         assert c["predicted_u_mm"] == c["monte_carlo"]["u_mm"] > 0
         assert c["analytic"]["u_mm"] == pytest.approx(c["predicted_u_mm"], rel=0.2)

@@ -117,6 +117,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
           f"baseline {station.baseline_mm:.1f} mm, distance {station.working_distance_mm:.0f} mm, "
           f"CMM sigma {station.cmm_sigma_mm:g} mm, {station.frames} frames per session)")
     print(f"centroid sigma {prediction['centroid_sigma_px']:.5f} px (CRB {prediction['centroid_crb_px']:.5f} px)")
+    print(f"fixed centroid bias ({prediction['bias_model']}) {prediction['centroid_bias_rms_px']:.5f} px RMS")
     print(f"{'characteristic':16s} {'u analytic':>11s} {'u MC':>9s} {'U (k=' + format(k, 'g') + ')':>9s}  mm")
     for c in prediction["characteristics"]:
         an = c.get("analytic", {}).get("u_mm")

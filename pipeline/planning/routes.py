@@ -13,8 +13,10 @@ per session and does not. So ``u_session^2 = u_cmm^2 + u_camera,frame^2 / frames
   covariance, and 3 sigma_cmm^2 for the CMM), the reference-line fit's linear
   covariance, first-order propagation to each characteristic.
 * :func:`monte_carlo`: sessions simulated through the pipeline's kernels,
-  batched: true centroids plus Gaussian noise of the same sigma, the
-  ``epipolar`` triangulation steps (:func:`crossfield.precision.triangulate_batch`),
+  batched: biased true centroids plus Gaussian noise of the same sigma, the
+  ``epipolar`` triangulation (:func:`crossfield.precision.triangulate_batch`)
+  linearised about the biased true centroids
+  (:func:`crossfield.precision.linearised_triangulation`, exact to second order),
   the CMM control points plus N(0, sigma_cmm^2 I), the weighted Kabsch fit
   (:func:`crossfield.rigid.kabsch`, the runner's weights
   ``1 / (tr Sigma_cam / 3 + sigma_cmm^2)``), the characteristic evaluated per
@@ -22,13 +24,14 @@ per session and does not. So ``u_session^2 = u_cmm^2 + u_camera,frame^2 / frames
   lines are drawn from their fit's linear covariance (the cylinder fit itself
   is not batched).
 
-Both routes also carry the perspective eccentricity of the targets' blob centres
-(:func:`crossfield.imaging.eccentricity.centre_offsets`, the kernel of the
-triangulation's eccentricity correction): a fixed offset of every centroid, the
-same in every frame and session, so a fixed bias of each session result
-(``bias_mm``); the analytic route propagates it linearly, the Monte Carlo adds
-it to the true image positions. ``u_mm`` is the RMS session error
-``sqrt(u_random^2 + bias^2)``.
+Both routes also carry the fixed bias of every centroid (:func:`centroid_bias`):
+rendered (:mod:`crossfield.planning.image_bias`: the simulator's renderer and the
+session's centroid implementation; eccentricity, pixelisation and the centroid's
+own bias) or the perspective eccentricity alone
+(:func:`crossfield.imaging.eccentricity.centre_offsets`), the same in every frame
+and session, so a fixed bias of each session result (``bias_mm``); the analytic
+route propagates it linearly, the Monte Carlo adds it to the true image
+positions. ``u_mm`` is the RMS session error ``sqrt(u_random^2 + bias^2)``.
 
 Lengths mm, angles rad.
 """
@@ -47,9 +50,13 @@ from crossfield.precision.chain import centroid_sigmas, image_radius_px
 from crossfield.precision.registration import (
     fitzpatrick_covariance, fitzpatrick_tre, point_jacobian, registration_covariance,
 )
-from crossfield.precision.stereo import camera_point_covariance, project_stereo, triangulate_batch
+from crossfield.precision.stereo import (
+    camera_point_covariance, linearised_triangulation, project_stereo, triangulate_batch,
+)
 from crossfield.rigid import kabsch
 from crossfield.planning.station import Characteristic, ReferenceLine, Station
+from crossfield.planning.image_bias import rendered_bias
+from crossfield.simulator.render import SensorModel
 
 
 @dataclass(frozen=True)
@@ -68,15 +75,46 @@ class CameraModel:
 
 
 def camera_model(station: Station) -> CameraModel:
+    """The camera side (:class:`CameraModel`): each point's centroid bound from its own image radius
+    and signal (``Station.point_signals``, DN), times the station's centroid efficiency."""
     X = station.camera_xyz
     radius_px = image_radius_px(station.calibration, X, station.camera_normals, np.full(len(X), station.radius_mm))
-    crb = centroid_sigmas(radius_px, station.blur_sigma_px, station.signal_dn, station.background_dn, station.noise)
+    crb = centroid_sigmas(radius_px, station.blur_sigma_px, station.point_signals, station.background_dn,
+                          station.noise)
     sigma = crb * station.centroid_efficiency
     uv, J = project_stereo(station.calibration, X)
-    bias = (centre_offsets(X, station.camera_normals, np.full(len(X), station.radius_mm),
-                           stereo_views(station.calibration))
-            if station.perspective_bias else np.zeros_like(uv))
-    return CameraModel(X, uv, sigma, camera_point_covariance(J, sigma), crb, bias, J)
+    return CameraModel(X, uv, sigma, camera_point_covariance(J, sigma), crb, centroid_bias(station, uv), J)
+
+
+def runner_weights(station: Station, model: CameraModel) -> np.ndarray:
+    """(C,) the runner's registration weights of the controls, ``1 / (tr Sigma_cam / 3 + sigma^2)``
+    (docs/registration.md), sigma the CMM sigma the reference plugin states
+    (``Station.weight_cmm_sigma_mm``; unset: the arm's ``cmm_sigma_mm``)."""
+    T = len(station.target_ids)
+    stated = station.cmm_sigma_mm if station.weight_cmm_sigma_mm is None else station.weight_cmm_sigma_mm
+    return 1.0 / np.maximum(np.trace(model.cov[T:], axis1=1, axis2=2) / 3 + stated**2, 1e-12)
+
+
+def centroid_bias(station: Station, uv: np.ndarray, noise: str = "antithetic") -> np.ndarray:
+    """(M, 4) px: the fixed bias of every centroid (targets then controls) from the projected
+    true centre uv (M, 4) px, by the station's ``bias_model``: ``rendered``
+    (:func:`crossfield.planning.image_bias.rendered_bias`: eccentricity, pixelisation and the
+    centroid's own bias; a point whose blob the centroid does not find keeps the eccentricity
+    model) or ``eccentricity`` (:func:`crossfield.imaging.eccentricity.centre_offsets` alone);
+    zeros when ``perspective_bias`` is off. noise: the rendered image's (``rendered_bias``)."""
+    X = station.camera_xyz
+    if not station.perspective_bias:
+        return np.zeros_like(uv)
+    ecc = centre_offsets(X, station.camera_normals, np.full(len(X), station.radius_mm),
+                         stereo_views(station.calibration))
+    if station.bias_model == "eccentricity":
+        return ecc
+    sensor = SensorModel(station.noise.gain_dn_per_e, station.noise.read_noise_dn, 12, station.blur_sigma_px)
+    rendered = rendered_bias(station.calibration, X, station.camera_normals, station.radius_mm,
+                             station.point_signals, sensor, station.background_dn, uv,
+                             background_seed=station.background_seed, centroid=station.centroid,
+                             noise=noise).bias_uv
+    return np.where(np.isnan(rendered), ecc, rendered)
 
 
 @lru_cache(maxsize=64)
@@ -137,7 +175,7 @@ def analytic(station: Station, model: CameraModel | None = None) -> dict[str, An
     C_cam, g_bar = fitzpatrick_covariance(G, fle_cam)
     C_cmm, _ = fitzpatrick_covariance(G, fle_cmm)
     S_cam = R @ model.cov[T:] @ R.T
-    w = 1.0 / np.maximum(np.trace(model.cov[T:], axis1=1, axis2=2) / 3 + s2, 1e-12)  # the runner's weights
+    w = runner_weights(station, model)
     L_cam, g_w = registration_covariance(G, S_cam, w)
     L_cmm, _ = registration_covariance(G, np.broadcast_to(s2 * np.eye(3), S_cam.shape), w)
     fits = {line.id: line_fit(line, station.cmm_sigma_mm) for line in station.reference_lines}
@@ -261,14 +299,25 @@ def tre_field(station: Station, G: np.ndarray, fle_cam: float, fle_cmm: float, n
 
 def simulate_sessions(
     station: Station, sessions: int, rng: np.random.Generator, model: CameraModel | None = None,
-    chunk: int = 200,
+    chunk: int | None = None, triangulation: str = "linear",
 ) -> np.ndarray:
-    """Session errors (sessions, K) mm of the K characteristics, through the batched kernels."""
+    """Session errors (sessions, K) mm of the K characteristics, through the batched kernels.
+
+    triangulation: ``"linear"`` (default) triangulates every trial by the ML estimator
+    linearised about the biased true image points
+    (:func:`crossfield.precision.linearised_triangulation`: the full kernel once, then a
+    (3 x 4) product per point and trial; second-order error, ~1e-4 of the noise's effect);
+    ``"full"`` runs :func:`crossfield.precision.triangulate_batch` (undistortion, linear
+    triangulation, Gauss-Newton) on every trial. chunk: sessions per batch (None: ~40 000
+    registrations per batch).
+    """
+    if triangulation not in ("linear", "full"):
+        raise ValueError(f"triangulation must be linear or full, got {triangulation!r}")
     model = model or camera_model(station)
     T, F = len(station.target_ids), station.frames
     C = len(station.control_ids)
     sigma = station.cmm_sigma_mm
-    w = 1.0 / np.maximum(np.trace(model.cov[T:], axis1=1, axis2=2) / 3 + sigma**2, 1e-12)  # runner's weights
+    w = runner_weights(station, model)
     truth = np.array([true_value(station, c) for c in station.characteristics])
     index = {tid: k for k, tid in enumerate(station.target_ids)}
     cmm_ids = list(station.control_ids) + list(station.reference_points)
@@ -276,16 +325,23 @@ def simulate_sessions(
     cmm_index = {i: k for k, i in enumerate(cmm_ids)}
     fits = {line.id: line_fit(line, sigma) for line in station.reference_lines}
     out = np.zeros((sessions, len(truth)))
+    chunk = chunk or max(1, 40000 // F)
+    # The centroids are biased off the projected target centres by the fixed bias model.bias_uv
+    # (the same in every frame and session); the noise is new in every frame.
+    uv_biased = model.uv + model.bias_uv
+    linear = linearised_triangulation(station.calibration, uv_biased, model.sigma_uv) \
+        if triangulation == "linear" else None
     for start in range(0, sessions, chunk):
         B = min(chunk, sessions - start)
-        # The centroids estimate the blob centres, which the perspective eccentricity moves off the
-        # projected target centres (a fixed bias, the same in every frame and session).
-        uv = model.uv + model.bias_uv + model.sigma_uv * rng.standard_normal((B, F) + model.uv.shape)
-        X = triangulate_batch(station.calibration, uv, model.sigma_uv)  # (B, F, M, 3)
+        noise = model.sigma_uv * rng.standard_normal((B, F) + model.uv.shape)
+        if linear is not None:
+            X = linear(noise)  # (B, F, M, 3)
+        else:
+            X = triangulate_batch(station.calibration, uv_biased + noise, model.sigma_uv)
         cmm = cmm_true + sigma * rng.standard_normal((B,) + cmm_true.shape)  # (B, P, 3), once per session
         Q = np.broadcast_to(cmm[:, None, :C], (B, F, C, 3))
         R, t, _, _ = kabsch(X[:, :, T:], Q, w)
-        P = np.einsum("bfij,bfnj->bfni", R, X[:, :, :T]) + t[:, :, None, :]  # (B, F, T, 3) global
+        P = X[:, :, :T] @ np.swapaxes(R, -1, -2) + t[:, :, None, :]  # (B, F, T, 3) global: R x + t
         lines = {}
         for lid, fit in fits.items():
             delta = rng.multivariate_normal(np.zeros(4), fit.covariance, size=B, method="cholesky") \
@@ -369,6 +425,8 @@ def predict(
         "characteristics": chars,
         "centroid_crb_px": float(np.mean(model.crb_sigma_uv)),
         "centroid_sigma_px": float(np.mean(model.sigma_uv)),
+        "bias_model": station.bias_model if station.perspective_bias else "none",
+        "centroid_bias_rms_px": float(np.sqrt(np.mean(model.bias_uv**2))),
         "camera_sigma_mm": np.sqrt(np.mean(np.diagonal(model.cov, axis1=1, axis2=2), axis=0)).tolist(),
     }
     if an is not None:

@@ -32,6 +32,8 @@ from crossfield.precision.centroid import NoiseModel
 from crossfield.types import CameraIntrinsics, Line3D, StereoCalibration
 
 KINDS = ("point_point", "point_line", "depth")
+#: How the fixed centroid bias is predicted (``Station.bias_model``, docs/planning.md).
+BIAS_MODELS = ("rendered", "eccentricity")
 
 
 @dataclass(frozen=True)
@@ -86,7 +88,17 @@ class Station:
     control_box: tuple[tuple[float, float, float], tuple[float, float, float]] = ((0, 0, 400), (80, 45, 18))
     source: str = ""
     design: dict[str, float] = field(default_factory=dict)
-    perspective_bias: bool = True  # model the blob centres' perspective eccentricity (imaging.eccentricity)
+    perspective_bias: bool = True  # carry the fixed centroid bias (how: bias_model)
+    #: how the fixed centroid bias is predicted: "rendered" (the simulator's renderer and the session's
+    #: centroid implementation, planning.image_bias) or "eccentricity" (the conic-centre model alone)
+    bias_model: str = "eccentricity"
+    centroid: str = "weighted"  # the session's centroid implementation (for the rendered bias)
+    #: (T + C,) DN above background per point (targets then controls); None: signal_dn for all
+    point_signal_dn: np.ndarray | None = None
+    #: the simulator's vignetted background (its seed, Scene.background_seed); None: flat background_dn
+    background_seed: int | None = None
+    #: the CMM sigma (mm) the reference plugin states, which the runner's weights use; None: cmm_sigma_mm
+    weight_cmm_sigma_mm: float | None = None
 
     @property
     def working_distance_mm(self) -> float:
@@ -104,6 +116,14 @@ class Station:
     @property
     def camera_normals(self) -> np.ndarray:
         return np.vstack([self.target_normal, self.control_normal])
+
+    @property
+    def point_signals(self) -> np.ndarray:
+        """(T + C,) DN above background of every target and control (targets then controls)."""
+        n = len(self.target_ids) + len(self.control_ids)
+        if self.point_signal_dn is not None and len(self.point_signal_dn) == n:
+            return np.asarray(self.point_signal_dn, dtype=np.float64)
+        return np.full(n, float(self.signal_dn))
 
     def to_global(self, xyz_camera: np.ndarray) -> np.ndarray:
         return np.asarray(xyz_camera) @ np.asarray(self.R_global_camera).T + np.asarray(self.t_global_camera)
@@ -166,7 +186,11 @@ def with_controls(station: Station, n: int) -> Station:
         xyz = np.vstack([station.control_xyz, extra])
         normal = np.vstack([station.control_normal, _facing(extra)])
         ids = station.control_ids + tuple(f"C{k + 1}" for k in range(C, n))
-    return dataclasses.replace(station, control_ids=tuple(ids), control_xyz=xyz, control_normal=normal)
+    T = len(station.target_ids)
+    signals = station.point_signals[: T + C]
+    signals = np.concatenate([signals[: T + n], np.full(max(n - C, 0), float(station.signal_dn))])
+    return dataclasses.replace(station, control_ids=tuple(ids), control_xyz=xyz, control_normal=normal,
+                               point_signal_dn=signals)
 
 
 def _scaled_intrinsics(intr: CameraIntrinsics, factor: float) -> CameraIntrinsics:
@@ -235,13 +259,18 @@ def with_cmm_sigma(station: Station, sigma_mm: float) -> Station:
 
 
 def station_from_scenario(
-    name: str, *, arm_sigma_mm: float = 0.01, frames: int = 10, centroid_efficiency: float | None = None
+    name: str, *, arm_sigma_mm: float = 0.01, frames: int = 10, centroid_efficiency: float | None = None,
+    bias_model: str = "rendered", centroid: str = "weighted",
 ) -> Station:
     """The exact geometry of simulator scenario ``name`` (``station``, ``table3``) as a Station.
 
     centroid_efficiency: RMS / CRB of the centroid implementation (None: the
     default measured for the ``weighted`` centroid, :data:`WEIGHTED_CENTROID_EFFICIENCY`).
+    bias_model: ``rendered`` (default: the scenario's own images, its per-target signals and
+    vignetted background, through ``centroid``) or ``eccentricity`` (:data:`BIAS_MODELS`).
     """
+    if bias_model not in BIAS_MODELS:
+        raise ValueError(f"bias_model must be one of {', '.join(BIAS_MODELS)}, got {bias_model!r}")
     from crossfield.simulator.scenarios import (
         BASELINE_MM, FOCAL_LENGTH_MM, PIXEL_PITCH_MM, SCENARIOS, TARGET_RADIUS_MM, build_scene,
     )
@@ -276,6 +305,10 @@ def station_from_scenario(
         control_normal=np.array([t.normal_camera for t in controls]),
         radius_mm=TARGET_RADIUS_MM,
         signal_dn=float(np.mean([t.signal_dn for t in scene.targets])),
+        point_signal_dn=np.array([t.signal_dn for t in targets + controls]),
+        background_seed=scene.background_seed,
+        bias_model=bias_model,
+        centroid=centroid,
         cmm_sigma_mm=float(arm_sigma_mm),
         reference_points={k: np.asarray(v, dtype=np.float64) for k, v in scene.reference_points_global.items()},
         reference_lines=tuple(lines),
@@ -427,6 +460,7 @@ def parse_station(text: str, source: str = "<station>") -> Station:
     blur = cam.number("blur_sigma_px", 0.9, minimum=0.0, strict=True)
     background = cam.number("background_dn", 150.0, minimum=0.0)
     efficiency = cam.number("centroid_efficiency", WEIGHTED_CENTROID_EFFICIENCY, minimum=1.0)
+    centroid = cam.string("centroid", "weighted")
     cam.check_unknown()
 
     # ---- targets and controls (upper camera frame) ------------------------------------------
@@ -439,6 +473,15 @@ def parse_station(text: str, source: str = "<station>") -> Station:
     tg.used.add("perspective_bias")
     if not isinstance(perspective, bool):
         raise ConfigError(f"{source}: key 'targets.perspective_bias' must be true or false, got {perspective!r}")
+    bias_model = tg.string("bias_model", "eccentricity", choices=BIAS_MODELS)
+    if bias_model == "rendered":
+        from crossfield.errors import PluginError
+        from crossfield.planning.image_bias import centroid_implementation
+
+        try:
+            centroid_implementation(centroid)
+        except PluginError as exc:
+            raise ConfigError(f"{source}: key 'camera.centroid': {exc}") from None
     target_ids, target_xyz, target_normal = [], [], []
     for t in tg.tables("point"):
         target_ids.append(t.string("id"))
@@ -533,7 +576,7 @@ def parse_station(text: str, source: str = "<station>") -> Station:
     return Station(
         name=name, calibration=calibration, R_global_camera=R_gc, t_global_camera=t_gc,
         target_ids=tuple(target_ids), target_xyz=target_xyz, target_normal=np.array(target_normal),
-        perspective_bias=perspective,
+        perspective_bias=perspective, bias_model=bias_model, centroid=centroid,
         control_ids=tuple(ids_c), control_xyz=control_xyz, control_normal=_facing(control_xyz),
         radius_mm=radius, signal_dn=signal, cmm_sigma_mm=sigma, reference_points=ref_points,
         reference_lines=tuple(lines), characteristics=tuple(chars), frames=frames, coverage_factor=k,

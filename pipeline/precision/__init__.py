@@ -5,7 +5,8 @@
 * :func:`registration_crb`, :func:`registration_covariance`, :func:`fitzpatrick_tre`,
   :func:`fitzpatrick_covariance`: the rigid registration (6 x 6, rad and mm);
 * :func:`chain_bound`: all of them for a station's points, and the target points in the global frame;
-* :func:`triangulate_batch`: the batched triangulation kernel of the Monte Carlo routes.
+* :func:`triangulate_batch`: the batched triangulation kernel of the Monte Carlo routes, and
+  :func:`linearised_triangulation`: that estimator linearised about one set of image points.
 
 The perspective bias of a circle's blob centre is :mod:`crossfield.imaging.eccentricity`'s.
 """
@@ -20,11 +21,17 @@ from crossfield.precision.registration import (
     registration_covariance,
     registration_crb,
 )
-from crossfield.precision.stereo import camera_point_covariance, project_stereo, triangulate_batch
+from crossfield.precision.stereo import (
+    LinearTriangulation,
+    camera_point_covariance,
+    linearised_triangulation,
+    project_stereo,
+    triangulate_batch,
+)
 
 __all__ = [
-    "CentroidBound", "ChainBound", "NoiseModel", "camera_point_covariance", "centroid_crb", "centroid_sigmas",
-    "chain_bound", "edge_limited_bound", "fitzpatrick_covariance", "fitzpatrick_tre", "global_point_covariance",
-    "image_radius_px", "point_jacobian", "project_stereo", "registration_covariance", "registration_crb",
-    "triangulate_batch",
+    "CentroidBound", "ChainBound", "LinearTriangulation", "NoiseModel", "camera_point_covariance",
+    "centroid_crb", "centroid_sigmas", "chain_bound", "edge_limited_bound", "fitzpatrick_covariance",
+    "fitzpatrick_tre", "global_point_covariance", "image_radius_px", "linearised_triangulation",
+    "point_jacobian", "project_stereo", "registration_covariance", "registration_crb", "triangulate_batch",
 ]
