@@ -97,14 +97,20 @@ def client(
             parse_bytes(memory_limit)
     except ValueError:
         raise ConfigError(f"--memory-limit {memory_limit!r}: a size such as 2GiB or 500MB, or auto") from None
-    cluster = LocalCluster(
-        n_workers=n,
-        threads_per_worker=1,
-        processes=True,
-        memory_limit=memory_limit,
-        dashboard_address=dashboard_address,
-        host="127.0.0.1",
-    )
+    import dask
+
+    # The workers' statistical profiler (a stack sample every 10 ms) cost +40-80 % of a
+    # session task's time here (pure-Python, GIL-bound work): off in the embedded cluster
+    # (bench/bench_batch.py; docs/batch.md "Throughput"). The nannies hand this config on.
+    with dask.config.set({"distributed.worker.profile.enabled": False}):
+        cluster = LocalCluster(
+            n_workers=n,
+            threads_per_worker=1,
+            processes=True,
+            memory_limit=memory_limit,
+            dashboard_address=dashboard_address,
+            host="127.0.0.1",
+        )
     try:
         with Client(cluster) as c:
             yield c
