@@ -572,8 +572,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except CrossfieldError as exc:
         print(f"crossfield: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt as exc:  # a session's SessionInterrupted says where its report is
-        print(f"crossfield: interrupted{': ' + str(exc) if str(exc) else ''}", file=sys.stderr)
+    except KeyboardInterrupt:
+        print("crossfield: interrupted", file=sys.stderr)
         return 130
 
 

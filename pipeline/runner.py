@@ -73,7 +73,6 @@ if TYPE_CHECKING:  # the recording wing is imported when a session records
 __all__ = [
     "SIMULATED_PORT",
     "ReferenceImport",
-    "SessionInterrupted",
     "Stages",
     "control_points",
     "finish_session",
@@ -572,46 +571,26 @@ def run_pipeline(
     accumulator = SessionAccumulator(info.plan, calibration_source=info.calibration.source)
     session_pose = SessionPoseAccumulator()
     failed: str | None = None
-    interrupted = False
-    try:
-        for frame in frames:
-            try:
-                hook.on_frame(frame=frame)
-                result = process_frame(
-                    frame, stages, info.calibration, info.plan, reference, info.ground_truth, hook,
-                    match_tolerance_mm,
-                )
-                hook.on_frame_done(result=result)
-            except RecordingError as exc:  # an observer's recording failed (disk full): no more frames
-                if not recordings:
-                    raise
-                failed = f"the recording failed after {accumulator.frames_processed} frame(s): {exc}"
-                break
-            accumulator.add(result)
-            session_pose.add(result.points, result.registration)
-            t = frame.timestamp_ns
-    except KeyboardInterrupt:  # Ctrl-C while measuring: the frames done are reported, marked incomplete
-        interrupted = True
-        failed = f"interrupted (Ctrl-C) after {accumulator.frames_processed} frame(s)"
+    for frame in frames:
+        try:
+            hook.on_frame(frame=frame)
+            result = process_frame(
+                frame, stages, info.calibration, info.plan, reference, info.ground_truth, hook, match_tolerance_mm
+            )
+            hook.on_frame_done(result=result)
+        except RecordingError as exc:  # an observer's recording failed (disk full): no more frames
+            if not recordings:
+                raise
+            failed = f"the recording failed after {accumulator.frames_processed} frame(s): {exc}"
+            break
+        accumulator.add(result)
+        session_pose.add(result.points, result.registration)
+        t = frame.timestamp_ns
     _log_session_pose(hook, session_pose, reference, info.plan, stages.register, t)
-    summary = finish_session(
+    return finish_session(
         hook, stages, info, reference, accumulator, _joined(incomplete(), failed), recordings=recordings,
         thumbnails=thumbnails(),
     )
-    if interrupted:
-        raise SessionInterrupted(summary)
-    return summary
-
-
-class SessionInterrupted(KeyboardInterrupt):
-    """Ctrl-C during the frames of a session, raised after the session was finished:
-    the recording closed and sealed, the reports written from the frames measured so far
-    and marked INCOMPLETE (``summary.incomplete``). The command then exits 130."""
-
-    def __init__(self, summary: SessionSummary):
-        super().__init__(f"{summary.incomplete}; the report of the frames measured (INCOMPLETE) "
-                         f"and the recording are in {summary.info.out_dir}/")
-        self.summary = summary
 
 
 def _joined(*reasons: str | None) -> str | None:

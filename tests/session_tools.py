@@ -278,3 +278,13 @@ def forge(src: Path, dst: Path, edit_raw: Callable[[bytes], bytes], work: Path, 
                 occurrence[k] = n + 1
                 out.message(spec, r.log_time, derived.get(k + (n,), bytes(r.data)), r.sequence)
     out.close()
+
+
+def sigint_default() -> None:
+    """``preexec_fn`` of a child the test stops with SIGINT / Ctrl-C: restore the default
+    action, so that Python in the child installs its KeyboardInterrupt handler even when the
+    test suite itself was started with SIGINT ignored (a background job of a non-interactive
+    shell, ``nohup``: children inherit SIG_IGN, and Python then leaves SIGINT ignored)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)

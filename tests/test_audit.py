@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 import pytest
-from session_tools import Msg, edit_json, record_session, rewrite_mcap
+from session_tools import Msg, edit_json, record_session, rewrite_mcap, sigint_default
 
 from crossfield.audit import audit, format_report
 from crossfield.cli import main
@@ -294,6 +294,7 @@ def stopped_run(out: Path, name: str, scenario: str, stop: signal.Signals, on_di
         env=env,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
+        preexec_fn=sigint_default,
     )
     path = out / name / "session.mcap"
     deadline = time.monotonic() + 120

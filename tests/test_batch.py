@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 
 import pytest
-from session_tools import Msg, rewrite_mcap
+from session_tools import Msg, rewrite_mcap, sigint_default
 
 from crossfield.batch.report import JSON_NAME, sort_key
 from crossfield.batch.tasks import characteristic_shifts, expanded_uncertainty
@@ -189,7 +189,7 @@ def test_interrupted_batch_leaves_a_partial_report(archive, cluster, tmp_path):
     given = [str(archive / n) for n in GOOD] + [str(archive / "junk.mcap")]
     proc = subprocess.Popen(
         [str(BIN / "crossfield"), "batch", "audit", *given, "-o", str(out), "--scheduler", address, "-q"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, preexec_fn=sigint_default,
     )
     deadline = time.monotonic() + 60
     try:

@@ -45,6 +45,7 @@ from crossfield.camera.calibration_io import read_stereo_calibration
 from crossfield.cli import main
 from crossfield.errors import ConfigError
 from crossfield.simulator.board_views import cached_calibration_views
+from session_tools import sigint_default
 
 N_FILES = 12  # views on disk
 N_TAKEN = 10  # key presses
@@ -278,6 +279,7 @@ class Terminal:
 
         def controlling_tty() -> None:
             fcntl.ioctl(0, termios.TIOCSCTTY, 0)
+            sigint_default()  # Ctrl-C on the terminal must reach Python as KeyboardInterrupt
 
         self.process = subprocess.Popen(
             argv, stdin=slave, stdout=slave, stderr=slave, env=env, start_new_session=True,

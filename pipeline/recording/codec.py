@@ -45,6 +45,7 @@ from crossfield.jsonable import ints, plain, real, reals
 from crossfield.recording.layout import FRAME_CAMERA, FRAME_GLOBAL, JSON_SCHEMAS, META_JSON
 from crossfield.stages import LinkEvent
 from crossfield.types import (
+    BudgetTerm,
     CameraIntrinsics,
     CameraPoints,
     CentroidSet,
@@ -386,6 +387,11 @@ def measurement_doc(measurement: Any) -> dict[str, Any]:
                 "uncertainty_mm": real(c.uncertainty_mm),
                 "actual_mm": real(c.actual_mm),
                 "error_mm": real(c.error_mm),
+                "budget": [
+                    {"source": t.source, "u": real(t.u), "unit": t.unit, "sensitivity": real(t.sensitivity),
+                     "u_mm": real(t.u_mm)}
+                    for t in c.budget
+                ],
             }
             for c in measurement.characteristics
         ],
@@ -602,6 +608,11 @@ def measurement(doc: Mapping[str, Any]) -> Measurement:
                 actual_mm=optional(c.get("actual_mm")),
                 error_mm=optional(c.get("error_mm")),
                 elements=tuple(str(e) for e in c.get("elements", ())),
+                budget=tuple(  # absent in recordings made before budgets were recorded
+                    BudgetTerm(str(t["source"]), _nan(t["u"]), str(t["unit"]), _nan(t["sensitivity"]),
+                               _nan(t["u_mm"]))
+                    for t in c.get("budget", ())
+                ),
             )
             for c in doc["characteristics"]
         ),

@@ -177,7 +177,7 @@ def log_recording(mcap_path: str | Path, logger: RerunLogger) -> SessionSummary:
     info = info_from_facts(facts)
     logger.on_session_start(session=info)
     reference = ReferenceData(points=())
-    accumulator = SessionAccumulator(info.plan)  # bounded, as in a live session
+    accumulator = SessionAccumulator(info.plan, calibration_source=info.calibration.source)  # as live
     for kind, payload in _events(recording, logger):
         if kind == "reference":
             reference = payload
