@@ -48,7 +48,7 @@ def scene():
     return build_scene("camera-limited")
 
 
-@pytest.mark.parametrize("tilt_deg", [0.0, 30.0, 60.0])
+@pytest.mark.parametrize("tilt_deg", [0.0, 60.0])  # the ends of the range (each case renders 8 discs)
 def test_blob_centre_offsets_match_the_exact_rendering(tilt_deg, scene):
     """Strong tilts (up to 60 deg), large targets, the camera-limited scene's distorted lenses."""
     cal = scene.calibration
