@@ -587,23 +587,45 @@ def audit(
     require_session(rec)
     integrity = verify(path)
     prov = provenance(path, pm)
-    if reproduce:
-        repro = reproduction(path, pm)
+    return _checked(
+        path, rec, integrity, prov, (lambda p: reproduction(p, pm)) if reproduce else None,
+        lambda: prov.get("result") is not None, incomplete_reason, "session", expect_head, public_key,
+    )
+
+
+def _checked(
+    path: Path,
+    rec: Any,
+    integrity: Any,
+    prov: dict[str, Any],
+    reproduction_of: Callable[[Path], dict[str, Any]] | None,
+    ended: Callable[[], bool],
+    why_incomplete: Callable[[AuditReport], str],
+    kind: str,
+    expect_head: str | None,
+    public_key: str | Path | None,
+) -> AuditReport:
+    """The report shared by every kind of audit, after the chain (``integrity``) and the
+    provenance: the reproduction (None: not run, --no-replay), the file digest, the seal;
+    complete when the file was finished, its chain is whole and ``ended()``; an
+    incomplete one gets the note ``why_incomplete(report)``."""
+    if reproduction_of is not None:
+        repro = reproduction_of(path)
     else:
         repro = {"passed": False, "skipped": "not run (--no-replay)", "differences": []}
     digest = file_sha256(path)
-    ended = prov.get("result") is not None
     report = AuditReport(
         path=str(path),
         file_sha256=digest,
-        complete=rec.complete and integrity.complete and ended,
+        complete=rec.complete and integrity.complete and ended(),
         integrity=integrity,
         provenance=prov,
         reproduction=repro,
         seal=seal_check(path, integrity, digest, expect_head=expect_head, public_key=public_key),
+        kind=kind,
     )
     if not report.complete:
-        report.notes.append(f"INCOMPLETE recording: {incomplete_reason(report)}")
+        report.notes.append(f"INCOMPLETE recording: {why_incomplete(report)}")
     return report
 
 
@@ -634,29 +656,18 @@ def audit_recording(
         raise RecordingError(f"{path}: not a crossfield {kind} recording (profile {rec.profile!r})")
     integrity = verify(path)
     prov = provenance_of(path)
-    if reproduce:
-        repro = reproduction_of(path)
-    else:
-        repro = {"passed": False, "skipped": "not run (--no-replay)", "differences": []}
-    digest = file_sha256(path)
-    try:
-        has_result = any(True for _ in rec.messages(result_topic, decode=False))
-    except RecordingError:
-        has_result = False
-    report = AuditReport(
-        path=str(path),
-        file_sha256=digest,
-        complete=rec.complete and integrity.complete and has_result,
-        integrity=integrity,
-        provenance=prov,
-        reproduction=repro,
-        seal=seal_check(path, integrity, digest, expect_head=expect_head, public_key=public_key),
-        kind=kind,
+
+    def has_result() -> bool:
+        try:
+            return any(True for _ in rec.messages(result_topic, decode=False))
+        except RecordingError:
+            return False
+
+    return _checked(
+        path, rec, integrity, prov, reproduction_of if reproduce else None, has_result,
+        lambda report: integrity.ends if not integrity.complete else f"no {result_topic} message",
+        kind, expect_head, public_key,
     )
-    if not report.complete:
-        why = integrity.ends if not integrity.complete else f"no {result_topic} message"
-        report.notes.append(f"INCOMPLETE recording: {why}")
-    return report
 
 
 def incomplete_reason(report: AuditReport) -> str:
