@@ -10,7 +10,6 @@ import argparse
 import contextlib
 import sys
 import tempfile
-import tomllib
 from pathlib import Path
 
 from crossfield.errors import ConfigError
@@ -138,19 +137,12 @@ def add_parsers(command) -> dict:
 
 
 def _board_and_settings(path: str | None, distortion: str | None):
-    from crossfield.camera.boards import Board, board_from_dict
+    from crossfield.camera.boards import Board, board_from_dict, read_board_file
     from crossfield.camera.calibrate import CalibrationSettings, settings_from_dict
 
     board, settings = Board(), CalibrationSettings()
     if path:
-        try:
-            data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise ConfigError(f"{path}: board file not found") from None
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError(f"{path}: not valid TOML: {exc}") from None
-        if not isinstance(data.get("board"), dict):
-            raise ConfigError(f"{path}: no [board] table")
+        data = read_board_file(path)
         board = board_from_dict(data["board"], path)
         settings = settings_from_dict(data.get("calibration", {}), path)
     if distortion:

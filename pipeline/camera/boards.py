@@ -198,8 +198,9 @@ def board_from_dict(data: dict[str, Any], source: str = "<board>") -> Board:
     return Board(**values)
 
 
-def load_board(path: str | Path) -> Board:
-    """Read ``[board]`` from a TOML file (see the module docstring for the keys)."""
+def read_board_file(path: str | Path) -> dict:
+    """The TOML document of a board file, checked to hold a ``[board]`` table (its other
+    tables, e.g. ``[calibration]``, are the caller's); a :class:`ConfigError` naming the file."""
     path = Path(path)
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
@@ -209,7 +210,12 @@ def load_board(path: str | Path) -> Board:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
     if not isinstance(data.get("board"), dict):
         raise ConfigError(f"{path}: no [board] table")
-    return board_from_dict(data["board"], str(path))
+    return data
+
+
+def load_board(path: str | Path) -> Board:
+    """Read ``[board]`` from a TOML file (see the module docstring for the keys)."""
+    return board_from_dict(read_board_file(path)["board"], str(path))
 
 
 def board_toml(board: Board) -> str:
