@@ -13,15 +13,15 @@ configuration below processes the *same* images and CMM probes:
   over the session's frames.
 * ``default``: crossfield's built-in defaults (centroid "weighted",
   triangulate "epipolar", register "svd" with the runner's weights, measure "plan").
-* ``+modelfit``: centroid "modelfit" (psf_order "pixel", the simulator's
-  rendering order), eccentricity correction off.
+* ``+modelfit``: centroid "modelfit" (its default, optical, PSF order: the
+  simulator's), eccentricity correction off.
 * ``+eccentricity``: the same with the eccentricity correction.
 * ``+ml``: and register "ml" (full covariances).
 * ``+session``: and the joint session pose (all frames, static station,
   :mod:`crossfield.session_registration`) with the frames' mean camera points.
 
 Figures: centroid RMS / CRB (the CRB from the Fisher information of the
-simulator's own rendering, boundary-flux derivatives as tests/crb_tools.py),
+simulator's own rendering: its exact translation derivatives),
 camera-point RMS error (camera frame), target-point RMS error (global frame,
 per session), its ratio to the CRB of the chain (centroid CRB -> ML
 triangulation -> ML registration with the arm sigma -> target point, for the
@@ -70,41 +70,18 @@ CONFIGS = ("opencv", "default", "+modelfit", "+eccentricity", "+ml", "+session")
 
 def centroid_fisher(scene, camera: str) -> dict[str, np.ndarray]:
     """Target id -> (2, 2) Fisher information (px^-2) of its blob centre in ``camera``:
-    translation derivatives by the boundary flux of the exact rendered rim, blurred like
-    the renderer, amplitude and background as nuisance parameters."""
-    intr = scene.calibration.camera(camera)
+    the translation derivatives of the simulator's own rendering (exact PSF and pixel
+    integration, ``DiscImage.gradient``), amplitude and background as nuisance parameters."""
     clean = scene.clean_images[camera]
     sensor = scene.sensor
-    R = np.eye(3) if camera == "upper" else scene.calibration.R_lower_upper
     out = {}
     for t in scene.targets:
         disc = scene._discs[camera].get(t.id)
         if disc is None:
             continue
-        c = scene.to_camera(camera, t.centre_camera[None])[0]
-        n = R @ t.normal_camera
-        helper = np.array([1.0, 0, 0]) if abs(n[0]) < 0.9 else np.array([0, 1.0, 0])
-        e1 = np.cross(n, helper)
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(n, e1)
-        phi = (np.arange(20000) + 0.5) * (2 * np.pi / 20000)
-        rim = project(c + t.radius_mm * (np.outer(np.cos(phi), e1) + np.outer(np.sin(phi), e2)), intr)
-        seg = np.roll(rim, -1, axis=0) - rim
-        mid = rim + 0.5 * seg
-        area = 0.5 * np.sum(rim[:, 0] * np.roll(rim[:, 1], -1) - np.roll(rim[:, 0], -1) * rim[:, 1])
-        nds = np.column_stack([seg[:, 1], -seg[:, 0]]) * np.sign(area)  # outward normal * ds
         u0, v0 = disc.origin
-        h, w = disc.coverage.shape
-        col = np.rint(mid[:, 0]).astype(int) - u0
-        row = np.rint(mid[:, 1]).astype(int) - v0
-        ok = (row >= 0) & (row < h) & (col >= 0) & (col < w)
-        derivs = []
-        for k in range(2):
-            dc = np.zeros((h, w))
-            np.add.at(dc, (row[ok], col[ok]), nds[ok, k])
-            derivs.append(t.signal_dn * cv2.GaussianBlur(dc.astype(np.float32), (0, 0), sensor.blur_sigma_px).astype(np.float64))
-        blob = cv2.GaussianBlur(disc.coverage.astype(np.float32), (0, 0), sensor.blur_sigma_px).astype(np.float64)
-        derivs += [blob, np.ones((h, w))]
+        h, w = disc.image.shape
+        derivs = [t.signal_dn * disc.gradient[0], t.signal_dn * disc.gradient[1], disc.image, np.ones((h, w))]
         mu = clean[v0 : v0 + h, u0 : u0 + w].astype(np.float64)
         var = mu * sensor.gain_dn_per_e + sensor.read_noise_dn**2 + 1.0 / 12.0
         D = np.stack([d.ravel() for d in derivs])
@@ -303,7 +280,7 @@ def main(argv=None) -> int:
     impl = {s: implementations(pm, s) for s in ("centroid", "triangulate", "register", "measure")}
     stages = {
         "weighted": impl["centroid"]["weighted"].create({}),
-        "modelfit": impl["centroid"]["modelfit"].create({"psf_order": "pixel"}),
+        "modelfit": impl["centroid"]["modelfit"].create({}),
         "tri_plain": impl["triangulate"]["epipolar"].create({"eccentricity": False}),
         "tri_ecc": impl["triangulate"]["epipolar"].create({}),
         "svd": impl["register"]["svd"].create({}),

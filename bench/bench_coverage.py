@@ -19,7 +19,7 @@ stated for the eccentricity term (``[uncertainty] target_radius``, ``max_tilt_de
 2.5 mm / 20 deg on station and table3, 1.5 mm / 25 deg on camera-limited;
 ``--target-radius 0`` states none). ``--plugins camera`` runs the configuration
 ``docs/accuracy.md`` recommends for camera-dominated stations (centroid
-``modelfit``, ``psf_order = "pixel"`` for the simulator's images, the ``epipolar``
+``modelfit``, the ``epipolar``
 eccentricity correction with its residual covariance, register ``ml``) and states
 ``eccentricity_corrected = true`` in the plan. Results as one JSON line per
 session (``--jsonl``, appended: a run stopped early still counts) and a table.
@@ -52,7 +52,7 @@ from crossfield.simulator import scenarios  # noqa: E402
 PLUGINS = {
     "default": {},
     "camera": {
-        "centroid": {"plugin": "modelfit", "psf_order": "pixel"},
+        "centroid": {"plugin": "modelfit"},
         "triangulate": {"plugin": "epipolar", "eccentricity": True},
         "register": {"plugin": "ml"},
     },

@@ -115,6 +115,9 @@ class ModelFitCentroids:
             start[:, 2:5] = shape_from_moments(moments[:, 0], moments[:, 1], moments[:, 2], sigma_e)
             band = (start[:, 2:5], INSIDE_SIGMAS * sigma_e, OUTSIDE_SIGMAS * sigma_e)
             du, dv, values, mask = pack_stacks(stacks, seeds, np.float32, band)
+            # the ring's background plane, less its level: the model's B is the level at the seed
+            slope = np.concatenate([st.background_gradient for st in stacks]).astype(np.float32)
+            values -= slope[:, :1] * du + slope[:, 1:] * dv
             start[:, 5] = np.concatenate([st.peak_dn for st in stacks])
             start[:, 6] = np.concatenate([st.background_dn for st in stacks])
             fit = fit_discs(

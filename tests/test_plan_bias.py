@@ -73,7 +73,7 @@ def test_planner_bias_is_the_pipelines_error_on_a_noise_free_session(station, no
     epipolar triangulation, weighted SVD registration, measurement): its errors are the fixed
     biases. The planner's rendered bias, propagated linearly (analytic) and through the Monte Carlo's
     kernels without noise, predicts every one to 0.0001 mm; the eccentricity model alone is off by
-    up to ~0.0014 mm (P1-depth)."""
+    up to ~0.0007 mm (P2-depth: the weighted centroid's own bias, 0.002-0.003 px RMS)."""
     data = {
         "session": {"output_dir": str(tmp_path), "name": "noise-free", "record": False, "rerun": False},
         "acquire": {"plugin": "simulator", "scenario": "station", "frames": 2, "seed": 1, "arm_sigma_mm": 0.0},
@@ -89,8 +89,8 @@ def test_planner_bias_is_the_pipelines_error_on_a_noise_free_session(station, no
     eccentric = {c["name"]: c["bias_mm"]
                  for c in analytic(dataclasses.replace(station, bias_model="eccentricity"))["characteristics"]}
     assert set(actual) == set(predicted)
-    assert max(abs(v) for v in actual.values()) > 0.001  # P1-P2, P1-L3, P2-L3: ~0.0014 mm
+    assert max(abs(v) for v in actual.values()) > 0.001  # P1-P2, P2-L3, P1-depth: 0.0012-0.0017 mm
     for k, c in enumerate(station.characteristics):
         assert predicted[c.name] == pytest.approx(actual[c.name], abs=1e-4), c.name
         assert mc[k] == pytest.approx(actual[c.name], abs=1e-4), c.name
-    assert max(abs(eccentric[n] - actual[n]) for n in actual) > 1e-3
+    assert max(abs(eccentric[n] - actual[n]) for n in actual) > 5e-4

@@ -44,8 +44,6 @@ from crossfield.types import StereoCalibration
 
 __all__ = ["RenderedBias", "antithetic_pair", "centroid_implementation", "rendered_bias"]
 
-#: Sub-samples per pixel and axis of the disc coverage (the simulator's default).
-SUPERSAMPLE = 8
 #: A found centroid is the point's when it is within this many px of the projected centre.
 MATCH_RADIUS_PX = 3.0
 
@@ -72,7 +70,7 @@ def _images(calibration: StereoCalibration, X: np.ndarray, normals: np.ndarray, 
         Xc, nc = (X, normals) if cam == "upper" else (X @ R.T + t, normals @ R.T)
         discs = []
         for k in range(len(X)):
-            disc = render_disc(Xc[k], nc[k], radius_mm, intr, supersample=SUPERSAMPLE)
+            disc = render_disc(Xc[k], nc[k], radius_mm, intr, sensor.blur_sigma_px)  # the simulator's rendering
             if disc is not None:
                 discs.append((disc, float(signals[k])))
         w, h = intr.image_size
@@ -81,7 +79,7 @@ def _images(calibration: StereoCalibration, X: np.ndarray, normals: np.ndarray, 
         else:  # the simulator's vignetted background, drawn as Scene.clean_images draws it
             background = background_image((w, h), background_dn,
                                           np.random.default_rng(background_seed + (cam == "lower")))
-        out[cam] = compose_clean_image((w, h), discs, background, sensor.blur_sigma_px)
+        out[cam] = compose_clean_image((w, h), discs, background)
     return out
 
 

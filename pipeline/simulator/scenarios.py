@@ -329,9 +329,6 @@ def _camera_limited_scene(arm_sigma_mm: float, layout_seed: int) -> "Scene":
         cylinders=(cylinder,),
         plan=None,  # type: ignore[arg-type]  # set below, needs the truth
         arm_sigma_mm=arm_sigma_mm,
-        # the blob's edge quantised to 1/16 px: its centre within ~1.5e-3 px of the exact ellipse's
-        # (1/8 px moves it by ~0.003 px, of the order of the eccentricity this scene is about)
-        supersample=16,
     )
     scene.plan = parse_plan(_plan_text(scene, name, rng), f"<scenario {name}>")
     return scene

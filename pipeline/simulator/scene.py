@@ -69,7 +69,6 @@ class Scene:
     probe_diameter_mm: float = 3.0
     frame_rate_hz: float = 14.0
     background_seed: int = 7
-    supersample: int = 8  # sub-samples per pixel and axis of the target rendering
 
     # ---- geometry ------------------------------------------------------
 
@@ -107,7 +106,7 @@ class Scene:
             for t in self.targets:
                 disc = render_disc(
                     self.to_camera(cam, t.centre_camera[None])[0], R @ t.normal_camera, t.radius_mm, intr,
-                    supersample=self.supersample,
+                    self.sensor.blur_sigma_px,
                 )
                 if disc is not None:
                     out[cam][t.id] = disc
@@ -132,7 +131,7 @@ class Scene:
             background = background_image(size, self.background_dn, rng)
             signals = {t.id: t.signal_dn for t in self.targets}
             discs = [(d, signals[k]) for k, d in self._discs[cam].items()]
-            images[cam] = compose_clean_image(size, discs, background, self.sensor.blur_sigma_px)
+            images[cam] = compose_clean_image(size, discs, background)
         return images
 
     def render_pair(self, sequence: int, rng: np.random.Generator, timestamp_ns: int = 0) -> StereoFrame:
