@@ -11,12 +11,14 @@ configuration below processes the *same* images and CMM probes:
   to it from the truth; ``cv2.undistortPoints`` + ``cv2.triangulatePoints``;
   unweighted Kabsch (:func:`crossfield.rigid.kabsch`); target points averaged
   over the session's frames.
-* ``default``: crossfield's built-in defaults (centroid "weighted",
-  triangulate "epipolar", register "svd" with the runner's weights, measure "plan").
+* ``weighted``: the defaults before issue 11 (centroid "weighted", triangulate
+  "epipolar", register "svd" with the runner's weights, measure "plan").
 * ``+modelfit``: centroid "modelfit" (its default, optical, PSF order: the
   simulator's), eccentricity correction off.
 * ``+eccentricity``: the same with the eccentricity correction.
 * ``+ml``: and register "ml" (full covariances).
+* ``default``: crossfield's built-in defaults (:data:`crossfield.config.DEFAULT_PLUGINS`,
+  default options): today the same stages as ``+ml``.
 * ``+session``: and the joint session pose (all frames, static station,
   :mod:`crossfield.session_registration`) with the frames' mean camera points.
 
@@ -44,12 +46,12 @@ sys.path.insert(0, str(ROOT))
 
 from crossfield.imaging.blobs import estimate_background  # noqa: E402
 from crossfield.camera.stereo_model import project_pair, stereo_geometry  # noqa: E402
+from crossfield.config import DEFAULT_PLUGINS  # noqa: E402
 from crossfield.covariance import skew  # noqa: E402
 from crossfield.registry import implementations, make_plugin_manager  # noqa: E402
 from crossfield.rigid import kabsch  # noqa: E402
 from crossfield.runner import register_frame  # noqa: E402
 from crossfield.session_registration import SessionPoseAccumulator  # noqa: E402
-from crossfield.simulator.optics import project  # noqa: E402
 from crossfield.simulator.scenarios import build_scene  # noqa: E402
 from crossfield.types import (  # noqa: E402
     CAMERAS,
@@ -62,7 +64,16 @@ from crossfield.types import (  # noqa: E402
     StereoCentroids,
 )
 
-CONFIGS = ("opencv", "default", "+modelfit", "+eccentricity", "+ml", "+session")
+CONFIGS = ("opencv", "weighted", "+modelfit", "+eccentricity", "+ml", "default", "+session")
+#: configuration -> its (centroid, triangulate, register) stages (keys of main's ``stages``)
+SETUP = {
+    "weighted": ("weighted", "tri_plain", "svd"),
+    "+modelfit": ("modelfit", "tri_plain", "svd"),
+    "+eccentricity": ("modelfit", "tri_ecc", "svd"),
+    "+ml": ("modelfit", "tri_ecc", "ml"),
+    "default": ("default_centroid", "default_triangulate", "default_register"),
+    "+session": ("modelfit", "tri_ecc", "ml"),
+}
 
 
 # ------------------------------------------------------------------ CRB of the chain
@@ -213,9 +224,7 @@ def run_session(scene, stages, seed: int, frames: int, fisher, cmm_sigma: float)
 
     # ---- crossfield configurations (centroids shared where the configuration is the same)
     for name in [c for c in CONFIGS if c != "opencv"]:
-        centroid = stages["weighted"] if name == "default" else stages["modelfit"]
-        tri = stages["tri_plain"] if name in ("default", "+modelfit") else stages["tri_ecc"]
-        reg = stages["ml"] if name in ("+ml", "+session") else stages["svd"]
+        centroid, tri, reg = (stages[key] for key in SETUP[name])
         per_frame_points = []
         for frame in images:
             sc = StereoCentroids(frame.sequence, *(centroid.extract(frame.image(cam), cam, frame.sequence) for cam in CAMERAS))
@@ -287,6 +296,8 @@ def main(argv=None) -> int:
         "ml": impl["register"]["ml"].create({}),
         "measure": impl["measure"]["plan"].create({}),
     }
+    for stage, key in (("centroid", "default_centroid"), ("triangulate", "default_triangulate"), ("register", "default_register")):
+        stages[key] = impl[stage][DEFAULT_PLUGINS[stage]].create({})
     t0 = time.perf_counter()
     fisher = {cam: centroid_fisher(scene, cam) for cam in CAMERAS}
     crb = chain_crb(scene, fisher, args.frames, cmm_sigma)

@@ -13,7 +13,7 @@ A TOML file (``docs/config.md``)::
     scenario = "table3"
 
     [centroid]
-    plugin = "weighted"
+    plugin = "modelfit"
     ...
 
 Stage options are checked against the implementation's factory signature
@@ -34,10 +34,10 @@ from crossfield.stages import STAGES
 
 DEFAULT_PLUGINS: dict[str, str] = {
     "acquire": "simulator",
-    "centroid": "weighted",
+    "centroid": "modelfit",
     "triangulate": "epipolar",
     "reference": "romer-serial",
-    "register": "svd",
+    "register": "ml",
     "measure": "plan",
     "report": "html",
 }

@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 from session_tools import Msg, edit_json, record_session, rewrite_mcap, sigint_default
 
+from crossfield.config import DEFAULT_PLUGINS
 from crossfield.audit import audit, format_report
 from crossfield.cli import main
 from crossfield.recording.integrity import GENESIS, INTEGRITY_FORMAT, verify
@@ -52,7 +53,7 @@ def test_untouched_recording_passes(recorded):
     assert prov["plan"]["sha256"] == prov["session"]["plan_sha256"]
     assert prov["calibration"]["recorded_sha256"] == prov["calibration"]["sha256"]
     assert prov["machine"]["hostname"] and prov["machine"]["cpu_count"] >= 1
-    assert prov["plugins"]["centroid"]["name"] == "weighted" and prov["packages"]["numpy"]
+    assert prov["plugins"]["centroid"]["name"] == DEFAULT_PLUGINS["centroid"] and prov["packages"]["numpy"]
     repro = report.reproduction
     assert repro["passed"] and repro["differences"] == [] and repro["only_recorded"] == []
     assert repro["messages_identical"] == repro["messages_compared"] > 30
@@ -265,7 +266,7 @@ def test_audit_of_a_replay_names_the_parent(recorded, tmp_path):
     report = audit(summary.info.out_dir / "session.mcap", make_plugin_manager())
     assert report.passed
     text = format_report(report)
-    assert f"replay of {recorded.resolve()}" in text and "changed register: svd -> horn" in text
+    assert f"replay of {recorded.resolve()}" in text and f"changed register: {DEFAULT_PLUGINS['register']} -> horn" in text
 
 
 # --------------------------------------------------------------------------

@@ -7,6 +7,7 @@ import json
 import pytest
 from session_tools import edit_json, record_session, rewrite_mcap
 
+from crossfield.config import DEFAULT_PLUGINS
 from crossfield.cli import main
 from crossfield.compare import compare, format_table
 from crossfield.recording.reader import open_recording
@@ -92,10 +93,10 @@ def test_swapped_centroids_show_their_differences(sessions, capsys):
         assert abs(c["delta_mm"]) < 0.01
     session = result["registration"]["session"]
     assert 0 < session["rotation_diff_rad"] < 1e-3 and 0 < session["translation_diff_mm"] < 0.1
-    assert result["b"]["parent"]["changed"]["plugins"] == {"centroid": {"from": "weighted", "to": "ellipse"}}
+    assert result["b"]["parent"]["changed"]["plugins"] == {"centroid": {"from": DEFAULT_PLUGINS["centroid"], "to": "ellipse"}}
     assert main(["compare", str(original), str(ellipse)]) == 1
     text = capsys.readouterr().out
-    assert "weighted 0.1.0" in text and "ellipse 0.1.0" in text and "<- differs" in text
+    assert f"{DEFAULT_PLUGINS['centroid']} 0.1.0" in text and "ellipse 0.1.0" in text and "<- differs" in text
     assert "difference(s):" in text and "plugins.centroid" in text
     assert main(["compare", str(original), str(ellipse), "--json"]) == 1
     assert json.loads(capsys.readouterr().out)["differences"] == result["differences"]

@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 from session_tools import record_session
 
+from crossfield.config import DEFAULT_PLUGINS
 from crossfield.errors import PluginError
 from crossfield.recording.reader import open_recording
 from crossfield.registry import make_plugin_manager
@@ -102,7 +103,7 @@ def test_replay_and_audit_with_the_entry_point_plugin(site, recorded, tmp_path):
         site, "replay", str(recorded), "--centroid", "squared", "-o", str(out), "-q", "--no-rerun"
     )
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert "centroid: weighted -> squared" in proc.stdout and "Result: PASS" in proc.stdout
+    assert f"centroid: {DEFAULT_PLUGINS['centroid']} -> squared" in proc.stdout and "Result: PASS" in proc.stdout
     with open_recording(out) as rec:
         plugin = rec.metadata_doc("crossfield.plugins")["centroid"]
         methods = {m.decoded["method"] for m in rec.messages("/centroids/upper")}
@@ -114,7 +115,7 @@ def test_replay_and_audit_with_the_entry_point_plugin(site, recorded, tmp_path):
         "0.1.0",
     )
     assert methods == {"squared"}
-    assert parent["changed"]["plugins"] == {"centroid": {"from": "weighted", "to": "squared"}}
+    assert parent["changed"]["plugins"] == {"centroid": {"from": DEFAULT_PLUGINS["centroid"], "to": "squared"}}
     assert all(abs(c["error_mm"]) < 0.05 for c in report["characteristics"])
     # the audit (with the plugin installed) reproduces the replay's results exactly
     audit = crossfield(site, "audit", str(out), "--json")

@@ -78,6 +78,9 @@ def test_planner_bias_is_the_pipelines_error_on_a_noise_free_session(station, no
         "session": {"output_dir": str(tmp_path), "name": "noise-free", "record": False, "rerun": False},
         "acquire": {"plugin": "simulator", "scenario": "station", "frames": 2, "seed": 1, "arm_sigma_mm": 0.0},
         "reference": {"plugin": "romer-serial", "port": "simulator"},
+        # the pipeline the planner models (docs/planning.md): not the defaults since issue 11
+        "centroid": {"plugin": "weighted"},
+        "register": {"plugin": "svd"},
     }
     source = NoiseFreeSimulator(scenario="station", frames=2, seed=1, arm_sigma_mm=0.0)
     source.scene = scene  # the same scene (its images rendered once for both tests)

@@ -11,6 +11,7 @@ import pytest
 from mcap.writer import Writer
 from session_tools import record_session, report_numbers
 
+from crossfield.config import DEFAULT_PLUGINS
 from crossfield.cli import main
 from crossfield.errors import ConfigError
 from crossfield.recording.integrity import file_sha256
@@ -122,13 +123,13 @@ def test_replay_with_each_implementation_stays_within_tolerance(recorded, tmp_pa
     truth = summary.info.ground_truth
     centre = np.array([0.0, 25.0, 400.0])
     for reg in summary.registrations:
-        assert reg.fit.method == (name if stage == "register" else "svd")
+        assert reg.fit.method == (name if stage == "register" else DEFAULT_PLUGINS["register"])
         dR = reg.fit.R @ truth.R_global_camera.T
         assert math.acos(min(1.0, (np.trace(dR) - 1) / 2)) < POSE_ANGLE_RAD
         moved = reg.fit.R @ centre + reg.fit.t - (truth.R_global_camera @ centre + truth.t_global_camera)
         assert np.linalg.norm(moved) < POSE_CENTRE_MM
     changed = summary.info.parent["changed"]
-    recorded_name = {"centroid": "weighted", "register": "svd"}[stage]
+    recorded_name = DEFAULT_PLUGINS[stage]
     assert changed["plugins"] == (
         {} if name == recorded_name else {stage: {"from": recorded_name, "to": name}}
     )
@@ -151,7 +152,7 @@ def test_swapped_plugin_and_option_are_recorded_as_changes(recorded, tmp_path):
         assert rec.metadata_doc("crossfield.plugins")["centroid"]["name"] == "ellipse"
         centroids = [m.decoded for m in rec.messages("/centroids/upper")]
     assert parent["changed"] == {
-        "plugins": {"centroid": {"from": "weighted", "to": "ellipse"}},
+        "plugins": {"centroid": {"from": DEFAULT_PLUGINS["centroid"], "to": "ellipse"}},
         # null: the key was not set, the plugin's default applied
         "options": {"measure.registration_uncertainty": {"from": None, "to": False}},
     }
@@ -176,7 +177,7 @@ def test_cli_replay(recorded, tmp_path, capsys):
     out = tmp_path / "cli.mcap"
     assert main(["replay", str(path), "--register", "horn", "-o", str(out), "-q", "--no-rerun"]) == 0
     text = capsys.readouterr().out
-    assert f"replay of {path.resolve()}" in text and "register: svd -> horn" in text
+    assert f"replay of {path.resolve()}" in text and f"register: {DEFAULT_PLUGINS['register']} -> horn" in text
     assert "Result: PASS" in text and out.exists()
 
 

@@ -10,7 +10,7 @@ import pytest
 from crossfield.audit import audit, format_report
 from crossfield.camera.calibration_io import write_stereo_calibration
 from crossfield.cli import main
-from crossfield.config import load_config
+from crossfield.config import DEFAULT_PLUGINS, load_config
 from crossfield.errors import CrossfieldError
 from crossfield.registry import get_implementation, make_plugin_manager
 from crossfield.simulator.scale_bar import bar_scene, scale_bar_positions
@@ -98,7 +98,7 @@ def test_verify_records_and_re_evaluates_from_the_recording(tmp_path, capsys):
     recorded = read_verification_recording(mcap)
     assert [n for n, _ in recorded.named_frames] == [p.name for p in scale_bar_positions()]
     assert recorded.certified_mm == 100.0 and recorded.mpe_mm == 0.05
-    assert recorded.stages["centroid"]["plugin"] == "weighted"
+    assert recorded.stages["centroid"]["plugin"] == DEFAULT_PLUGINS["centroid"]
     # auditable like a session: chain, seal, and the positions evaluated again bit for bit
     report = audit(mcap, make_plugin_manager(), expect_head=integrity.chain_sha256)
     assert report.kind == "verification" and report.passed, format_report(report)
