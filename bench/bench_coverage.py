@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/bench_coverage.py --scenario table3 --sessions 200 --jsonl cov/table3.jsonl
     .venv/bin/python bench/bench_coverage.py --scenario station --arm-sigma 0.02 --stated-sigma 0.01
-    .venv/bin/python bench/bench_coverage.py --scenario camera-limited --plugins camera
+    .venv/bin/python bench/bench_coverage.py --scenario camera-limited --plugins weighted
     .venv/bin/python bench/bench_coverage.py --summarise cov/*.jsonl
 
 Each session is a fresh simulator session (its own noise seed, ``--frames``
@@ -17,11 +17,12 @@ Defaults are the scenario's own: the arm's sigma (``DEFAULT_ARM_SIGMA_MM``), the
 stated sigma = the arm's, and the plan with its targets' radius and tilt bound
 stated for the eccentricity term (``[uncertainty] target_radius``, ``max_tilt_deg``:
 2.5 mm / 20 deg on station and table3, 1.5 mm / 25 deg on camera-limited;
-``--target-radius 0`` states none). ``--plugins camera`` runs the configuration
-``docs/accuracy.md`` recommends for camera-dominated stations (centroid
-``modelfit``, the ``epipolar``
-eccentricity correction with its residual covariance, register ``ml``) and states
-``eccentricity_corrected = true`` in the plan. Results as one JSON line per
+``--target-radius 0`` states none). ``--plugins default`` runs the built-in
+stages (centroid ``modelfit``, the ``epipolar`` eccentricity correction with its
+residual covariance, register ``ml``) and states ``eccentricity_corrected = true``
+in the plan; ``--plugins weighted`` the defaults before issue 11 (``weighted``,
+``svd``: the eccentricity uncorrected, its term at full size) with
+``eccentricity_corrected = false``. Results as one JSON line per
 session (``--jsonl``, appended: a run stopped early still counts) and a table.
 
 Speed: the scene of a scenario (geometry and its noise-free images, ~95 % of a
@@ -43,7 +44,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from crossfield.config import parse_config  # noqa: E402
+from crossfield.config import DEFAULT_PLUGINS, parse_config  # noqa: E402
 from crossfield.registry import make_plugin_manager  # noqa: E402
 from crossfield.runner import run_session  # noqa: E402
 from crossfield.simulator import scenarios  # noqa: E402
@@ -51,12 +52,17 @@ from crossfield.simulator import scenarios  # noqa: E402
 #: Stage tables of the ``--plugins`` choices (the session config's stage sections).
 PLUGINS = {
     "default": {},
-    "camera": {
-        "centroid": {"plugin": "modelfit"},
-        "triangulate": {"plugin": "epipolar", "eccentricity": True},
-        "register": {"plugin": "ml"},
-    },
+    "weighted": {"centroid": {"plugin": "weighted"}, "register": {"plugin": "svd"}},
 }
+#: Centroid implementations that deliver edge conics, which the default ``epipolar``
+#: triangulation uses to correct the eccentricity (``docs/triangulation.md``, step 5).
+WITH_CONICS = ("modelfit",)
+
+
+def eccentricity_corrected(plugins: str) -> bool:
+    """Whether the ``--plugins`` choice corrects the eccentricity (its centroid gives conics)."""
+    return PLUGINS[plugins].get("centroid", {}).get("plugin", DEFAULT_PLUGINS["centroid"]) in WITH_CONICS
+
 
 #: The scenarios' targets: radius (mm) and largest tilt to the line of sight (deg).
 TARGETS = {
@@ -176,7 +182,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenario", default="table3", choices=scenarios.SCENARIOS)
     parser.add_argument("--plugins", default="default", choices=tuple(PLUGINS),
-                        help="default: the built-in stages; camera: modelfit + eccentricity correction + ml")
+                        help="default: the built-in stages (modelfit, the eccentricity correction, ml); "
+                             "weighted: the defaults before issue 11 (weighted, svd: no correction)")
     parser.add_argument("--sessions", type=int, default=200)
     parser.add_argument("--frames", type=int, default=1)
     parser.add_argument("--arm-sigma", type=float, default=None,
@@ -204,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
     radius, tilt = TARGETS[args.scenario]
     radius = radius if args.target_radius is None else args.target_radius
     tilt = tilt if args.max_tilt is None else args.max_tilt
-    corrected = args.plugins == "camera"
+    corrected = eccentricity_corrected(args.plugins)
     if not args.no_scene_cache:
         share_scenes()
     if args.jsonl:

@@ -15,7 +15,9 @@ coverage, Gaussian blur, the background), and the session's centroid
 implementation (a registered ``centroid`` plugin, ``weighted`` by default) is
 run on it. The bias of target k in camera c is ``centroid - projection of the
 true centre`` (px), which contains the eccentricity, the pixelisation and the
-centroid's own bias.
+centroid's own bias. A centroid that delivers edge conics (``modelfit``) lets the
+session's triangulation remove the eccentricity; its bias is then taken less the
+eccentricity model's offset at the true circle (what the correction takes off).
 
 The image the centroid sees is *noise-free to first order*: the mean of the
 centroids found in ``clean + n`` and ``clean - n`` (an antithetic pair, n the
@@ -39,6 +41,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from crossfield.imaging.eccentricity import centre_offsets, stereo_views
 from crossfield.simulator.render import SensorModel, background_image, compose_clean_image, render_disc
 from crossfield.types import StereoCalibration
 
@@ -179,13 +182,20 @@ def rendered_bias(
     rng = np.random.default_rng(seed)
     uv_true = np.asarray(uv_true, dtype=np.float64)
     bias = np.full(uv_true.shape, np.nan)
+    corrected = None
     for j, cam in enumerate(("upper", "lower")):
         expected = uv_true[:, 2 * j : 2 * j + 2]
         pair = antithetic_pair(images[cam], sensor, rng) if noise == "antithetic" else \
             (np.rint(np.clip(images[cam], 0, sensor.max_dn)).astype(np.uint16),)
-        found = [_match(np.asarray(centroider.extract(img, cam, 0).uv, dtype=np.float64), expected)
-                 for img in pair]
+        results = [centroider.extract(img, cam, 0) for img in pair]
+        found = [_match(np.asarray(r.uv, dtype=np.float64), expected) for r in results]
         bias[:, 2 * j : 2 * j + 2] = np.mean(found, axis=0) - expected
+        corrected = all(r.ellipse is not None for r in results) if corrected is None else corrected
+    if corrected:
+        # centroids with edge conics: the session's triangulation takes the eccentricity off
+        # (``epipolar``, step 5); what stays is the centroid's bias beyond it, to first order
+        # the found centre minus the model's offset at the true circles
+        bias -= centre_offsets(X, normals, np.full(len(X), float(radius_mm)), stereo_views(calibration))
     result = RenderedBias(bias, ~np.isnan(bias[:, ::2]), centroid)
     if len(_CACHE) > 256:
         _CACHE.clear()
