@@ -1,9 +1,9 @@
-"""The batched blob detector (BlobDetector.detect_stacks) and the window packing of the fit.
+"""The batched blob detector (BlobDetector.detect_stacks) and the edge band of the fit (disc_model.edge_band).
 
 Reference: the per-blob BlobDetector.detect (the one the other centroid
 plugins use), and the image itself: the stacks must hold the same blobs,
-rejections, windows, backgrounds and moments, and the packed arrays exactly
-the image's window pixels.
+rejections, windows, backgrounds and moments, and the fit's edge-band pixels
+exactly the image's window pixels.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import pytest
 from synthetic_targets import Ellipse, distractors, random_targets, render
 
 from crossfield.imaging.blobs import BlobDetector, DetectorOptions
-from crossfield.imaging.disc_model import pack_stacks
+from crossfield.imaging.disc_model import edge_band
 
 
 def frames():
@@ -52,22 +52,19 @@ def test_stacks_hold_the_blobs_of_detect(case):
             np.testing.assert_array_equal(st.roi[t][rows, cols], image[rows + st.y0[t], cols + st.x0[t]])
 
 
-def test_packed_windows_are_the_image_pixels():
+def test_band_pixels_are_the_image_pixels():
+    """A band wider than any window: fit_discs's pixels are the window's, with the image's values."""
     _, image, _ = next(frames())
     stacks, _, _ = BlobDetector(DetectorOptions()).detect_stacks(image)
-    refs = np.concatenate([st.uv for st in stacks])
-    du, dv, values, mask = pack_stacks(stacks, refs)
-    i = 0
     for st in stacks:
         for t in range(len(st)):
-            on = mask[i] > 0
-            assert on.sum() == st.window[t].sum()
-            u = np.rint(du[i, on] + refs[i, 0]).astype(int)
-            v = np.rint(dv[i, on] + refs[i, 1]).astype(int)
-            np.testing.assert_allclose(du[i, on] + refs[i, 0], u, atol=1e-9)
-            np.testing.assert_array_equal(values[i, on], image[v, u])
-            assert len(set(zip(u, v))) == on.sum()  # every window pixel once
-            i += 1
+            ref = st.uv[t]
+            du, dv, values = edge_band(st, t, ref, np.array([0.01, 0.0, 0.01]), (1e9, 1e9))
+            assert len(du) == st.window[t].sum()
+            u, v = np.rint(du + ref[0]).astype(int), np.rint(dv + ref[1]).astype(int)
+            np.testing.assert_allclose(du + ref[0], u, atol=1e-9)
+            np.testing.assert_array_equal(values, image[v, u])
+            assert len(set(zip(u, v))) == len(u)  # every window pixel once
 
 
 def test_edge_band_of_a_circle():
@@ -76,9 +73,8 @@ def test_edge_band_of_a_circle():
     stacks, _, _ = BlobDetector(DetectorOptions()).detect_stacks(image)
     (st,) = stacks
     radius = 10.5
-    du, dv, _, mask = pack_stacks(stacks, st.uv, band=(np.array([[radius**-2, 0.0, radius**-2]]), 3.0, 2.0))
-    on = mask[0] > 0
-    got = {(round(u), round(v)) for u, v in zip(du[0][on] + st.uv[0, 0], dv[0][on] + st.uv[0, 1])}
+    du, dv, _ = edge_band(st, 0, st.uv[0], np.array([radius**-2, 0.0, radius**-2]), (3.0, 2.0))
+    got = {(round(u), round(v)) for u, v in zip(du + st.uv[0, 0], dv + st.uv[0, 1])}
     rows, cols = np.nonzero(st.window[0])
     u, v = cols + st.x0[0], rows + st.y0[0]
     r = np.hypot(u - st.uv[0, 0], v - st.uv[0, 1])
