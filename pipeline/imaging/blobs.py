@@ -35,6 +35,7 @@ import math
 from dataclasses import dataclass
 
 import cv2
+import numba
 import numpy as np
 
 from crossfield.types import RejectedBlob
@@ -389,45 +390,37 @@ class BlobDetector:
         sh, sw = min(size, height), min(size, width)
         xs = np.clip(x - margin, 0, width - sw)  # slice origin: the ROI inside, the slice inside the image
         ys = np.clip(y - margin, 0, height - sh)
-        r_idx = ys[:, None] + np.arange(sh)
-        c_idx = xs[:, None] + np.arange(sw)
-        # one gather of whole slices (rows of contiguous pixels), not of single pixels
-        roi = np.lib.stride_tricks.sliding_window_view(image, (sh, sw))[ys, xs]
-        mroi = roi > background.threshold_dn  # = the mask's slices
         # the ROI of detect(): bounding box + margin, clipped to the image, in slice coordinates
-        r_lo, r_hi = np.maximum(y - margin, 0)[:, None], np.minimum(y + h + margin, height)[:, None]
-        c_lo, c_hi = np.maximum(x - margin, 0)[:, None], np.minimum(x + w + margin, width)[:, None]
-        r_in = (r_idx >= r_lo) & (r_idx < r_hi)
-        c_in = (c_idx >= c_lo) & (c_idx < c_hi)
-        rect = r_in[:, :, None] & c_in[:, None, :]
+        rect = np.column_stack(
+            (
+                np.maximum(y - margin, 0) - ys,
+                np.minimum(y + h + margin, height) - ys,
+                np.maximum(x - margin, 0) - xs,
+                np.minimum(x + w + margin, width) - xs,
+            )
+        )
         # filled contours; d spare rows per slice keep the dilation of one slice out of the next
         d = opts.dilate_px
         filled = np.zeros((len(rows), sh + d, sw), np.uint8)
         for t, i in enumerate(rows):
             offset = (-int(xs[t]), -int(ys[t]))
             cv2.drawContours(filled[t], (contours[i],), -1, 1, thickness=-1, offset=offset)
-        component = filled[:, :sh].astype(bool)
-        area = component.sum(axis=(1, 2))
-        max_value = np.where(component, roi, 0).max(axis=(1, 2)).astype(np.float64)
         if self._kernel is not None:
             dilated = cv2.dilate(filled.reshape(-1, sw), self._kernel).reshape(filled.shape)
-            dilated = dilated[:, :sh].astype(bool)
         else:
-            dilated = component
-        others = mroi & ~component  # pixels of other blobs
-        window = dilated & ~others & rect
-        ring = rect & ~dilated & ~mroi
-        ring_count = ring.sum(axis=(1, 2))
-        ring_sum = np.where(ring, roi, 0).sum(axis=(1, 2), dtype=np.float64)
+            dilated = filled
+        n = len(rows)
+        roi = np.empty((n, sh, sw), image.dtype)
+        window = np.empty((n, sh, sw), np.uint8)
+        area, ring_count = np.empty(n, np.int64), np.empty(n, np.int64)
+        max_value, ring_sum = np.empty(n), np.empty(n)
+        M, N = np.empty((n, 6)), np.empty((n, 6))
+        _slice_sums(
+            image, xs, ys, rect, filled, dilated, background.threshold_dn,
+            roi, window, area, max_value, ring_count, ring_sum, M, N,
+        )
         b = np.where(ring_count > 0, ring_sum / np.maximum(ring_count, 1), background.level_dn)
-        # raw moments of the image over the window and of the window (slice coordinates):
-        # one (T, S*S) x (S*S, 6) product each; sum(u^p v^q (I - b)) = M_pq - b N_pq
-        cc, rr = np.meshgrid(np.arange(sw, dtype=np.float64), np.arange(sh, dtype=np.float64))
-        cc, rr = cc.ravel(), rr.ravel()
-        basis = np.column_stack((np.ones_like(cc), cc, rr, cc * cc, cc * rr, rr * rr))
-        win = window.reshape(len(rows), -1)
-        M = np.where(win, roi.reshape(len(rows), -1), 0).astype(np.float64) @ basis
-        N = win.astype(np.float64) @ basis
+        # sum(u^p v^q (I - b)) over the window = M_pq - b N_pq
         total = M[:, 0] - b * N[:, 0]
         su, sv = M[:, 1] - b * N[:, 1], M[:, 2] - b * N[:, 2]
         safe = np.where(total > 0, total, 1.0)
@@ -458,7 +451,7 @@ class BlobDetector:
             x0=xs[ok],
             y0=ys[ok],
             roi=roi[ok],
-            window=window[ok].view(np.uint8),
+            window=window[ok],
             background_dn=b[ok],
             area_px=area[ok],
             roundness=roundness[ok],
@@ -467,6 +460,75 @@ class BlobDetector:
             uv=uv[ok],
             moments=np.column_stack((c20, c11, c02))[ok],
         )
+
+
+@numba.njit(cache=True, nogil=True)
+def _slice_sums(
+    image, xs, ys, rect, filled, dilated, threshold_dn,
+    roi, window, area, max_value, ring_count, ring_sum, M, N,
+) -> None:
+    """Step 4 of :meth:`BlobDetector._stack` in one pass over the (T, S, S) slices at
+    columns ``xs``, rows ``ys`` (T,) of ``image``, each pixel once.
+
+    rect: (T, 4) detect()'s ROI in slice coordinates (row from, row to, column
+    from, column to); filled, dilated: (T, >= S, S) uint8 the filled contour and
+    its dilation. Writes roi (T, S, S) the image pixels; window (T, S, S) 0/1
+    (dilated, inside the ROI, not another blob's pixel: above the threshold and
+    outside the contour); area (pixels of the contour) and max_value (highest
+    value in it, 0 if none); ring_count and ring_sum (the ROI's pixels neither
+    in the dilation nor above the threshold, and their sum, DN); M, N (T, 6) the
+    raw moments m00, m10, m01, m20, m11, m02 (slice coordinates, u = column, v =
+    row) of the image over the window and of the window. Integer sums in
+    float64 (exact below 2^53): the same bits as cv2.moments' in ``detect``.
+    """
+    n, sh, sw = roi.shape
+    for t in range(n):
+        y0, x0 = ys[t], xs[t]
+        r_lo, r_hi, c_lo, c_hi = rect[t, 0], rect[t, 1], rect[t, 2], rect[t, 3]
+        count = 0
+        top = 0.0
+        rc = 0
+        rs = 0.0
+        m = np.zeros(6)
+        k = np.zeros(6)
+        for r in range(sh):
+            fr = float(r)
+            for c in range(sw):
+                z = image[y0 + r, x0 + c]
+                roi[t, r, c] = z
+                component = filled[t, r, c] != 0
+                above = z > threshold_dn
+                if component:
+                    count += 1
+                    top = max(top, float(z))
+                inside = r >= r_lo and r < r_hi and c >= c_lo and c < c_hi
+                grown = dilated[t, r, c] != 0
+                win = grown and inside and not (above and not component)
+                window[t, r, c] = win
+                if inside and not grown and not above:
+                    rc += 1
+                    rs += z
+                if win:
+                    fc = float(c)
+                    fz = float(z)
+                    m[0] += fz
+                    m[1] += fz * fc
+                    m[2] += fz * fr
+                    m[3] += fz * fc * fc
+                    m[4] += fz * fc * fr
+                    m[5] += fz * fr * fr
+                    k[0] += 1.0
+                    k[1] += fc
+                    k[2] += fr
+                    k[3] += fc * fc
+                    k[4] += fc * fr
+                    k[5] += fr * fr
+        area[t] = count
+        max_value[t] = top
+        ring_count[t] = rc
+        ring_sum[t] = rs
+        M[t] = m
+        N[t] = k
 
 
 def sort_order(uv: np.ndarray) -> np.ndarray:
