@@ -336,18 +336,24 @@ def _cholesky(H: np.ndarray, L: np.ndarray) -> bool:
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _normal_equations(xs, ys, zs, count, p, table, n_delta, sig2, noise_var, inv_gain, H, g) -> None:
-    """J^T W J into H (7, 7) and J^T W r into g (7,) at parameters p (7,)
-    over the ``count`` pixels (xs, ys) px (relative to the reference point), values zs DN:
-    :func:`model` and its Jacobian pixel by pixel (same formulas, same order), weights
-    1 / var_i, var_i = sigma_n^2 + (mu_i - B) / gain (EMVA 1288), r_i = z_i - mu_i."""
+def _normal_equations(xs, ys, zs, count, p, table, n_delta, sig2, noise_var, inv_gain, H, g, jac, index) -> None:
+    """J^T W J into H (7, 7) and J^T W r into g (7,) at parameters p (7,) over the
+    ``count`` pixels (xs, ys) px (relative to the reference point), values zs DN:
+    :func:`model` and its Jacobian (same formulas), weights 1 / var_i, var_i =
+    sigma_n^2 + (mu_i - B) / gain (EMVA 1288), residuals r_i = z_i - mu_i.
+
+    Four passes over the pixels, scratch ``jac`` (8, >= count) and ``index``
+    (>= count,): the table position, the table lookup, the Jacobian, the sums.
+    Without the lookup (a gather) the first and third compile to SIMD code
+    (4 pixels per instruction; one scalar pass has a ~170-cycle dependency chain
+    per pixel): 2.2x faster than one pass.
+    """
     u0, v0, s11, s12, s22, amp, bg = p[0], p[1], p[2], p[3], p[4], p[5], p[6]
     det = s11 * s22 - s12 * s12
     c_shift = 0.5 * sig2 * det  # shift = sigma_e^2 kappa / 2 = c_shift q / m^(3/2)
     inv_det = 1.0 / det
-    # the sums in scalars (registers), not in H and g (memory): 2-3x faster
-    h00 = h01 = h02 = h03 = h04 = h05 = h06 = h11 = h12 = h13 = h14 = h15 = h16 = h22 = h23 = h24 = h25 = h26 = h33 = h34 = h35 = h36 = h44 = h45 = h46 = h55 = h56 = h66 = 0.0
-    g0 = g1 = g2 = g3 = g4 = g5 = g6 = 0.0
+    # pass 1 (vectorised): where in the edge-profile table (EdgeProfile.lookup: linear in
+    # delta, nearest in alpha)
     for i in range(count):
         x = xs[i] - u0
         y = ys[i] - v0
@@ -362,18 +368,34 @@ def _normal_equations(xs, ys, zs, count, p, table, n_delta, sig2, noise_var, inv
         dist = (rho - q) * inv  # first-order signed distance (rho - rho^2) / |S d|
         delta = dist - shift
         sin_alpha = min(abs(w1), abs(w2)) * inv
-        # EdgeProfile.lookup: linear in delta, nearest in alpha
         t = min(max(delta, -_DELTA_MAX), _DELTA_MAX - 2 * _DELTA_STEP)
         t = (t + _DELTA_MAX) * (1.0 / _DELTA_STEP)
         k = int(t)
-        k += int(sin_alpha * (_SIN_STEPS / _SIN_MAX) + 0.5) * n_delta
+        index[i] = k + int(sin_alpha * (_SIN_STEPS / _SIN_MAX) + 0.5) * n_delta
+        jac[5, i] = t - k  # t >= 0: t - floor(t)
+    # pass 2 (scalar: a gather): E and dE/ddelta
+    for i in range(count):
+        k = index[i]
         e0 = table[k]
         de = table[k + 1] - e0
-        E = e0 + (t - math.floor(t)) * de
-        slope = de * (1.0 / _DELTA_STEP)
+        jac[5, i] = e0 + jac[5, i] * de
+        jac[6, i] = de * (1.0 / _DELTA_STEP)
+    # pass 3 (vectorised): the Jacobian (model()'s derivation; d/du0 = -d/dx), weights, residuals
+    for i in range(count):
+        x = xs[i] - u0
+        y = ys[i] - v0
+        w1 = s11 * x + s12 * y  # w = S d
+        w2 = s12 * x + s22 * y
+        q = x * w1 + y * w2  # rho^2
+        m = max(w1 * w1 + w2 * w2, 1e-18)  # |S d|^2; d = 0 exactly: guard the divisions
+        inv = 1.0 / math.sqrt(m)
+        rho = math.sqrt(max(q, 0.0))
+        inv3 = inv * inv * inv
+        shift = c_shift * q * inv3
+        dist = (rho - q) * inv  # first-order signed distance (rho - rho^2) / |S d|
+        E = jac[5, i]
         mu = amp * E + bg
-        # Jacobian (model()'s derivation); d/du0 = -d/dx
-        ap = amp * slope  # dmu/ddelta
+        ap = amp * jac[6, i]  # dmu/ddelta
         dd_drho = (1.0 - 2.0 * rho) * inv
         dm_coef = (1.5 * shift - 0.5 * dist) * (inv * inv) * 2.0  # d delta / dm, times 2
         half = dd_drho / (2.0 * max(rho, 1e-9)) - c_shift * inv3  # d delta / dq
@@ -381,15 +403,27 @@ def _normal_equations(xs, ys, zs, count, p, table, n_delta, sig2, noise_var, inv
         sw1 = s11 * w1 + s12 * w2
         sw2 = s12 * w1 + s22 * w2
         h2 = 2.0 * half
-        j0 = -((h2 * w1 + dm_coef * sw1) * ap)
-        j1 = -((h2 * w2 + dm_coef * sw2) * ap)
+        jac[0, i] = -((h2 * w1 + dm_coef * sw1) * ap)
+        jac[1, i] = -((h2 * w2 + dm_coef * sw2) * ap)
         dm_half = 0.5 * dm_coef
-        j2 = (half * x * x + dm_half * (2.0 * w1 * x) - c_d * s22) * ap
-        j3 = (half * (2.0 * x * y) + dm_half * (2.0 * (w1 * y + w2 * x)) + c_d * (2.0 * s12)) * ap
-        j4 = (half * y * y + dm_half * (2.0 * w2 * y) - c_d * s11) * ap
-        j5 = E
-        w = 1.0 / (max(mu - bg, 0.0) * inv_gain + noise_var)
-        r = zs[i] - mu
+        jac[2, i] = (half * x * x + dm_half * (2.0 * w1 * x) - c_d * s22) * ap
+        jac[3, i] = (half * (2.0 * x * y) + dm_half * (2.0 * (w1 * y + w2 * x)) + c_d * (2.0 * s12)) * ap
+        jac[4, i] = (half * y * y + dm_half * (2.0 * w2 * y) - c_d * s11) * ap
+        jac[6, i] = 1.0 / (max(mu - bg, 0.0) * inv_gain + noise_var)
+        jac[7, i] = zs[i] - mu
+    # pass 4 (scalar: the sums in scalars, i.e. registers, not in H and g: 2-3x faster)
+    h00 = h01 = h02 = h03 = h04 = h05 = h06 = h11 = h12 = h13 = h14 = h15 = h16 = 0.0
+    h22 = h23 = h24 = h25 = h26 = h33 = h34 = h35 = h36 = h44 = h45 = h46 = h55 = h56 = h66 = 0.0
+    g0 = g1 = g2 = g3 = g4 = g5 = g6 = 0.0
+    for i in range(count):
+        j0 = jac[0, i]
+        j1 = jac[1, i]
+        j2 = jac[2, i]
+        j3 = jac[3, i]
+        j4 = jac[4, i]
+        j5 = jac[5, i]
+        w = jac[6, i]
+        r = jac[7, i]
         wj = w * j0
         g0 += wj * r
         h00 += wj * j0
@@ -497,19 +531,21 @@ def _band_pixels(roi, window, off_u, off_v, p, inside_px, outside_px, xs, ys, zs
     off_u/off_v) and zs (DN); returns their number. The band: first-order signed distance
     (rho - rho^2) / |S d| below ``inside_px`` and above ``-outside_px``."""
     s11, s12, s22 = p[2], p[3], p[4]
+    sw = roi.shape[1]
+    dist = np.empty(sw)
     count = 0
     for r in range(roi.shape[0]):
-        for c in range(roi.shape[1]):
-            if window[r, c] == 0:
-                continue
+        y = r + off_v
+        for c in range(sw):  # the row's distances (vectorised), then the compaction
             x = c + off_u
-            y = r + off_v
             w1 = s11 * x + s12 * y
             w2 = s12 * x + s22 * y
             q = x * w1 + y * w2
-            d = (math.sqrt(max(q, 0.0)) - q) / math.sqrt(max(w1 * w1 + w2 * w2, 1e-18))
-            if d < inside_px and d > -outside_px:
-                xs[count] = x
+            dist[c] = (math.sqrt(max(q, 0.0)) - q) / math.sqrt(max(w1 * w1 + w2 * w2, 1e-18))
+        for c in range(sw):
+            d = dist[c]
+            if window[r, c] != 0 and d < inside_px and d > -outside_px:
+                xs[count] = c + off_u
                 ys[count] = y
                 zs[count] = roi[r, c]
                 count += 1
@@ -532,6 +568,8 @@ def _fit_stack(
     xs = np.empty(sh * sw)
     ys = np.empty(sh * sw)
     zs = np.empty(sh * sw)
+    jac = np.empty((8, sh * sw))
+    index = np.empty(sh * sw, np.int64)
     H = np.zeros((7, 7))
     L = np.zeros((7, 7))
     g = np.zeros(7)
@@ -545,7 +583,7 @@ def _fit_stack(
         factored = False
         it = 0
         for it in range(1, max_iterations + 1):
-            _normal_equations(xs, ys, zs, count, p, table, n_delta, sig2, noise_var, inv_gain, H, g)
+            _normal_equations(xs, ys, zs, count, p, table, n_delta, sig2, noise_var, inv_gain, H, g, jac, index)
             factored = _cholesky(H, L)
             if factored:
                 _cholesky_solve(L, g, step)
