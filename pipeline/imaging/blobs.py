@@ -478,57 +478,60 @@ def _slice_sums(
     value in it, 0 if none); ring_count and ring_sum (the ROI's pixels neither
     in the dilation nor above the threshold, and their sum, DN); M, N (T, 6) the
     raw moments m00, m10, m01, m20, m11, m02 (slice coordinates, u = column, v =
-    row) of the image over the window and of the window. Integer sums in
-    float64 (exact below 2^53): the same bits as cv2.moments' in ``detect``.
+    row) of the image over the window and of the window. Exact integer sums:
+    the same values as cv2.moments' in ``detect`` (doubles, exact below 2^53).
     """
     n, sh, sw = roi.shape
+    thr = np.int64(threshold_dn)
     for t in range(n):
         y0, x0 = ys[t], xs[t]
         r_lo, r_hi, c_lo, c_hi = rect[t, 0], rect[t, 1], rect[t, 2], rect[t, 3]
-        count = 0
-        top = 0.0
-        rc = 0
-        rs = 0.0
-        m = np.zeros(6)
-        k = np.zeros(6)
+        count = top = rc = rs = 0
+        m0 = m1 = m2 = m3 = m4 = m5 = k0 = k1 = k2 = k3 = k4 = k5 = 0
         for r in range(sh):
-            fr = float(r)
+            row_in = np.int64(r >= r_lo and r < r_hi)
+            # the row's sums of z, z c, z c^2, 1, c, c^2 over its window pixels: integer,
+            # branch-free (0/1 factors), so the compiler vectorises the loop
+            z0 = z1 = z2 = n0 = n1 = n2 = 0
             for c in range(sw):
-                z = image[y0 + r, x0 + c]
+                z = np.int64(image[y0 + r, x0 + c])
                 roi[t, r, c] = z
-                component = filled[t, r, c] != 0
-                above = z > threshold_dn
-                if component:
-                    count += 1
-                    top = max(top, float(z))
-                inside = r >= r_lo and r < r_hi and c >= c_lo and c < c_hi
-                grown = dilated[t, r, c] != 0
-                win = grown and inside and not (above and not component)
+                comp = np.int64(filled[t, r, c] != 0)
+                above = np.int64(z > thr)
+                grown = np.int64(dilated[t, r, c] != 0)
+                inside = row_in * np.int64(c >= c_lo) * np.int64(c < c_hi)
+                win = grown * inside * (1 - above * (1 - comp))  # not another blob's pixel
                 window[t, r, c] = win
-                if inside and not grown and not above:
-                    rc += 1
-                    rs += z
-                if win:
-                    fc = float(c)
-                    fz = float(z)
-                    m[0] += fz
-                    m[1] += fz * fc
-                    m[2] += fz * fr
-                    m[3] += fz * fc * fc
-                    m[4] += fz * fc * fr
-                    m[5] += fz * fr * fr
-                    k[0] += 1.0
-                    k[1] += fc
-                    k[2] += fr
-                    k[3] += fc * fc
-                    k[4] += fc * fr
-                    k[5] += fr * fr
+                count += comp
+                top = max(top, z * comp)
+                ring = inside * (1 - grown) * (1 - above)
+                rc += ring
+                rs += z * ring
+                zw = z * win
+                z0 += zw
+                z1 += zw * c
+                z2 += zw * c * c
+                n0 += win
+                n1 += win * c
+                n2 += win * c * c
+            m0 += z0
+            m1 += z1
+            m2 += z0 * r
+            m3 += z2
+            m4 += z1 * r
+            m5 += z0 * r * r
+            k0 += n0
+            k1 += n1
+            k2 += n0 * r
+            k3 += n2
+            k4 += n1 * r
+            k5 += n0 * r * r
         area[t] = count
         max_value[t] = top
         ring_count[t] = rc
         ring_sum[t] = rs
-        M[t] = m
-        N[t] = k
+        M[t, 0], M[t, 1], M[t, 2], M[t, 3], M[t, 4], M[t, 5] = m0, m1, m2, m3, m4, m5
+        N[t, 0], N[t, 1], N[t, 2], N[t, 3], N[t, 4], N[t, 5] = k0, k1, k2, k3, k4, k5
 
 
 def sort_order(uv: np.ndarray) -> np.ndarray:
