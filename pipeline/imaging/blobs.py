@@ -335,14 +335,16 @@ class BlobDetector:
         self, image: np.ndarray, size_step: int = 8
     ) -> tuple[list[BlobStack], list[RejectedBlob], Background]:
         """The blobs of :meth:`detect` (same tests, reasons, windows, background
-        and moments), vectorised over blobs: one (T, S, S) gather per size class.
+        and moments), vectorised over blobs: one (T, S, S) stack per size class.
 
         Blobs are grouped by ROI side rounded up to ``size_step`` px; within a
-        class every step is a whole-stack array operation, except one
-        ``cv2.drawContours`` per blob (the contour fill). Each ROI keeps its
-        :meth:`detect` extent (bounding box + margin, clipped to the image)
-        inside its slice, so the results do not depend on the class size
-        and stay exact under flips and transposition of the image.
+        class the contour fill is one ``cv2.drawContours`` per blob (one call for
+        the whole stack measured no faster: the fill dominates), the dilation
+        one ``cv2.dilate``, the per-pixel sums one compiled pass
+        (:func:`_slice_sums`) and the rest whole-stack array operations. Each
+        ROI keeps its :meth:`detect` extent (bounding box + margin, clipped to
+        the image) inside its slice, so the results do not depend on the class
+        size and stay exact under flips and transposition of the image.
         Returns the stacks (accepted blobs, in contour order within a class),
         the rejected blobs and the global background.
         """
