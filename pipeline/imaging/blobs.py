@@ -341,7 +341,8 @@ class BlobDetector:
         class the contour fill is one ``cv2.drawContours`` per blob (one call for
         the whole stack measured no faster: the fill dominates), the dilation
         one ``cv2.dilate``, the per-pixel sums one compiled pass
-        (:func:`_slice_sums`) and the rest whole-stack array operations. Each
+        (:func:`_slice_sums`), the per-blob moments another (:func:`_blob_moments`)
+        and the rejection tests whole-stack array operations. Each
         ROI keeps its :meth:`detect` extent (bounding box + margin, clipped to
         the image) inside its slice, so the results do not depend on the class
         size and stay exact under flips and transposition of the image.
@@ -421,20 +422,8 @@ class BlobDetector:
             image, xs, ys, rect, filled, dilated, background.threshold_dn,
             roi, window, area, max_value, ring_count, ring_sum, M, N,
         )
-        b = np.where(ring_count > 0, ring_sum / np.maximum(ring_count, 1), background.level_dn)
-        # sum(u^p v^q (I - b)) over the window = M_pq - b N_pq
-        total = M[:, 0] - b * N[:, 0]
-        su, sv = M[:, 1] - b * N[:, 1], M[:, 2] - b * N[:, 2]
-        safe = np.where(total > 0, total, 1.0)
-        uc, vc = su / safe, sv / safe
-        c20 = (M[:, 3] - b * N[:, 3] - uc * su) / safe
-        c11 = (M[:, 4] - b * N[:, 4] - uc * sv) / safe
-        c02 = (M[:, 5] - b * N[:, 5] - vc * sv) / safe
-        root = np.sqrt((c20 - c02) ** 2 + 4.0 * c11 * c11)
-        major, minor = c20 + c02 + root, c20 + c02 - root
-        ratio = np.maximum(minor, 0.0) / np.where(major > 0, major, 1.0)
-        roundness = np.where(major > 0, np.sqrt(ratio), 0.0)
-        uv = np.column_stack((xs + uc, ys + vc))
+        b, total, uv, moments, roundness = np.empty(n), np.empty(n), np.empty((n, 2)), np.empty((n, 3)), np.empty(n)
+        _blob_moments(M, N, ring_count, ring_sum, background.level_dn, xs, ys, b, total, uv, moments, roundness)
         saturated = max_value >= opts.saturation_dn
         local = np.arange(len(rows))
         for code, bad in (
@@ -460,7 +449,7 @@ class BlobDetector:
             peak_dn=max_value[ok] - b[ok],
             saturated=saturated[ok],
             uv=uv[ok],
-            moments=np.column_stack((c20, c11, c02))[ok],
+            moments=moments[ok],
         )
 
 
@@ -534,6 +523,38 @@ def _slice_sums(
         ring_sum[t] = rs
         M[t, 0], M[t, 1], M[t, 2], M[t, 3], M[t, 4], M[t, 5] = m0, m1, m2, m3, m4, m5
         N[t, 0], N[t, 1], N[t, 2], N[t, 3], N[t, 4], N[t, 5] = k0, k1, k2, k3, k4, k5
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _blob_moments(M, N, ring_count, ring_sum, level_dn, xs, ys, b, total, uv, moments, roundness) -> None:
+    """Per blob of a stack, from :func:`_slice_sums`' sums: the local background b (the
+    ring's mean, ``level_dn`` if no ring), the background-subtracted total, the
+    intensity-weighted centroid uv (image px), the second central moments (c20, c11,
+    c02) px^2 and the roundness (minor/major axis ratio: square root of the ratio of
+    the covariance's eigenvalues). sum(u^p v^q (I - b)) over the window = M_pq - b N_pq;
+    the operations and their order are ``detect``'s, so uv has the same bits."""
+    for t in range(len(b)):
+        bt = ring_sum[t] / ring_count[t] if ring_count[t] > 0 else level_dn
+        tot = M[t, 0] - bt * N[t, 0]
+        su = M[t, 1] - bt * N[t, 1]
+        sv = M[t, 2] - bt * N[t, 2]
+        safe = tot if tot > 0 else 1.0
+        uc = su / safe
+        vc = sv / safe
+        c20 = (M[t, 3] - bt * N[t, 3] - uc * su) / safe
+        c11 = (M[t, 4] - bt * N[t, 4] - uc * sv) / safe
+        c02 = (M[t, 5] - bt * N[t, 5] - vc * sv) / safe
+        e = c20 - c02
+        root = math.sqrt(e * e + 4.0 * c11 * c11)
+        major, minor = c20 + c02 + root, c20 + c02 - root
+        roundness[t] = math.sqrt(max(minor, 0.0) / major) if major > 0 else 0.0
+        b[t] = bt
+        total[t] = tot
+        uv[t, 0] = xs[t] + uc
+        uv[t, 1] = ys[t] + vc
+        moments[t, 0] = c20
+        moments[t, 1] = c11
+        moments[t, 2] = c02
 
 
 def sort_order(uv: np.ndarray) -> np.ndarray:
