@@ -5,8 +5,8 @@ each blob) is the shared :class:`crossfield.imaging.blobs.BlobDetector` in
 its batched form (``detect_stacks``: one gather per ROI size class); the
 intensity-weighted centroid and second moments of each blob seed the fit.
 The sub-pixel step is :func:`crossfield.imaging.disc_model.fit_discs`: a
-compiled kernel over the targets of each stack (numba; the cores share the
-targets), Gauss-Newton on the Gaussian likelihood of
+compiled kernel over the targets of each stack (numba, one thread, one target
+after the other), Gauss-Newton on the Gaussian likelihood of
 the window pixels in the edge band (3.7 sigma_e inside to 3.2 sigma_e
 outside the seed's edge) under the model ``B + A E(signed distance)``
 (``docs/centroids.md``, "modelfit").

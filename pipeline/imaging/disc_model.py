@@ -50,7 +50,7 @@ model, Kay, Fundamentals of Statistical Signal Processing I, 3.7).
 
 The fit (:func:`fit_discs`) is one compiled kernel (numba, float64): a
 loop over the targets of a :class:`crossfield.imaging.blobs.BlobStack`
-(spread over the cores), and per target over the window pixels of its
+(one thread, the GIL released), and per target over the window pixels of its
 edge band, accumulating the 7 x 7 normal equations pixel by pixel, on
 coordinates relative to the target's seed. :func:`model` is the same
 model in numpy (the reference the kernel is tested against).
