@@ -38,6 +38,7 @@ RECORDED_PACKAGES: tuple[str, ...] = (
     "jinja2",
     "dask",
     "distributed",
+    "numba",  # compiles the modelfit centroid's fit and the blob detector's per-pixel sums
 )
 
 #: The version of a crossfield that runs from a source tree without being installed.

@@ -4,8 +4,9 @@ Detection (threshold, contours, rejection, local background, the window of
 each blob) is the shared :class:`crossfield.imaging.blobs.BlobDetector` in
 its batched form (``detect_stacks``: one gather per ROI size class); the
 intensity-weighted centroid and second moments of each blob seed the fit.
-The sub-pixel step is :func:`crossfield.imaging.disc_model.fit_discs`: all
-targets of the image at once, Gauss-Newton on the Gaussian likelihood of
+The sub-pixel step is :func:`crossfield.imaging.disc_model.fit_discs`: a
+compiled kernel over the targets of each stack (numba, one thread, one target
+after the other), Gauss-Newton on the Gaussian likelihood of
 the window pixels in the edge band (3.7 sigma_e inside to 3.2 sigma_e
 outside the seed's edge) under the model ``B + A E(signed distance)``
 (``docs/centroids.md``, "modelfit").
@@ -25,7 +26,7 @@ import numpy as np
 
 from crossfield.hookspecs import hookimpl
 from crossfield.imaging.blobs import BlobDetector, DetectorOptions, sort_order, sort_rejected
-from crossfield.imaging.disc_model import PSF_ORDERS, edge_profile, fit_discs, pack_stacks, shape_from_moments
+from crossfield.imaging.disc_model import PSF_ORDERS, edge_profile, fit_discs, shape_from_moments
 from crossfield.types import CentroidSet, RejectedBlob
 
 #: a fitted centre further than this from its seed (px) is a failed fit
@@ -113,15 +114,11 @@ class ModelFitCentroids:
             moments = np.concatenate([st.moments for st in stacks])
             start = np.zeros((n, 7))  # centre relative to the seed (the weighted centroid)
             start[:, 2:5] = shape_from_moments(moments[:, 0], moments[:, 1], moments[:, 2], sigma_e)
-            band = (start[:, 2:5], INSIDE_SIGMAS * sigma_e, OUTSIDE_SIGMAS * sigma_e)
-            du, dv, values, mask = pack_stacks(stacks, seeds, np.float32, band)
-            # the ring's background plane, less its level: the model's B is the level at the seed
-            slope = np.concatenate([st.background_gradient for st in stacks]).astype(np.float32)
-            values -= slope[:, :1] * du + slope[:, 1:] * dv
             start[:, 5] = np.concatenate([st.peak_dn for st in stacks])
             start[:, 6] = np.concatenate([st.background_dn for st in stacks])
             fit = fit_discs(
-                du, dv, values, mask, start,
+                stacks, seeds, start,
+                band=(INSIDE_SIGMAS * sigma_e, OUTSIDE_SIGMAS * sigma_e),
                 profile=self.profile,
                 noise_sigma_dn=background.sigma_dn,
                 gain_e_per_dn=self.gain_e_per_dn,

@@ -14,7 +14,8 @@ import pytest
 from crb_tools import centre_crb
 from synthetic_targets import coverage, random_targets, render
 
-from crossfield.imaging.disc_model import edge_profile, model
+from crossfield.imaging.blobs import BlobDetector, DetectorOptions
+from crossfield.imaging.disc_model import edge_band, edge_profile, fit_discs, model, shape_from_moments
 from crossfield.registry import implementations, make_plugin_manager
 
 SHAPE = (1236, 1626)
@@ -61,14 +62,17 @@ def test_stated_sigma_is_the_independent_cramer_rao_bound(frames):
 
 
 def test_within_1_15_of_the_bound_and_closer_than_the_weighted_centroid(frames):
-    """Issue 11: RMS within 1.15x the CRB. Measured on these 6 frames: modelfit ~1.09x,
-    weighted ~1.38x (bench/bench_centroid.py --efficiency --seed 11 prints both)."""
+    """Issue 11: RMS within 1.15x the CRB. Measured on these 6 frames: modelfit 1.098x with the
+    ring's background plane taken off (1.078x without it, the numpy float32 fit's 1.0779x: on
+    these flat backgrounds the plane's own noise costs 2 %; on a sloped one it removes a bias,
+    tests/test_blob_stacks.py), weighted ~1.38x (bench/bench_centroid.py --efficiency --seed 11)."""
     err_m, _, bound, _ = errors("modelfit", {"psf_order": "pixel"}, frames)
     err_w, _, _, _ = errors("weighted", {}, frames)
     crb = np.trace(bound, axis1=1, axis2=2).sum()
     ratio_m = np.sqrt((err_m**2).sum() / crb)
     ratio_w = np.sqrt((err_w**2).sum() / crb)
     assert ratio_m < 1.15 and ratio_m < ratio_w, (ratio_m, ratio_w)
+    assert abs(ratio_m - 1.098) < 0.002, ratio_m  # the compiled kernel with the background plane
 
 
 def test_fitted_conic_is_the_rendered_ellipse(frames):
@@ -111,20 +115,57 @@ def test_model_jacobian_matches_finite_differences():
         assert np.abs(numeric - J[:, k]).max() < tol * np.abs(numeric).max() + 1e-6
 
 
-def test_float32_model_is_the_float64_model():
-    """The fit evaluates the model in float32 on relative coordinates: same values and
-    Jacobian as float64 to float32 resolution."""
-    p = np.array(
-        [[0.3, -0.2, 1 / 81 * 1.1, 0.004, 1 / 50, 3000.0, 150.0], [-0.1, 0.4, 1 / 40, 0.0, 1 / 40, 900.0, 60.0]]
-    )
-    v, u = np.mgrid[-12:13, -12:13].astype(float)
-    du, dv = np.repeat(u.ravel()[None], 2, 0), np.repeat(v.ravel()[None], 2, 0)
-    for order in ("optical", "pixel"):
-        profile = edge_profile(0.9, order)
-        mu64, J64 = model(p, du, dv, profile)
-        mu32, J32 = model(p, du.astype(np.float32), dv.astype(np.float32), profile)
-        assert mu32.dtype == J32.dtype == np.float32
-        np.testing.assert_allclose(mu32, mu64, atol=2e-3)  # DN
-        scale = np.abs(J64).max(axis=2, keepdims=True)
-        assert np.abs(J32 - J64).max() < 1e-3 * scale.max()
-        np.testing.assert_allclose(J32 / scale, J64 / scale, atol=1e-3)
+def reference_fit(stack, t, ref, start, band, profile, noise_sigma_dn, gain, max_iterations, tolerance_px=1e-4):
+    """fit_discs's statement for one target, written plainly in numpy float64 with model():
+    Gauss-Newton on the edge-band pixels, EMVA weights, the same trust region and stop,
+    covariance the inverse of the last J^T W J."""
+    du, dv, z = edge_band(stack, t, ref, start[2:5], band)
+    p = start.astype(float).copy()
+    for _ in range(max_iterations):
+        mu, J = model(p[None], du[None], dv[None], profile)
+        mu, J = mu[0], J[0]
+        w = 1.0 / (np.maximum(mu - p[6], 0.0) / gain + noise_sigma_dn**2)
+        H = (J * w) @ J.T
+        step = np.linalg.solve(H, (J * w) @ (z - mu))
+        centre = np.hypot(step[0], step[1])
+        shape = np.abs(step[2:5]).max() / np.abs(p[2:5]).max()
+        scale = min(1.0, 0.5 / centre, 0.2 / shape)
+        p += scale * step
+        if centre * scale < tolerance_px:
+            break
+    return p, np.linalg.inv(H), len(z)
+
+
+@pytest.mark.parametrize("order", ["optical", "pixel"])
+def test_compiled_fit_is_the_numpy_float64_fit(frames, order):
+    """fit_discs (the numba kernel) against reference_fit on the synthetic targets: the
+    same centres to 1e-6 px, the same shapes, amplitudes, backgrounds and covariances."""
+    _, _, _, images = frames
+    detector = BlobDetector(DetectorOptions())
+    stacks, _, background = detector.detect_stacks(images[0])
+    profile = edge_profile(0.9, order)
+    sigma_e = np.sqrt(0.9**2 + 1.0 / 12.0)
+    band = (3.7 * sigma_e, 3.2 * sigma_e)
+    refs = np.concatenate([st.uv for st in stacks])
+    moments = np.concatenate([st.moments for st in stacks])
+    start = np.zeros((len(refs), 7))
+    start[:, 2:5] = shape_from_moments(moments[:, 0], moments[:, 1], moments[:, 2], sigma_e)
+    start[:, 5] = np.concatenate([st.peak_dn for st in stacks])
+    start[:, 6] = np.concatenate([st.background_dn for st in stacks])
+    for iterations in (1, 3):
+        fit = fit_discs(
+            stacks, refs, start, band=band, profile=profile,
+            noise_sigma_dn=background.sigma_dn, gain_e_per_dn=2.86, max_iterations=iterations,
+        )
+        assert fit.ok.all() and len(fit.ok) == 60
+        i = 0
+        for st in stacks:
+            for t in range(len(st)):
+                p, cov, pixels = reference_fit(
+                    st, t, refs[i], start[i], band, profile, background.sigma_dn, 2.86, iterations
+                )
+                assert fit.pixels[i] == pixels > 100
+                np.testing.assert_allclose(fit.params[i, :2], p[:2], rtol=0, atol=1e-6)
+                np.testing.assert_allclose(fit.params[i, 2:], p[2:], rtol=1e-6)
+                np.testing.assert_allclose(fit.cov[i], cov, rtol=1e-6, atol=1e-9 * np.abs(cov).max())
+                i += 1
