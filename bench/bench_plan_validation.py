@@ -53,6 +53,11 @@ DESIGN_POINTS = (
 )
 
 
+#: The stages the planner's defaults model (docs/planning.md): the sessions it was validated on,
+#: not the session defaults since issue 11 (modelfit, ml).
+PLANNED_STAGES = {"centroid": {"plugin": "weighted"}, "register": {"plugin": "svd"}}
+
+
 def run_sessions(scenario: str, arm_sigma: float, frames: int, sessions: int, out: str,
                  log: Path | None = None, label: str = "", first_seed: int = 1001) -> dict[str, list[float]]:
     """Session errors (measured - true, mm) per characteristic; with ``log``, each session's errors
@@ -65,6 +70,7 @@ def run_sessions(scenario: str, arm_sigma: float, frames: int, sessions: int, ou
             "acquire": {"plugin": "simulator", "scenario": scenario, "frames": frames, "seed": 1000 + seed,
                         "arm_sigma_mm": arm_sigma},
             "reference": {"plugin": "romer-serial", "port": "simulator"},
+            **PLANNED_STAGES,
         }
         summary = run_session(parse_config(data, "<validation>"), pm)
         session = {c.name: float(c.error_mm) for c in summary.characteristics
@@ -197,7 +203,7 @@ def split(k: int, log: Path, mc_sessions: int) -> None:
     def session(seed: int, a: float, out: str) -> dict[str, float]:
         data = {"session": {"output_dir": out, "name": f"split-{seed}", "record": False, "rerun": False},
                 "acquire": {"plugin": "simulator", "scenario": scenario, "frames": 1, "seed": seed, "arm_sigma_mm": a},
-                "reference": {"plugin": "romer-serial", "port": "simulator"}}
+                "reference": {"plugin": "romer-serial", "port": "simulator"}, **PLANNED_STAGES}
         source = NoiseFreeSource(scenes[a], scenario=scenario, frames=1, seed=seed, arm_sigma_mm=a)
         summary = run_session(parse_config(data, "<split>"), pm, source=source)
         return {c.name: float(c.error_mm) for c in summary.characteristics}
