@@ -108,17 +108,16 @@ def render_disc(
         phi = np.arange(n) * (2 * np.pi / n)
         return centre + radius_mm * (np.outer(np.cos(phi), e1) + np.outer(np.sin(phi), e2))
 
-    coarse = outline(64)
+    coarse = outline(64)  # the outline's length in px sets N
     if np.any(coarse[:, 2] <= 0):
         return None
     uv = project(coarse, intrinsics)
     perimeter = np.linalg.norm(np.diff(uv, axis=0, append=uv[:1]), axis=1).sum()
     n = int(2 ** np.ceil(np.log2(max(2.0 * perimeter / blur_sigma_px, 128.0))))
-    if n > 64:
-        rim = outline(n)
-        if np.any(rim[:, 2] <= 0):
-            return None
-        uv = project(rim, intrinsics)
+    rim = outline(n)
+    if np.any(rim[:, 2] <= 0):
+        return None
+    uv = project(rim, intrinsics)
     width, height = intrinsics.image_size
     u0 = int(np.floor(uv[:, 0].min())) - pad_px
     v0 = int(np.floor(uv[:, 1].min())) - pad_px
