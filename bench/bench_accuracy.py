@@ -53,16 +53,7 @@ from crossfield.rigid import kabsch  # noqa: E402
 from crossfield.runner import register_frame  # noqa: E402
 from crossfield.session_registration import SessionPoseAccumulator  # noqa: E402
 from crossfield.simulator.scenarios import build_scene  # noqa: E402
-from crossfield.types import (  # noqa: E402
-    CAMERAS,
-    CameraPoints,
-    Correspondence,
-    ProbedPoint,
-    ReferenceData,
-    Registration,
-    RigidFit,
-    StereoCentroids,
-)
+from crossfield.types import CAMERAS, ProbedPoint, ReferenceData, StereoCentroids  # noqa: E402
 
 CONFIGS = ("opencv", "weighted", "+modelfit", "+eccentricity", "+ml", "default", "+session")
 #: configuration -> its (centroid, triangulate, register) stages (keys of main's ``stages``)
