@@ -24,7 +24,7 @@ baseline's; also the centroid error against the known ellipse centres.
 is each rendered blob's centre of mass, the Cramer-Rao bound that of the
 renderer's own image model (``tests/crb_tools.py``). On ``--frames`` noise
 draws of the same targets, in one run: ms per frame (median) and RMS / CRB
-of every implementation, of "modelfit" with the simulator's pixel-then-blur
+of every implementation, of "modelfit" with these frames' pixel-then-blur
 order, and of OpenCV contours + moments (intensity moments inside each
 filled contour, and the contour polygon's own moments).
 """
