@@ -182,7 +182,7 @@ def rendered_bias(
     rng = np.random.default_rng(seed)
     uv_true = np.asarray(uv_true, dtype=np.float64)
     bias = np.full(uv_true.shape, np.nan)
-    corrected = None
+    with_conics = []
     for j, cam in enumerate(("upper", "lower")):
         expected = uv_true[:, 2 * j : 2 * j + 2]
         pair = antithetic_pair(images[cam], sensor, rng) if noise == "antithetic" else \
@@ -190,8 +190,8 @@ def rendered_bias(
         results = [centroider.extract(img, cam, 0) for img in pair]
         found = [_match(np.asarray(r.uv, dtype=np.float64), expected) for r in results]
         bias[:, 2 * j : 2 * j + 2] = np.mean(found, axis=0) - expected
-        corrected = all(r.ellipse is not None for r in results) if corrected is None else corrected
-    if corrected:
+        with_conics += [r.ellipse is not None for r in results]
+    if all(with_conics):
         # centroids with edge conics: the session's triangulation takes the eccentricity off
         # (``epipolar``, step 5); what stays is the centroid's bias beyond it, to first order
         # the found centre minus the model's offset at the true circles
