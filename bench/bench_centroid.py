@@ -25,7 +25,8 @@ is each rendered blob's centre of mass, the Cramer-Rao bound that of the
 renderer's own image model (``tests/crb_tools.py``). On ``--frames`` noise
 draws of the same targets, in one run: ms per frame (median) and RMS / CRB
 of every implementation, of "modelfit" with these frames' pixel-then-blur
-order, and of OpenCV contours + moments (intensity moments inside each
+order (with its default one Gauss-Newton step, and with two), and of
+OpenCV contours + moments (intensity moments inside each
 filled contour, and the contour polygon's own moments).
 """
 
@@ -98,7 +99,9 @@ def efficiency(args) -> int:
     background = estimate_background(images[0], 8.0)
     pm = make_plugin_manager()
     candidates = {name: impl.create({}) for name, impl in sorted(implementations(pm, "centroid").items())}
-    candidates["modelfit (psf_order=pixel)"] = implementations(pm, "centroid")["modelfit"].create({"psf_order": "pixel"})
+    modelfit = implementations(pm, "centroid")["modelfit"]
+    candidates["modelfit (psf_order=pixel)"] = modelfit.create({"psf_order": "pixel"})
+    candidates["modelfit (pixel, 2 steps)"] = modelfit.create({"psf_order": "pixel", "max_iterations": 2})
     functions = {
         name: (lambda image, x=x: x.extract(image, "upper", 0).uv) for name, x in candidates.items()
     }

@@ -70,7 +70,7 @@ class ModelFitCentroids:
         gain_e_per_dn: float = 2.86,
         blur_sigma_px: float = 0.9,
         psf_order: str = "optical",
-        max_iterations: int = 2,
+        max_iterations: int = 1,
     ) -> None:
         if not gain_e_per_dn > 0:
             raise ValueError(f"gain_e_per_dn must be > 0, got {gain_e_per_dn}")

@@ -62,8 +62,9 @@ def test_stated_sigma_is_the_independent_cramer_rao_bound(frames):
 
 
 def test_within_1_15_of_the_bound_and_closer_than_the_weighted_centroid(frames):
-    """Issue 11: RMS within 1.15x the CRB. Measured on these 6 frames: modelfit 1.098x with the
-    ring's background plane taken off (1.078x without it, the numpy float32 fit's 1.0779x: on
+    """Issue 11: RMS within 1.15x the CRB. Measured on these 6 frames: modelfit 1.092x with one
+    Gauss-Newton step (the default; 1.098x with two) and the ring's background plane taken off
+    (1.078x with two steps and without it, the numpy float32 fit's 1.0779x: on
     these flat backgrounds the plane's own noise costs 2 %; on a sloped one it removes a bias,
     tests/test_blob_stacks.py), weighted ~1.38x (bench/bench_centroid.py --efficiency --seed 11)."""
     err_m, _, bound, _ = errors("modelfit", {"psf_order": "pixel"}, frames)
@@ -72,7 +73,7 @@ def test_within_1_15_of_the_bound_and_closer_than_the_weighted_centroid(frames):
     ratio_m = np.sqrt((err_m**2).sum() / crb)
     ratio_w = np.sqrt((err_w**2).sum() / crb)
     assert ratio_m < 1.15 and ratio_m < ratio_w, (ratio_m, ratio_w)
-    assert abs(ratio_m - 1.098) < 0.002, ratio_m  # the compiled kernel with the background plane
+    assert abs(ratio_m - 1.092) < 0.002, ratio_m  # the compiled kernel, one step, the background plane
 
 
 def test_fitted_conic_is_the_rendered_ellipse(frames):
@@ -169,3 +170,4 @@ def test_compiled_fit_is_the_numpy_float64_fit(frames, order):
                 np.testing.assert_allclose(fit.params[i, 2:], p[2:], rtol=1e-6)
                 np.testing.assert_allclose(fit.cov[i], cov, rtol=1e-6, atol=1e-9 * np.abs(cov).max())
                 i += 1
+

@@ -32,6 +32,7 @@ the right (column), v down (row).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -192,8 +193,7 @@ def estimate_background(image: np.ndarray, threshold_sigma: float, stride: int =
     """
     sample = image[::stride, ::stride]
     if sample.dtype.kind in "ui":
-        counts = np.bincount(sample.ravel().astype(np.intp, copy=False))
-        cdf = np.cumsum(counts)
+        cdf = np.cumsum(np.bincount(sample.ravel().astype(np.intp, copy=False)))
         level = _histogram_quantile(cdf, 0.5)
         iqr = _histogram_quantile(cdf, 0.75) - _histogram_quantile(cdf, 0.25)
     else:
@@ -214,18 +214,19 @@ class BlobDetector:
         y, x = np.mgrid[-d : d + 1, -d : d + 1]
         self._kernel = (x * x + y * y <= (d + 0.5) ** 2).astype(np.uint8) if d > 0 else None
 
-    def _contours(self, image: np.ndarray) -> tuple[Background, np.ndarray, tuple]:
-        """Steps 1-3 (module docstring): background, 0/1 threshold mask, outer contours."""
+    def _contours(self, image: np.ndarray) -> tuple[Background, np.ndarray, Sequence[np.ndarray], np.ndarray]:
+        """Steps 1-3 (module docstring): background, 0/1 threshold mask, outer contours
+        and their (N, 4) bounding boxes (x, y, w, h)."""
         if not isinstance(image, np.ndarray) or image.ndim != 2:
             raise ValueError(f"expected a 2-D image array, got {getattr(image, 'shape', type(image))}")
-        opts = self.options
-        background = estimate_background(image, opts.threshold_sigma, opts.stride)
+        background = estimate_background(image, self.options.threshold_sigma, self.options.stride)
         # Integer threshold: no float conversion of the frame; bool -> uint8 view.
         mask = (image > background.threshold_dn).view(np.uint8)
         if not mask.flags.c_contiguous:
             mask = np.ascontiguousarray(mask)
         contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-        return background, mask, contours
+        boxes = np.array([cv2.boundingRect(c) for c in contours], dtype=np.int64).reshape(-1, 4)
+        return background, mask, contours, boxes
 
     def detect(self, image: np.ndarray) -> tuple[list[Blob], list[RejectedBlob], Background]:
         """Blobs of one (H, W) image (integer DN, any bit depth up to 16).
@@ -234,7 +235,7 @@ class BlobDetector:
         their reasons, and the global background estimate.
         """
         opts = self.options
-        background, mask, contours = self._contours(image)
+        background, mask, contours, boxes = self._contours(image)
 
         height, width = image.shape
         margin = opts.dilate_px + opts.ring_px
@@ -244,8 +245,7 @@ class BlobDetector:
         kernel = self._kernel
         blobs: list[Blob] = []
         rejected: list[RejectedBlob] = []
-        for contour in contours:
-            x, y, w, h = cv2.boundingRect(contour)
+        for contour, (x, y, w, h) in zip(contours, boxes.tolist()):
             box_uv = (x + (w - 1) / 2, y + (h - 1) / 2)
             if reject_border and (x == 0 or y == 0 or x + w == width or y + h == height):
                 rejected.append(RejectedBlob(box_uv, "touches_border"))
@@ -343,50 +343,41 @@ class BlobDetector:
         Blobs are grouped by ROI side rounded up to ``size_step`` px; within a
         class the contour fill is one ``cv2.drawContours`` per blob (one call for
         the whole stack measured no faster: the fill dominates), the dilation
-        one ``cv2.dilate``, the per-pixel sums one compiled pass
-        (:func:`_slice_sums`), the per-blob moments another (:func:`_blob_moments`)
-        and the rejection tests whole-stack array operations. Each
-        ROI keeps its :meth:`detect` extent (bounding box + margin, clipped to
-        the image) inside its slice, so the results do not depend on the class
-        size and stay exact under flips and transposition of the image.
-        Returns the stacks (accepted blobs, in contour order within a class),
-        the rejected blobs and the global background.
+        one ``cv2.dilate``, and the per-pixel sums, the background plane and the
+        per-blob moments one compiled pass (:func:`_gather`, the GIL released);
+        the rejection tests are whole-stack array operations. Each ROI keeps its
+        :meth:`detect` extent (bounding box + margin, clipped to the image)
+        inside its slice, so the results do not depend on the class size and
+        stay exact under flips and transposition of the image. Returns the
+        stacks (accepted blobs, in contour order within a class), the rejected
+        blobs and the global background.
         """
         opts = self.options
-        background, mask, contours = self._contours(image)
+        background, _, contours, boxes = self._contours(image)
         rejected: list[RejectedBlob] = []
         if not contours:
             return [], rejected, background
-        boxes = np.array([cv2.boundingRect(c) for c in contours], dtype=np.int64).reshape(-1, 4)
         x, y, w, h = boxes.T
         height, width = image.shape
         reason = np.full(len(boxes), -1)  # index into REASONS, -1: accepted so far
         where = np.column_stack((x + (w - 1) / 2, y + (h - 1) / 2))  # the rejected blob's uv
-
-        def flag(bad: np.ndarray, code: int, rows: np.ndarray) -> None:
-            hit = rows[bad & (reason[rows] < 0)]
-            reason[hit] = code
-
-        everything = np.arange(len(boxes))
         if opts.reject_border:
-            flag((x == 0) | (y == 0) | (x + w == width) | (y + h == height), 0, everything)
-        flag(w * h < opts.min_area_px, 1, everything)  # fewer pixels than its box: surely too small
+            reason[(x == 0) | (y == 0) | (x + w == width) | (y + h == height)] = 0
+        reason[(w * h < opts.min_area_px) & (reason < 0)] = 1  # fewer pixels than its box: surely too small
         margin = opts.dilate_px + opts.ring_px
         side = -(-(np.maximum(w, h) + 2 * margin) // size_step) * size_step
         stacks = []
         live = np.flatnonzero(reason < 0)
         for size in np.unique(side[live]):
             rows = live[side[live] == size]
-            stack = self._stack(
-                image, mask, contours, boxes[rows], int(size), background, reason, where, rows
-            )
+            stack = self._stack(image, contours, boxes[rows], int(size), background, reason, where, rows)
             if len(stack):
                 stacks.append(stack)
         for i in np.flatnonzero(reason >= 0):
             rejected.append(RejectedBlob((float(where[i, 0]), float(where[i, 1])), REASONS[reason[i]]))
         return stacks, rejected, background
 
-    def _stack(self, image, mask, contours, boxes, size, background, reason, where, rows) -> BlobStack:
+    def _stack(self, image, contours, boxes, size, background, reason, where, rows) -> BlobStack:
         """Steps 4-5 for the blobs ``rows`` (boxes (T, 4)) in (T, size, size) slices;
         writes the rejection codes into ``reason`` and not_round centroids into ``where``."""
         opts = self.options
@@ -394,55 +385,48 @@ class BlobDetector:
         x, y, w, h = boxes.T
         margin = opts.dilate_px + opts.ring_px
         sh, sw = min(size, height), min(size, width)
-        xs = np.clip(x - margin, 0, width - sw)  # slice origin: the ROI inside, the slice inside the image
-        ys = np.clip(y - margin, 0, height - sh)
+        # slice origin: the ROI inside, the slice inside the image
+        xs = np.minimum(np.maximum(x - margin, 0), width - sw)
+        ys = np.minimum(np.maximum(y - margin, 0), height - sh)
         # the ROI of detect(): bounding box + margin, clipped to the image, in slice coordinates
-        rect = np.column_stack(
-            (
-                np.maximum(y - margin, 0) - ys,
-                np.minimum(y + h + margin, height) - ys,
-                np.maximum(x - margin, 0) - xs,
-                np.minimum(x + w + margin, width) - xs,
-            )
-        )
+        n = len(rows)
+        rect = np.empty((n, 4), np.int64)
+        rect[:, 0] = np.maximum(y - margin, 0) - ys
+        rect[:, 1] = np.minimum(y + h + margin, height) - ys
+        rect[:, 2] = np.maximum(x - margin, 0) - xs
+        rect[:, 3] = np.minimum(x + w + margin, width) - xs
         # filled contours; d spare rows per slice keep the dilation of one slice out of the next
         d = opts.dilate_px
-        filled = np.zeros((len(rows), sh + d, sw), np.uint8)
-        for t, i in enumerate(rows):
-            offset = (-int(xs[t]), -int(ys[t]))
-            cv2.drawContours(filled[t], (contours[i],), -1, 1, thickness=-1, offset=offset)
+        filled = np.zeros((n, sh + d, sw), np.uint8)
+        for t, (i, u0, v0) in enumerate(zip(rows.tolist(), xs.tolist(), ys.tolist())):
+            cv2.drawContours(filled[t], (contours[i],), -1, 1, thickness=-1, offset=(-u0, -v0))
         if self._kernel is not None:
             dilated = cv2.dilate(filled.reshape(-1, sw), self._kernel).reshape(filled.shape)
         else:
             dilated = filled
-        n = len(rows)
         roi = np.empty((n, sh, sw), image.dtype)
         window = np.empty((n, sh, sw), np.uint8)
-        area, ring_count = np.empty(n, np.int64), np.empty(n, np.int64)
-        max_value, ring_sum = np.empty(n), np.empty(n)
-        M, N = np.empty((n, 6)), np.empty((n, 6))
-        ring_moments, ring_values = np.empty((n, 6)), np.empty((n, 3))
-        _slice_sums(
-            image, xs, ys, rect, filled, dilated, background.threshold_dn,
-            roi, window, area, max_value, ring_count, ring_sum, M, N, ring_moments, ring_values,
+        area, max_value = np.empty(n, np.int64), np.empty(n)
+        b, total, roundness = np.empty(n), np.empty(n), np.empty(n)
+        uv, moments, gradient = np.empty((n, 2)), np.empty((n, 3)), np.empty((n, 2))
+        _gather(
+            image, xs, ys, rect, filled, dilated, background.threshold_dn, background.level_dn,
+            roi, window, area, max_value, b, total, uv, moments, roundness, gradient,
         )
-        gradient = _ring_gradient(ring_moments, ring_values)
-        b, total, uv, moments, roundness = np.empty(n), np.empty(n), np.empty((n, 2)), np.empty((n, 3)), np.empty(n)
-        _blob_moments(M, N, ring_count, ring_sum, background.level_dn, xs, ys, b, total, uv, moments, roundness)
         saturated = max_value >= opts.saturation_dn
-        local = np.arange(len(rows))
+        mine = reason[rows]
         for code, bad in (
             (1, area < opts.min_area_px),
             (2, area > opts.max_area_px),
             (3, saturated & opts.reject_saturated),
             (4, ~(total > 0)),
+            (5, roundness < opts.min_roundness),
         ):
-            hit = bad & (reason[rows] < 0)
-            reason[rows[hit]] = code
-        hit = (roundness < opts.min_roundness) & (reason[rows] < 0)
+            mine[bad & (mine < 0)] = code
+        hit = mine == 5
         where[rows[hit]] = uv[hit]
-        reason[rows[hit]] = 5
-        ok = local[reason[rows] < 0]
+        reason[rows] = mine
+        ok = np.flatnonzero(mine < 0)
         return BlobStack(
             x0=xs[ok],
             y0=ys[ok],
@@ -457,6 +441,29 @@ class BlobDetector:
             moments=moments[ok],
             background_gradient=gradient[ok],
         )
+
+
+@numba.njit(cache=True, nogil=True)
+def _gather(
+    image, xs, ys, rect, filled, dilated, threshold_dn, level_dn,
+    roi, window, area, max_value, b, total, uv, moments, roundness, gradient,
+) -> None:
+    """Step 4 and the moments of :meth:`BlobDetector._stack` for the T slices at
+    columns ``xs``, rows ``ys`` (T,) of ``image``, GIL released: :func:`_slice_sums`,
+    then per blob the background plane (:func:`_ring_gradient`) and the moments
+    (:func:`_blob_moments`). Writes roi, window (T, S, S) and area, max_value, b,
+    total, roundness (T,), uv (T, 2), moments (T, 3), gradient (T, 2)."""
+    n = len(xs)
+    ring_count = np.empty(n, np.int64)
+    ring_sum = np.empty(n)
+    M, N = np.empty((n, 6)), np.empty((n, 6))
+    ring_moments, ring_values = np.empty((n, 6)), np.empty((n, 3))
+    _slice_sums(
+        image, xs, ys, rect, filled, dilated, threshold_dn,
+        roi, window, area, max_value, ring_count, ring_sum, M, N, ring_moments, ring_values,
+    )
+    _ring_gradient(ring_moments, ring_values, gradient)
+    _blob_moments(M, N, ring_count, ring_sum, level_dn, xs, ys, b, total, uv, moments, roundness)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -554,26 +561,32 @@ def _slice_sums(
 MIN_RING_PLANE_PX = 24
 
 
-def _ring_gradient(R: np.ndarray, Z: np.ndarray) -> np.ndarray:
-    """(T, 2) DN/px: the slope (d/du, d/dv) of the least-squares plane through each
-    slice's ring pixels, from their moments R (T, 6) (n, sum u, sum v, sum u^2, sum u v,
-    sum v^2) and value sums Z (T, 3) (sum z, sum z u, sum z v) (:func:`_slice_sums`).
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _ring_gradient(R: np.ndarray, Z: np.ndarray, gradient: np.ndarray) -> None:
+    """Writes gradient (T, 2) DN/px: the slope (d/du, d/dv) of the least-squares plane
+    through each slice's ring pixels, from their moments R (T, 6) (n, sum u, sum v,
+    sum u^2, sum u v, sum v^2) and value sums Z (T, 3) (sum z, sum z u, sum z v)
+    (:func:`_slice_sums`).
 
     The plane z = b + g . (x - x_r) through the ring's centroid x_r: g solves
     C g = c, C the ring pixels' (2, 2) coordinate covariance and c their
     coordinate-value covariance. A vignetted or stray-light background slopes
     by ~0.01-0.05 DN/px; under a 14 px disc a slope left in the data moves a
-    model-fit centre by ~5e-4 px (a quarter of its noise), which the plane takes off.
+    model-fit centre by ~5e-4 px (a quarter of its noise), which the plane takes
+    off. Fewer than ``MIN_RING_PLANE_PX`` ring pixels, or a degenerate C: g = 0.
     """
-    n = np.maximum(R[:, 0], 1.0)
-    cu, cv, mz = R[:, 1] / n, R[:, 2] / n, Z[:, 0] / n
-    a, b, d = R[:, 3] / n - cu * cu, R[:, 4] / n - cu * cv, R[:, 5] / n - cv * cv
-    e, f = Z[:, 1] / n - mz * cu, Z[:, 2] / n - mz * cv
-    det = a * d - b * b
-    ok = (R[:, 0] >= MIN_RING_PLANE_PX) & (det > 1e-6 * np.maximum(a * d, 1e-300))
-    safe = np.where(ok, det, 1.0)
-    g = np.column_stack(((d * e - b * f) / safe, (a * f - b * e) / safe))
-    return np.where(ok[:, None], g, 0.0)
+    for t in range(len(R)):
+        n = max(R[t, 0], 1.0)
+        cu, cv, mz = R[t, 1] / n, R[t, 2] / n, Z[t, 0] / n
+        a, b, d = R[t, 3] / n - cu * cu, R[t, 4] / n - cu * cv, R[t, 5] / n - cv * cv
+        e, f = Z[t, 1] / n - mz * cu, Z[t, 2] / n - mz * cv
+        det = a * d - b * b
+        if R[t, 0] >= MIN_RING_PLANE_PX and det > 1e-6 * max(a * d, 1e-300):
+            gradient[t, 0] = (d * e - b * f) / det
+            gradient[t, 1] = (a * f - b * e) / det
+        else:
+            gradient[t, 0] = 0.0
+            gradient[t, 1] = 0.0
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
