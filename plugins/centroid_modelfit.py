@@ -11,7 +11,10 @@ the window pixels in the edge band (3.7 sigma_e inside to 3.2 sigma_e
 outside the seed's edge) under the model ``B + A E(signed distance)``
 (``docs/centroids.md``, "modelfit").
 
-Uncertainty: the inverse Fisher information of the model at the solution,
+One Gauss-Newton step by default (``max_iterations``): from the weighted
+centroid it is as good as the converged fit (``docs/centroids.md``).
+Uncertainty: the inverse Fisher information of the model at the last step's
+start (the solution, to 4 % of its noise),
 so sigma_uv is the Cramer-Rao bound of the model (its efficiency is
 measured in ``bench/bench_centroid.py``). The fitted edge conic of each
 target (``CentroidSet.ellipse``, with its covariance) goes to the

@@ -645,7 +645,7 @@ def fit_discs(
     nil, only on the amplitude or the background). noise_sigma_dn:
     background noise (DN); gain_e_per_dn: conversion gain. Each target
     iterates until its centre moves by less than ``tolerance_px`` or
-    ``max_iterations`` (from the weighted centroid two or three suffice);
+    ``max_iterations`` (from the weighted centroid one is as good as three);
     the step is bounded (trust region: 0.5 px for the centre, 20 % for the
     shape); the covariance is the inverse of the last iteration's J^T W J.
     A target whose normal equations are not positive definite (no pixels,
