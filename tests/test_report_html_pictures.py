@@ -71,3 +71,22 @@ def test_a_lab_template_folder_replaces_the_page(session, tmp_path):
 def test_print_css_is_present(session):
     page = (session.info.out_dir / "report.html").read_text(encoding="utf-8")
     assert "@media print" in page and "@page" in page
+
+
+def test_ids_are_unique_and_every_reference_resolves_within_its_figure(session):
+    """Several matplotlib SVGs inlined in one page: each numbers its ids from 1 (figure_1,
+    patch_1, ...) and names its markers by a hash, so without figures.svg's prefix the page
+    repeated ~180 ids and a <use> could draw another figure's marker. Every id is now unique in
+    the page, and every #reference of a figure points at an id of that same figure."""
+    import re
+    from collections import Counter
+
+    text = (session.info.out_dir / "report.html").read_text(encoding="utf-8")
+    ids = Counter(re.findall(r'\bid="([^"]+)"', text))
+    assert ids and not [i for i, n in ids.items() if n > 1]
+    figures = re.findall(r"<svg\b.*?</svg>", text, flags=re.S)
+    assert len(figures) >= 5
+    for figure in figures:
+        own = set(re.findall(r'\bid="([^"]+)"', figure))
+        refs = set(re.findall(r'(?:href="|url\()#([^")]+)', figure))
+        assert refs and refs <= own, sorted(refs - own)[:5]

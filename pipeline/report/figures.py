@@ -24,6 +24,7 @@ resolution.
 from __future__ import annotations
 
 import io
+import re
 from collections.abc import Mapping
 from typing import Any
 
@@ -58,16 +59,33 @@ def _pyplot():
     return plt
 
 
-def svg(fig, tight: bool = True) -> str:
+_SVG_ID = re.compile(r'\bid="([^"]+)"')
+
+
+def svg(fig, prefix: str, tight: bool = True) -> str:
     """The figure as an inline ``<svg>`` element (no XML prolog, no DOCTYPE);
-    ``tight``: cropped to what is drawn (matplotlib draws the figure twice then)."""
+    ``tight``: cropped to what is drawn (matplotlib draws the figure twice then).
+
+    matplotlib numbers its element ids per file (``figure_1``, ``patch_1``, a
+    marker's hash ...), so two figures inlined in one page would repeat them,
+    and a ``<use>`` or ``clip-path`` could resolve to the other figure's
+    element: every id (and every ``#id`` reference to it) gets ``prefix`` + ``-``,
+    except the ids crossfield sets itself (``THUMBNAIL_GID``, already unique).
+    """
     plt = _pyplot()
     out = io.StringIO()
     with plt.rc_context({"svg.fonttype": "none", "svg.hashsalt": "crossfield"}):
         fig.savefig(out, format="svg", bbox_inches="tight" if tight else None, metadata={"Date": None, "Creator": None})
     plt.close(fig)
     text = out.getvalue()
-    return text[text.index("<svg"):]
+    text = text[text.index("<svg"):]
+    ours = {gid.split("{")[0] for gid in THUMBNAIL_GID.values()}
+    renamed = {i for i in _SVG_ID.findall(text) if not i.startswith(tuple(ours))}
+    if not renamed:
+        return text
+    names = "|".join(re.escape(i) for i in sorted(renamed, key=len, reverse=True))
+    text = re.sub(rf'(\bid="|#)({names})(?=["\)])', lambda m: f"{m.group(1)}{prefix}-{m.group(2)}", text)
+    return text
 
 
 def deviation_chart(report: Mapping[str, Any]) -> str:
@@ -97,7 +115,7 @@ def deviation_chart(report: Mapping[str, Any]) -> str:
     ax.set_xlabel(f"deviation from nominal (mm); bars: U (k = {k:g}); band: tolerance zone")
     ax.grid(axis="x", color="#c9d2dc", linewidth=0.5)
     ax.set_axisbelow(True)
-    return svg(fig)
+    return svg(fig, "deviation")
 
 
 def residual_chart(report: Mapping[str, Any], positions: Mapping[str, Any]) -> str:
@@ -133,7 +151,7 @@ def residual_chart(report: Mapping[str, Any], positions: Mapping[str, Any]) -> s
     ax.set_ylabel("principal axis 2 (mm)")
     ax.set_title(f"residual R p + t - q, magnified {gain:g}x; circles: expected RMS", fontsize=9)
     ax.grid(color="#c9d2dc", linewidth=0.5)
-    return svg(fig)
+    return svg(fig, "residuals")
 
 
 def trend_chart(report: Mapping[str, Any]) -> str:
@@ -162,7 +180,7 @@ def trend_chart(report: Mapping[str, Any]) -> str:
         bottom.legend(fontsize=7, ncol=min(5, len(names)), loc="upper center", bbox_to_anchor=(0.5, -0.3))
     for ax in (top, bottom):
         ax.grid(color="#c9d2dc", linewidth=0.5)
-    return svg(fig)
+    return svg(fig, "trends")
 
 
 
@@ -207,4 +225,4 @@ def thumbnail_chart(thumb) -> str:
     ax.set_xlim(-0.5, w - 0.5)
     ax.set_ylim(h - 0.5, -0.5)
     ax.set_axis_off()
-    return svg(fig, tight=False)
+    return svg(fig, f"thumbnail-{camera}-figure", tight=False)
