@@ -37,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from crossfield.config import parse_config  # noqa: E402
 from crossfield.planning.routes import camera_model, predict  # noqa: E402
-from crossfield.planning.station import station_from_scenario  # noqa: E402
+from crossfield.planning.station import PLANNED_STAGES, station_from_scenario  # noqa: E402
 from crossfield.plugins.acquire_simulator import SimulatorSource  # noqa: E402
 from crossfield.registry import make_plugin_manager  # noqa: E402
 from crossfield.runner import run_session  # noqa: E402
@@ -53,9 +53,9 @@ DESIGN_POINTS = (
 )
 
 
-#: The stages the planner's defaults model (docs/planning.md): the sessions it was validated on,
+#: The stages the planner's defaults model (docs/planning.md): the sessions it is validated on,
 #: not the session defaults since issue 11 (modelfit, ml).
-PLANNED_STAGES = {"centroid": {"plugin": "weighted"}, "register": {"plugin": "svd"}}
+STAGES = {stage: {"plugin": plugin} for stage, plugin in PLANNED_STAGES.items()}
 
 
 def run_sessions(scenario: str, arm_sigma: float, frames: int, sessions: int, out: str,
@@ -70,7 +70,7 @@ def run_sessions(scenario: str, arm_sigma: float, frames: int, sessions: int, ou
             "acquire": {"plugin": "simulator", "scenario": scenario, "frames": frames, "seed": 1000 + seed,
                         "arm_sigma_mm": arm_sigma},
             "reference": {"plugin": "romer-serial", "port": "simulator"},
-            **PLANNED_STAGES,
+            **STAGES,
         }
         summary = run_session(parse_config(data, "<validation>"), pm)
         session = {c.name: float(c.error_mm) for c in summary.characteristics
@@ -203,7 +203,7 @@ def split(k: int, log: Path, mc_sessions: int) -> None:
     def session(seed: int, a: float, out: str) -> dict[str, float]:
         data = {"session": {"output_dir": out, "name": f"split-{seed}", "record": False, "rerun": False},
                 "acquire": {"plugin": "simulator", "scenario": scenario, "frames": 1, "seed": seed, "arm_sigma_mm": a},
-                "reference": {"plugin": "romer-serial", "port": "simulator"}, **PLANNED_STAGES}
+                "reference": {"plugin": "romer-serial", "port": "simulator"}, **STAGES}
         source = NoiseFreeSource(scenes[a], scenario=scenario, frames=1, seed=seed, arm_sigma_mm=a)
         summary = run_session(parse_config(data, "<split>"), pm, source=source)
         return {c.name: float(c.error_mm) for c in summary.characteristics}

@@ -10,7 +10,7 @@ import pytest
 
 from crossfield.config import parse_config
 from crossfield.planning.routes import analytic, camera_model, centroid_bias, simulate_sessions
-from crossfield.planning.station import station_from_scenario
+from crossfield.planning.station import PLANNED_STAGES, station_from_scenario
 from crossfield.plugins.acquire_simulator import SimulatorSource
 from crossfield.registry import implementations, make_plugin_manager
 from crossfield.runner import run_session
@@ -79,8 +79,7 @@ def test_planner_bias_is_the_pipelines_error_on_a_noise_free_session(station, no
         "acquire": {"plugin": "simulator", "scenario": "station", "frames": 2, "seed": 1, "arm_sigma_mm": 0.0},
         "reference": {"plugin": "romer-serial", "port": "simulator"},
         # the pipeline the planner models (docs/planning.md): not the defaults since issue 11
-        "centroid": {"plugin": "weighted"},
-        "register": {"plugin": "svd"},
+        **{stage: {"plugin": plugin} for stage, plugin in PLANNED_STAGES.items()},
     }
     source = NoiseFreeSimulator(scenario="station", frames=2, seed=1, arm_sigma_mm=0.0)
     source.scene = scene  # the same scene (its images rendered once for both tests)

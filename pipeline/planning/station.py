@@ -20,7 +20,9 @@ import dataclasses
 import math
 import tomllib
 from dataclasses import dataclass, field
+from collections.abc import Mapping
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -329,6 +331,12 @@ def station_from_scenario(
 #: RMS / CRB of the ``weighted`` centroid on the simulator's targets (2.13 upper, 2.14 lower, measured by
 #: bench/bench_plan_validation.py --efficiency; docs/planning.md).
 WEIGHTED_CENTROID_EFFICIENCY = 2.1
+
+#: The session stages the planner's defaults model (``StationDesign.centroid``, the efficiency
+#: above, the weighted Kabsch of :mod:`crossfield.planning.routes`), stage -> plugin: the
+#: pipeline it is validated against (bench/bench_plan_validation.py), not the session defaults
+#: since issue 11 (``modelfit``, ``ml``).
+PLANNED_STAGES: Mapping[str, str] = MappingProxyType({"centroid": "weighted", "register": "svd"})
 
 
 # ---------------------------------------------------------------------------------------------
