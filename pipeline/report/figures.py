@@ -60,6 +60,8 @@ def _pyplot():
 
 
 _SVG_ID = re.compile(r'\bid="([^"]+)"')
+_SVG_ID_OR_REF = re.compile(r'(\bid="|#)([^"#)\s]+)(?=[")])')  # id="x", href="#x", url(#x)
+_OWN_ID = "thumbnail-"  # the THUMBNAIL_GID ids, set by crossfield and unique already
 
 
 def svg(fig, prefix: str, tight: bool = True) -> str:
@@ -79,13 +81,8 @@ def svg(fig, prefix: str, tight: bool = True) -> str:
     plt.close(fig)
     text = out.getvalue()
     text = text[text.index("<svg"):]
-    ours = {gid.split("{")[0] for gid in THUMBNAIL_GID.values()}
-    renamed = {i for i in _SVG_ID.findall(text) if not i.startswith(tuple(ours))}
-    if not renamed:
-        return text
-    names = "|".join(re.escape(i) for i in sorted(renamed, key=len, reverse=True))
-    text = re.sub(rf'(\bid="|#)({names})(?=["\)])', lambda m: f"{m.group(1)}{prefix}-{m.group(2)}", text)
-    return text
+    renamed = {i for i in _SVG_ID.findall(text) if not i.startswith(_OWN_ID)}
+    return _SVG_ID_OR_REF.sub(lambda m: f"{m[1]}{prefix}-{m[2]}" if m[2] in renamed else m[0], text)
 
 
 def deviation_chart(report: Mapping[str, Any]) -> str:
