@@ -1,6 +1,6 @@
 """Centroid plugin "ellipse": ellipse fitted to the sub-pixel edge of each blob.
 
-Detection (threshold, contours, rejection, local background) is shared with
+Detection (threshold, blobs, rejection, local background) is shared with
 the other centroid plugins in :mod:`crossfield.imaging.blobs`; this module does the
 sub-pixel step (``docs/centroids.md``).
 

@@ -1,6 +1,6 @@
 """Centroid plugin "modelfit": maximum-likelihood fit of a blurred elliptical disc per target.
 
-Detection (threshold, contours, rejection, local background, the window of
+Detection (threshold, blobs, rejection, local background, the window of
 each blob) is the shared :class:`crossfield.imaging.blobs.BlobDetector` in
 its batched form (``detect_stacks``: one gather per ROI size class); the
 intensity-weighted centroid and second moments of each blob seed the fit.

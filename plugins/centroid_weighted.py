@@ -1,6 +1,6 @@
 """Centroid plugin "weighted": thresholded blobs, intensity-weighted sub-pixel centroids.
 
-Detection (threshold, contours, rejection, local background) is shared with
+Detection (threshold, blobs, rejection, local background) is shared with
 the other centroid plugins in :mod:`crossfield.imaging.blobs`; this module does the
 sub-pixel step and its uncertainty (``docs/centroids.md``).
 

@@ -3,7 +3,7 @@
 Registers the centroid implementation ``squared`` through the ``crossfield``
 entry-point group (see pyproject.toml). Only crossfield's public API is
 used (docs/plugins.md, "The public API"): ``crossfield.hookspecs.hookimpl``,
-the blob detector ``crossfield.imaging.blobs`` (threshold, contours,
+the blob detector ``crossfield.imaging.blobs`` (threshold, blobs,
 rejection tests, local background: the same detection as the built-in
 centroid plugins) and the data class ``crossfield.types.CentroidSet``. The
 plugin only does its own sub-pixel step.
