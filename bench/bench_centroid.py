@@ -15,7 +15,8 @@ Baseline, on the same frame and the same (precomputed) threshold:
 least work that yields a (pixel-level) centroid per blob.
 
 The implementations and the baseline run in turn within each of ``--runs``
-rounds (after a warm-up), so that all see the same machine load. Prints the
+rounds (after a warm-up; a new random order each round), so that all see
+the same machine load and none always follows the same one. Prints the
 median and 90th percentile ms per frame and the ratio of the medians to the
 baseline's; also the centroid error against the known ellipse centres.
 
@@ -150,14 +151,19 @@ def efficiency(args) -> int:
 
 def interleaved_ms(functions: dict[str, object], runs: int) -> dict[str, np.ndarray]:
     """Per-run times (ms) of each function, run in turn within every round so
-    that all see the same machine load (other processes, CPU frequency)."""
+    that all see the same machine load (other processes, CPU frequency), in a
+    new random order each round (seeded) so that none always follows the same
+    one (the caches a slow implementation leaves cold cost the next ~0.3 ms)."""
     for fn in functions.values():  # warm-up
         for _ in range(5):
             fn()
     times = {name: np.empty(runs) for name in functions}
     cpu = {name: np.empty(runs) for name in functions}
+    names = list(functions)
+    rng = np.random.default_rng(0)
     for i in range(runs):
-        for name, fn in functions.items():
+        for name in rng.permutation(names):
+            fn = functions[name]
             c0 = time.process_time()
             t0 = time.perf_counter()
             fn()
