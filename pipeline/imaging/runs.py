@@ -11,10 +11,11 @@ A blob is a list of runs: (row, first column, end column) with the end
 exclusive, in raster order. The method (Rosenfeld & Pfaltz 1966; the
 run-based form of He, Chao & Suzuki 2008):
 
-1. Scan each row in blocks of ``BLOCK`` pixels; a block whose maximum is at
-   or below the threshold (nearly all of a target frame) is skipped, the
-   others are scanned pixel by pixel into runs. The frame is read once and
-   nothing full-frame is written.
+1. Scan each row in blocks of ``BLOCK`` pixels: a block with no pixel above
+   the threshold (nearly all of a target frame) is skipped after one
+   vectorised 0/1 OR; the others become a 64-bit mask whose rising and
+   falling edges are the runs. The frame is read once and nothing
+   full-frame is written.
 2. Union-find over the runs: a run joins every run of the row above that
    overlaps it, or touches it diagonally (8-connectivity: columns
    [s1, e1) and [s2, e2) connect if s1 <= e2 and s2 <= e1).
@@ -38,7 +39,7 @@ from numba.cpython.unsafe.numbers import trailing_zeros
 
 __all__ = ["BLOCK", "BlobRuns", "blob_runs", "paint_runs"]
 
-#: pixels per block of the threshold scan: the block's maximum is one vector reduction
+#: pixels per block of the threshold scan: one vectorised 0/1 OR per block, a 64-bit mask of the hits
 BLOCK = 64
 
 
