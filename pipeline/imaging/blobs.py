@@ -33,7 +33,6 @@ the right (column), v down (row).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
