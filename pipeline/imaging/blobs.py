@@ -392,12 +392,12 @@ class BlobDetector:
         paint_runs(found.runs, found.offsets, rows, xs, ys, dilated, opts.dilate_px)
         roi = np.empty((n, sh, sw), image.dtype)
         window = np.empty((n, sh, sw), np.uint8)
-        area, max_value = np.empty(n, np.int64), np.empty(n)
+        max_value = np.empty(n)
         b, total, roundness = np.empty(n), np.empty(n), np.empty(n)
         uv, moments, gradient = np.empty((n, 2)), np.empty((n, 3)), np.empty((n, 2))
         _gather(
             image, xs, ys, rect, filled, dilated, background.threshold_dn, background.level_dn,
-            roi, window, area, max_value, b, total, uv, moments, roundness, gradient,
+            roi, window, max_value, b, total, uv, moments, roundness, gradient,
         )
         saturated = max_value >= opts.saturation_dn
         mine = reason[rows]
@@ -417,7 +417,7 @@ class BlobDetector:
             roi=roi[ok],
             window=window[ok],
             background_dn=b[ok],
-            area_px=area[ok],
+            area_px=found.area[rows[ok]],
             roundness=roundness[ok],
             peak_dn=max_value[ok] - b[ok],
             saturated=saturated[ok],
@@ -430,12 +430,12 @@ class BlobDetector:
 @numba.njit(cache=True, nogil=True)
 def _gather(
     image, xs, ys, rect, filled, dilated, threshold_dn, level_dn,
-    roi, window, area, max_value, b, total, uv, moments, roundness, gradient,
+    roi, window, max_value, b, total, uv, moments, roundness, gradient,
 ) -> None:
     """Step 4 and the moments of :meth:`BlobDetector._stack` for the T slices at
     columns ``xs``, rows ``ys`` (T,) of ``image``, GIL released: :func:`_slice_sums`,
     then per blob the background plane (:func:`_ring_gradient`) and the moments
-    (:func:`_blob_moments`). Writes roi, window (T, S, S) and area, max_value, b,
+    (:func:`_blob_moments`). Writes roi, window (T, S, S) and max_value, b,
     total, roundness (T,), uv (T, 2), moments (T, 3), gradient (T, 2)."""
     n = len(xs)
     ring_count = np.empty(n, np.int64)
@@ -444,7 +444,7 @@ def _gather(
     ring_moments, ring_values = np.empty((n, 6)), np.empty((n, 3))
     _slice_sums(
         image, xs, ys, rect, filled, dilated, threshold_dn,
-        roi, window, area, max_value, ring_count, ring_sum, M, N, ring_moments, ring_values,
+        roi, window, max_value, ring_count, ring_sum, M, N, ring_moments, ring_values,
     )
     _ring_gradient(ring_moments, ring_values, gradient)
     _blob_moments(M, N, ring_count, ring_sum, level_dn, xs, ys, b, total, uv, moments, roundness)
@@ -453,7 +453,7 @@ def _gather(
 @numba.njit(cache=True, nogil=True)
 def _slice_sums(
     image, xs, ys, rect, filled, dilated, threshold_dn,
-    roi, window, area, max_value, ring_count, ring_sum, M, N, ring_moments, ring_values,
+    roi, window, max_value, ring_count, ring_sum, M, N, ring_moments, ring_values,
 ) -> None:
     """Step 4 of :meth:`BlobDetector._stack` in one pass over the (T, S, S) slices at
     columns ``xs``, rows ``ys`` (T,) of ``image``, each pixel once.
@@ -462,7 +462,7 @@ def _slice_sums(
     from, column to); filled, dilated: (T, S, S) uint8 the filled blob and
     its dilation. Writes roi (T, S, S) the image pixels; window (T, S, S) 0/1
     (dilated, inside the ROI, not another blob's pixel: above the threshold and
-    outside the blob); area (pixels of the blob) and max_value (highest
+    outside the blob); max_value (highest
     value in it, 0 if none); ring_count and ring_sum (the ROI's pixels neither
     in the dilation nor above the threshold, and their sum, DN); M, N (T, 6) the
     raw moments m00, m10, m01, m20, m11, m02 (slice coordinates, u = column, v =
@@ -476,7 +476,7 @@ def _slice_sums(
     for t in range(n):
         y0, x0 = ys[t], xs[t]
         r_lo, r_hi, c_lo, c_hi = rect[t, 0], rect[t, 1], rect[t, 2], rect[t, 3]
-        count = top = rc = rs = 0
+        top = rc = rs = 0
         m0 = m1 = m2 = m3 = m4 = m5 = k0 = k1 = k2 = k3 = k4 = k5 = 0
         g1 = g2 = g3 = g4 = g5 = h1 = h2 = 0  # ring: sum c, r, c^2, c r, r^2; z c, z r
         for r in range(sh):
@@ -494,7 +494,6 @@ def _slice_sums(
                 inside = row_in * np.int64(c >= c_lo) * np.int64(c < c_hi)
                 win = grown * inside * (1 - above * (1 - comp))  # not another blob's pixel
                 window[t, r, c] = win
-                count += comp
                 top = max(top, z * comp)
                 ring = inside * (1 - grown) * (1 - above)
                 q0 += ring
@@ -530,7 +529,6 @@ def _slice_sums(
             k3 += n2
             k4 += n1 * r
             k5 += n0 * r * r
-        area[t] = count
         max_value[t] = top
         ring_count[t] = rc
         ring_sum[t] = rs

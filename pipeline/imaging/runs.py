@@ -269,7 +269,6 @@ def _label_runs(runs):
         for i in range(offsets[b], offsets[b + 1]):
             grid[grouped[i, 0] - y0, grouped[i, 1] - x0 : grouped[i, 2] - x0] = 1
         stack = np.empty((h * w, 2), np.int64)
-        top = 0
         grid[0, 0] = 2
         stack[0, 0], stack[0, 1] = 0, 0
         top = 1
