@@ -43,6 +43,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+
 from crossfield.audit.report import (
     AuditReport,
     audit_recording,

@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 import pluggy
+
 from crossfield.audit.report import (
     IGNORED,
     LOG_TOPIC,

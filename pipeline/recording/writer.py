@@ -38,6 +38,13 @@ from pathlib import Path
 from typing import Any, Protocol, Self
 
 import numpy as np
+from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+from foxglove_schemas_protobuf.Log_pb2 import Log
+from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+from mcap.writer import CompressionType, Writer
+
 from crossfield.chain.provenance import crossfield_version, machine_info
 from crossfield.covariance import global_sigma
 from crossfield.errors import RecordingError
@@ -71,12 +78,6 @@ from crossfield.recording.codec import (
 from crossfield.recording.integrity import IntegrityChain, file_sha256
 from crossfield.report.document import document_of
 from crossfield.types import CAMERAS, CameraPoints
-from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
-from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
-from foxglove_schemas_protobuf.Log_pb2 import Log
-from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
-from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
-from mcap.writer import CompressionType, Writer
 
 #: Chunk compression by name. "none" is the default: lz4 costs ~9 ms and zstd
 #: ~11 ms of CPU per 4 MB image (ratio 0.68 and 0.44 on simulated 12-bit

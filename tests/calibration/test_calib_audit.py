@@ -21,7 +21,7 @@ from crossfield.calibration.record import (
     record_calibration,
 )
 from crossfield.calibration.solve import calibrate_images
-from crossfield.cli.session import main
+from crossfield.cli import main
 from crossfield.recording.integrity import verify
 from crossfield.recording.reader import open_recording
 from crossfield.recording.seal import read_sidecar, sidecar_path

@@ -42,7 +42,7 @@ from crossfield.calibration.live import KeyEvents, capture_live, write_provision
 from crossfield.calibration.record import read_calibration_recording
 from crossfield.calibration.report import coverage_fraction
 from crossfield.camera.calibration_io import read_stereo_calibration
-from crossfield.cli.session import main
+from crossfield.cli import main
 from crossfield.errors import ConfigError
 from crossfield.simulator.board_views import cached_calibration_views
 from session_tools import sigint_default
@@ -449,7 +449,7 @@ def test_live_options_are_the_run_options_with_the_live_defaults(tmp_path):
     """--trigger makes the basler source wait for a line; frames default to 0 (until stopped);
     the config file's [acquire] options come first, --option after, as for `crossfield run`."""
     from crossfield.cli.calibration import _live_options
-    from crossfield.cli.session import build_parser
+    from crossfield.cli import build_parser
 
     config = tmp_path / "cameras.toml"
     config.write_text('[acquire]\nupper = "A"\nlower = "B"\nexposure_us = 800.0\n')

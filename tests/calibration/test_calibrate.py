@@ -25,7 +25,7 @@ from crossfield.calibration.solve import (
     solve_stereo,
 )
 from crossfield.camera.calibration_io import read_stereo_calibration
-from crossfield.cli.session import main
+from crossfield.cli import main
 from crossfield.errors import ConfigError
 from crossfield.simulator.board_views import (
     board_texture,

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from crossfield.audit import audit, format_report
 from crossfield.camera.calibration_io import write_stereo_calibration
-from crossfield.cli.session import main
+from crossfield.cli import main
 from crossfield.config import DEFAULT_PLUGINS, load_config
 from crossfield.errors import CrossfieldError
 from crossfield.chain.registry import get_implementation, make_plugin_manager

@@ -18,7 +18,7 @@ from session_tools import Msg, edit_json, record_session, rewrite_mcap, sigint_d
 
 from crossfield.config import DEFAULT_PLUGINS
 from crossfield.audit import audit, format_report
-from crossfield.cli.session import main
+from crossfield.cli import main
 from crossfield.recording.integrity import GENESIS, INTEGRITY_FORMAT, verify
 from crossfield.recording.reader import open_recording
 from crossfield.chain.registry import make_plugin_manager
@@ -276,7 +276,7 @@ def test_audit_of_a_replay_names_the_parent(recorded, tmp_path):
 
 def crossfield_command() -> list[str]:
     script = Path(sys.executable).with_name("crossfield")
-    return [str(script)] if script.exists() else [sys.executable, "-m", "crossfield.cli.session"]
+    return [str(script)] if script.exists() else [sys.executable, "-m", "crossfield.cli"]
 
 
 def count_images(path: Path) -> int:

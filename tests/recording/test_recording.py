@@ -37,7 +37,8 @@ from crossfield.recording.layout import JSON_SCHEMAS, recorded_topics
 from crossfield.recording.recorder import McapRecorder
 from crossfield.recording.reader import open_recording
 from crossfield.chain.registry import make_plugin_manager
-from crossfield.session import FrameResult, SessionInfo, SessionSummary, summarise
+from crossfield.chain.aggregate import summary_of_frames
+from crossfield.session import FrameResult, SessionInfo, SessionSummary
 from crossfield.types import (
     CameraIntrinsics,
     CameraPoints,
@@ -279,9 +280,7 @@ class Synthetic:
             result = FrameResult(seq, frame.timestamp_ns, centroids, points, registration, measurement)
             hook.on_frame_done(result=result)
             self.results.append(result)
-        summary = SessionSummary(
-            self.info, self.reference, tuple(self.results), characteristics=summarise(self.results, self.plan)
-        )
+        summary = summary_of_frames(self.info, self.reference, self.results)
         hook.on_session_end(summary=summary)
         return summary
 
