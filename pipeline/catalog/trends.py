@@ -247,6 +247,7 @@ def render(
 ) -> tuple[str, list[CharacteristicTrend]]:
     """The page (HTML text) and the trends it shows."""
     import jinja2
+    from markupsafe import Markup  # the SVG is matplotlib's (no script), inlined as is
 
     from crossfield.report.document import TEMPLATE_DIR
 
@@ -260,7 +261,7 @@ def render(
             "name": t.name,
             "n": len(t.values),
             "n_baseline": int(t.in_baseline.sum()),
-            "figure": control_chart(t, f"spc{i}") if len(t.values) else "",
+            "figure": Markup(control_chart(t, f"spc{i}")) if len(t.values) else "",
             "centre": f"{L.centre:.4f}" if L else "–",
             "limits": f"{L.lcl:.4f} – {L.ucl:.4f}" if L else "–",
             "sigma": f"{L.sigma:.4f}" if L else "–",
@@ -271,7 +272,7 @@ def render(
             "note": t.note,
         })
     health_figures = [
-        {"name": f, "unit": HEALTH[f][0], "source": HEALTH[f][1], "figure": health_chart(health, f, f"health{j}")}
+        {"name": f, "unit": HEALTH[f][0], "source": HEALTH[f][1], "figure": Markup(health_chart(health, f, f"health{j}"))}
         for j, f in enumerate(HEALTH) if not health.empty and (health["figure"] == f).any()
     ]
     folders = [str(templates)] if templates else []

@@ -1,0 +1,79 @@
+"""The audit's outside anchor: a session rewritten consistently after it was catalogued
+(raw CMM bytes changed, every derived message re-derived, the chain recomputed by
+crossfield's own writer) passes a plain audit and fails ``audit --catalog`` and
+``crossfield catalog verify``."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: session_tools
+from session_tools import forge, record_session, shift_cfp_x  # noqa: E402
+
+import crossfield.catalog  # noqa: E402
+from crossfield.audit import audit  # noqa: E402
+from crossfield.catalog.anchor import LEVEL, audit_with_catalog  # noqa: E402
+from crossfield.catalog.commands import main as catalog_main  # noqa: E402
+from crossfield.recording.reader import open_recording  # noqa: E402
+from crossfield.registry import make_plugin_manager  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    """A real 2-frame session folder and, made once, its consistent forgery (session.mcap + seal)."""
+    out = tmp_path_factory.mktemp("anchor")
+    record_session(out, "orig", frames=2)
+    folder = out / "orig"
+    (folder / "report.json").exists() or pytest.fail("no report.json")
+    with open_recording(folder / "session.mcap") as rec:
+        raw = b"".join(m.data for m in rec.messages("/cmm/raw", decode=False, file_order=True))
+    last_press = max(int(x) for x in re.findall(rb"\$CFP,([0-9]+),", raw))
+    work = out / "forgery"
+    work.mkdir()
+    forge(folder / "session.mcap", work / "session.mcap", lambda b: shift_cfp_x(b, last_press, 0.038), work)
+    return folder, work
+
+
+def test_a_consistently_rechained_session_passes_a_plain_audit_and_fails_against_the_catalog(
+    recorded, catalog_url, tmp_path, capsys
+):
+    original, work = recorded
+    folder = tmp_path / "orig"
+    shutil.copytree(original, folder)
+    mcap = folder / "session.mcap"
+    pm = make_plugin_manager()
+    with crossfield.catalog.open(catalog_url) as cat:
+        assert [r.status for r in cat.add(folder)] == ["added"]
+    before = audit_with_catalog(mcap, pm, catalog_url, reproduce=False)
+    assert before.seal["passed"] and before.seal["level"] == LEVEL, before.seal["problems"]
+    catalogued_head = before.seal["catalog"]["chain_head"]
+    # the rewrite after ingest: the forged file and its (self-consistent) seal replace the originals
+    shutil.copy(work / "session.mcap", mcap)
+    shutil.copy(work / "session.mcap.seal.json", folder / "session.mcap.seal.json")
+    if catalog_url.startswith("sqlite"):  # the full audit with replay once: it passes
+        plain = audit(mcap, pm)
+        assert plain.passed, (plain.seal["problems"], plain.reproduction.get("differences"))
+    plain = audit(mcap, pm, reproduce=False)
+    assert plain.integrity.passed and plain.seal["passed"] and plain.seal["level"] == "self-consistency"
+    assert plain.integrity.chain_sha256 != catalogued_head
+    anchored = audit_with_catalog(mcap, pm, catalog_url, reproduce=False)
+    assert not anchored.passed and not anchored.seal["passed"]
+    problems = " ".join(anchored.seal["problems"])
+    assert f"is not the expected {catalogued_head}" in problems
+    assert "is not the catalog's" in problems  # the SHA-256
+    assert catalog_main(["verify", "--catalog", catalog_url]) == 1
+    out = capsys.readouterr().out
+    assert "FAIL  orig" in out and "0 match the catalog, 1 do not" in out
+
+
+def test_a_session_not_in_the_catalog_fails_the_anchor(recorded, tmp_path):
+    original, _ = recorded
+    url = f"sqlite:///{tmp_path / 'empty.sqlite'}"
+    crossfield.catalog.open(url).close()
+    report = audit_with_catalog(original / "session.mcap", make_plugin_manager(), url, reproduce=False)
+    assert not report.seal["passed"] and "session orig is not in the catalog" in report.seal["problems"][-1]
