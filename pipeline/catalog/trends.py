@@ -137,7 +137,13 @@ def trends(
     names: Sequence[str] = (), baseline: Baseline = Baseline(),
 ) -> list[CharacteristicTrend]:
     """Every characteristic's trend over the sessions selected (``names``: only those)."""
-    df = catalog.characteristics(station=station, since=since, until=until)
+    if names:  # each name filtered in SQL (the name index), not the whole table read
+        import pandas as pd
+
+        df = pd.concat([catalog.characteristics(name=n, station=station, since=since, until=until)
+                        for n in dict.fromkeys(names)], ignore_index=True)
+    else:
+        df = catalog.characteristics(station=station, since=since, until=until)
     out = []
     for name in sorted(set(df["name"])) if len(df) else []:
         if names and name not in names:
