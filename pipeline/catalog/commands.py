@@ -206,8 +206,26 @@ def _table(df: Any, args: argparse.Namespace) -> str:
         return "(no rows)\n"
     import pandas as pd
 
+    brief = [c for c in _BRIEF.get(args.catalog_command, ()) if c in df]
+    if brief:  # the terminal: the columns one reads; --json / --csv give every column
+        df = df[brief].copy()
+        for col in ("chain_head",):
+            if col in df:
+                df[col] = df[col].str.slice(0, 16)
+        for col in ("start_utc",):
+            df[col] = df[col].dt.strftime("%Y-%m-%d %H:%M:%S")
+
     with pd.option_context("display.max_rows", None, "display.max_columns", None, "display.width", 200):
         return df.to_string(index=False) + "\n"
+
+
+#: The columns printed on the terminal (without --json / --csv).
+_BRIEF = {
+    "sessions": ("id", "station", "start_utc", "operator", "part", "serial", "plan_name", "verdict",
+                 "frames_processed", "chain_head"),
+    "characteristics": ("session_id", "station", "start_utc", "no", "name", "measured_mm", "nominal_mm",
+                        "expanded_uncertainty_mm", "coverage_factor", "decision"),
+}
 
 
 def _baseline(args: argparse.Namespace):

@@ -67,7 +67,7 @@ def engine(url: str | Path) -> Engine:
     full = normalise_url(url)
     parsed = make_url(full)
     if parsed.get_backend_name() != "sqlite":
-        return sa.create_engine(full, pool_pre_ping=True)
+        return sa.create_engine(full)
     if parsed.database and parsed.database != ":memory:":
         Path(parsed.database).parent.mkdir(parents=True, exist_ok=True)
     eng = sa.create_engine(full, connect_args={"timeout": BUSY_TIMEOUT_MS / 1000})

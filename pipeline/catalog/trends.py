@@ -197,6 +197,7 @@ def control_chart(t: CharacteristicTrend, prefix: str) -> str:
         ax.annotate(",".join(map(str, rules)), (i, t.values[i]), textcoords="offset points", xytext=(0, 6),
                     ha="center", fontsize=7, color="#b3261e")
     ax.set_ylabel(f"{t.name} (mm)")
+    ax.ticklabel_format(axis="y", useOffset=False)
     mr = spc.moving_ranges(t.values)
     axm.plot(x[1:], mr, "-o", ms=2.5, lw=0.8, color="#234e77")
     if t.limits is not None:
