@@ -5,6 +5,7 @@ crossfield's own writer) passes a plain audit and fails ``audit --catalog`` and
 
 from __future__ import annotations
 
+import argparse
 import re
 import shutil
 import sys
@@ -18,7 +19,7 @@ from session_tools import forge, record_session, shift_cfp_x  # noqa: E402
 import crossfield.catalog  # noqa: E402
 from crossfield.audit import audit  # noqa: E402
 from crossfield.catalog.anchor import LEVEL, audit_with_catalog  # noqa: E402
-from crossfield.catalog.commands import main as catalog_main  # noqa: E402
+from crossfield.catalog.commands import audit_command, main as catalog_main  # noqa: E402
 from crossfield.recording.reader import open_recording  # noqa: E402
 from crossfield.registry import make_plugin_manager  # noqa: E402
 
@@ -61,7 +62,9 @@ def test_a_consistently_rechained_session_passes_a_plain_audit_and_fails_against
     plain = audit(mcap, pm, reproduce=False)
     assert plain.integrity.passed and plain.seal["passed"] and plain.seal["level"] == "self-consistency"
     assert plain.integrity.chain_sha256 != catalogued_head
-    anchored = audit_with_catalog(mcap, pm, catalog_url, reproduce=False)
+    args = argparse.Namespace(recording=str(mcap), catalog=catalog_url, no_replay=True, expect_head=None,
+                              public_key=None)
+    anchored = audit_command(args, pm)  # what `crossfield audit S.mcap --catalog URL --no-replay` runs
     assert not anchored.passed and not anchored.seal["passed"]
     problems = " ".join(anchored.seal["problems"])
     assert f"is not the expected {catalogued_head}" in problems

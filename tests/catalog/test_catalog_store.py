@@ -135,10 +135,11 @@ def _cli(*args: str) -> list[str]:
 
 WRITER = """
 import pathlib, sys, time
+import crossfield.catalog, crossfield.catalog.ingest
 go = pathlib.Path(sys.argv[3])
+pathlib.Path(sys.argv[4]).touch()  # imported, ready
 while not go.exists():
-    time.sleep(0.01)
-import crossfield.catalog
+    time.sleep(0.005)
 with crossfield.catalog.open(sys.argv[1], migrate=False) as cat:
     assert all(r.status == "added" for r in cat.add(sys.argv[2]))
 """
@@ -149,9 +150,13 @@ def test_two_writer_processes_at_once_lose_nothing(catalog_url, tmp_path):
     sessions(tmp_path / "b", 40, prefix="b")
     crossfield.catalog.open(catalog_url).close()  # the schema first (as `crossfield catalog upgrade`)
     go = tmp_path / "go"
-    procs = [subprocess.Popen([sys.executable, "-c", WRITER, catalog_url, str(tmp_path / d), str(go)],
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for d in "ab"]
-    time.sleep(1.5)  # both started and imported: then they write at once
+    ready = [tmp_path / f"ready-{d}" for d in "ab"]
+    procs = [subprocess.Popen([sys.executable, "-c", WRITER, catalog_url, str(tmp_path / d), str(go), str(r)],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for d, r in zip("ab", ready)]
+    deadline = time.monotonic() + 60
+    while not all(r.exists() for r in ready):  # both started and imported: then they write at once
+        assert all(p.poll() is None for p in procs) and time.monotonic() < deadline
+        time.sleep(0.01)
     go.touch()
     outs = [p.communicate(timeout=120) for p in procs]
     assert [p.returncode for p in procs] == [0, 0], outs
@@ -214,3 +219,34 @@ def test_add_on_dask_workers(tmp_path, capsys):
     assert "6 folder(s): 6 added" in capsys.readouterr().out
     assert catalog_main(["verify", "--catalog", url]) == 0
     assert "6 session(s): 6 match the catalog, 0 do not" in capsys.readouterr().out
+
+
+def test_the_catalog_table_of_a_session_config(tmp_path):
+    from crossfield.catalog.commands import catalog_url
+    from crossfield.config import load_config, with_overrides
+    from crossfield.errors import ConfigError
+
+    good = tmp_path / "station.toml"
+    good.write_text('[catalog]\nurl = "postgresql://crossfield@db/plant"\nstation = "cell-3"\n')
+    config = load_config(good)
+    assert dict(config.catalog) == {"url": "postgresql://crossfield@db/plant", "station": "cell-3"}
+    assert "catalog" not in config.to_dict()  # not recorded with the session (a URL may hold a password)
+    assert with_overrides(config, {}, ["acquire.frames=2"]).catalog == config.catalog
+    assert catalog_url(None, good) == "postgresql://crossfield@db/plant"
+    assert catalog_url("other.sqlite", good) == "other.sqlite"
+    assert catalog_url(None, None) == "recordings/catalog.sqlite"
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[catalog]\nadress = "x"\n')
+    with pytest.raises(ConfigError, match=r"bad.toml: \[catalog\] unknown key 'adress'"):
+        load_config(bad)
+    with pytest.raises(ConfigError, match="a catalog is SQLite .* or PostgreSQL"):
+        crossfield.catalog.open("mysql://u@h/db")
+
+
+def test_a_password_in_the_url_is_not_shown(postgres_server, capsys):
+    url = postgres_server.replace("crossfield@", "crossfield:s3cret@") + "/postgres"
+    with crossfield.catalog.open(url, migrate=False) as cat:
+        assert "s3cret" not in cat.url and "***" in cat.url
+    said: list[str] = []
+    ingest_after_run("/nonexistent", "postgresql://u:s3cret@127.0.0.1:1/x", say=said.append)
+    assert said and "s3cret" not in said[0]
