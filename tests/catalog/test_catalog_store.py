@@ -212,13 +212,23 @@ def test_run_ingest_reports_an_unreachable_catalog_and_keeps_the_recording(tmp_p
     assert ingest_after_run(folder, None, say=said.append) is None  # no catalog configured: nothing
 
 
-def test_add_on_dask_workers(tmp_path, capsys):
+def test_add_and_verify_on_dask(tmp_path, capsys):
+    from dask.distributed import LocalCluster
+
     sessions(tmp_path / "archive", 6)
     url = f"sqlite:///{tmp_path / 'c.sqlite'}"
-    assert catalog_main(["add", str(tmp_path / "archive"), "--catalog", url, "--workers", "2"]) == 0
-    assert "6 folder(s): 6 added" in capsys.readouterr().out
-    assert catalog_main(["verify", "--catalog", url]) == 0
-    assert "6 session(s): 6 match the catalog, 0 do not" in capsys.readouterr().out
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                      host="127.0.0.1") as cluster:
+        address = cluster.scheduler_address
+        assert catalog_main(["add", str(tmp_path / "archive"), "--catalog", url, "--scheduler", address]) == 0
+        assert "6 folder(s): 6 added" in capsys.readouterr().out
+        victim = tmp_path / "archive" / "s0003" / "session.mcap"
+        victim.write_bytes(victim.read_bytes() + b"\0")  # one recording changed after it was catalogued
+        assert catalog_main(["verify", "--catalog", url, "--scheduler", address]) == 1
+    out = capsys.readouterr().out
+    assert "6 session(s): 5 match the catalog, 1 do not" in out and f"FAIL  s0003  {victim}" in out
+    with crossfield.catalog.open(url) as cat:
+        assert cat.count()["sessions"] == 6
 
 
 def test_the_catalog_table_of_a_session_config(tmp_path):
