@@ -88,6 +88,28 @@ def ingest_after_run(
     return result.status
 
 
+def add_run_flag(parser: argparse.ArgumentParser) -> None:
+    """``--catalog URL`` on ``crossfield run``."""
+    parser.add_argument(
+        "--catalog", metavar="URL",
+        help="add the session to this catalog when it is written (default: [catalog] url of the config; "
+        "docs/catalog.md)",
+    )
+
+
+def ingest_run(args: argparse.Namespace, config: Any, out_dir: str | Path) -> str | None:
+    """``crossfield run``'s ingest: the session in ``out_dir`` into ``--catalog`` or the config's
+    ``[catalog] url`` (nothing when neither is set), station ``[catalog] station``
+    (:func:`ingest_after_run`: never raises). Only a recorded session (``session.mcap``) is added."""
+    url = getattr(args, "catalog", None) or (getattr(config, "catalog", None) or {}).get("url")
+    if not url:
+        return None
+    if not (Path(out_dir) / "session.mcap").exists():
+        print("catalog: not added (no recording: --no-record); the catalog keeps recorded sessions only")
+        return None
+    return ingest_after_run(out_dir, url, station=(config.catalog or {}).get("station"))
+
+
 def add_audit_flag(parser: argparse.ArgumentParser) -> None:
     """``--catalog URL`` on ``crossfield audit``."""
     parser.add_argument(
