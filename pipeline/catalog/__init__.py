@@ -12,6 +12,15 @@ From Python::
 
 from __future__ import annotations
 
-from crossfield.catalog.query import Catalog, open
+from typing import Any
 
 __all__ = ["Catalog", "open"]
+
+
+def __getattr__(name: str) -> Any:
+    # lazy: `crossfield --help` imports crossfield.catalog.commands, not SQLAlchemy and pandas
+    if name in __all__:
+        from crossfield.catalog import query
+
+        return getattr(query, name)
+    raise AttributeError(f"module 'crossfield.catalog' has no attribute {name!r}")

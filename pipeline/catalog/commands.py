@@ -22,10 +22,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from crossfield.catalog.db import DEFAULT_FILE
 from crossfield.errors import CrossfieldError
 
-DEFAULT_URL = f"recordings/{DEFAULT_FILE}"
+#: The default catalog: the embedded SQLite file in the default sessions folder
+#: (``crossfield.catalog.db.DEFAULT_FILE`` in ``[session] output_dir``'s default).
+DEFAULT_URL = "recordings/catalog.sqlite"
 
 
 def catalog_url(given: str | None, config_path: str | Path | None = None, *, default: str | None = DEFAULT_URL) -> str | None:
