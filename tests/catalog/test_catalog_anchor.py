@@ -80,3 +80,32 @@ def test_a_session_not_in_the_catalog_fails_the_anchor(recorded, tmp_path):
     crossfield.catalog.open(url).close()
     report = audit_with_catalog(original / "session.mcap", make_plugin_manager(), url, reproduce=False)
     assert not report.seal["passed"] and "session orig is not in the catalog" in report.seal["problems"][-1]
+
+
+def test_a_seal_signed_by_another_key_fails_against_the_catalog(tmp_path):
+    """Same file, same head, but the sidecar's signature replaced by another key's signature
+    of the same statement: the catalog kept the station's, so the anchor names it."""
+    import json
+
+    from crossfield.catalog.anchor import check_row
+    from crossfield.catalog.ingest import key_fingerprint
+    from crossfield.catalog.synthetic import write_session
+    from crossfield.recording import seal
+
+    station, _, station_hex = seal.generate_key(tmp_path / "station.key")
+    other, _, other_hex = seal.generate_key(tmp_path / "other.key")
+    folder = write_session(tmp_path, "signed", 1_796_298_450_000_000_000, {"L01": 300.0}, signing_key=station)
+    url = f"sqlite:///{tmp_path / 'c.sqlite'}"
+    with crossfield.catalog.open(url) as cat:
+        cat.add(folder)
+        row = cat.seal("signed")
+        assert row["public_key"] == station_hex and row["public_key_fingerprint"] == key_fingerprint(station_hex)
+        assert check_row({**row, "signature_json": json.dumps(row["signature"])}, cat.url)["passed"]
+        sidecar_file = seal.sidecar_path(folder / "session.mcap")
+        doc = json.loads(sidecar_file.read_text())
+        doc["signature"] = seal.sign(seal.load_private_key(other), seal.seal_statement(doc["chain_head"],
+                                                                                     doc["file_sha256"]))
+        sidecar_file.write_text(json.dumps(doc))
+        (result,) = [check_row(r, cat.url) for r in cat.seals()]
+    assert not result["passed"]
+    assert f"catalogued key {station_hex}, the seal's {other_hex}" in " ".join(result["problems"])
