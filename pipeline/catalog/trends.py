@@ -19,7 +19,6 @@ of the newest row.
 from __future__ import annotations
 
 import datetime as _dt
-
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -107,10 +106,12 @@ def trend_of(name: str, df: Any, baseline: Baseline) -> CharacteristicTrend:
     times = tuple(str(t) for t in df["start_utc"])
     ids = tuple(str(s) for s in df["session_id"])
     base = baseline.mask(list(df["start_utc"]))
+    import pandas as pd
+
     last = df.iloc[-1] if len(df) else None
-    nominal = float(last["nominal_mm"]) if last is not None and last["nominal_mm"] == last["nominal_mm"] else None
+    nominal = float(last["nominal_mm"]) if last is not None and pd.notna(last["nominal_mm"]) else None
     lsl = usl = None
-    if nominal is not None and last["upper_tol_mm"] == last["upper_tol_mm"] and last["lower_tol_mm"] == last["lower_tol_mm"]:
+    if nominal is not None and pd.notna(last["upper_tol_mm"]) and pd.notna(last["lower_tol_mm"]):
         lsl, usl = nominal - float(last["lower_tol_mm"]), nominal + float(last["upper_tol_mm"])
     limits, rules, cap, note = None, {r: [] for r in spc.NELSON_RULES}, None, ""
     if base.sum() >= 2:
