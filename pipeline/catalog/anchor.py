@@ -26,11 +26,20 @@ LEVEL = "agreement with the catalog"
 
 
 def _audit_module():
-    # crossfield.audit is a module today and a package after the restructure (issue 21);
-    # both expose audit() and seal_check()
+    """crossfield.audit (its ``audit`` and ``parse_head``)."""
     import crossfield.audit as audit_module
 
     return audit_module
+
+
+def _seal_check():
+    """The audit's seal check (``crossfield.audit.report.seal_check`` since issue 21's
+    restructure, ``crossfield.audit.seal_check`` before it)."""
+    try:
+        from crossfield.audit.report import seal_check
+    except ImportError:
+        from crossfield.audit import seal_check
+    return seal_check
 
 
 def row_problems(seal_result: Mapping[str, Any], row: Mapping[str, Any], url: str) -> list[str]:
@@ -140,7 +149,7 @@ def check_row(row: Mapping[str, Any], url: str) -> dict[str, Any]:
     if not path.is_file():
         return {**out, "passed": False, "problems": [f"{path}: the catalogued recording is gone"]}
     integrity = verify(path)
-    seal_result = _audit_module().seal_check(path, integrity, file_sha256(path), expect_head=row["chain_head"])
+    seal_result = _seal_check()(path, integrity, file_sha256(path), expect_head=row["chain_head"])
     problems = [str(p) for p in integrity.problems]
     problems += list(seal_result["problems"]) + row_problems(seal_result, row, url)
     return {**out, "passed": integrity.passed and not problems, "problems": problems}
