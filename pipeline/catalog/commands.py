@@ -202,12 +202,18 @@ def add_arguments(catalog: argparse.ArgumentParser) -> None:
     _common(up)
 
 
+#: ``crossfield --help``'s line and ``crossfield catalog --help``'s paragraph.
+HELP = "the session catalog: add, verify, query, trends (docs/catalog.md)"
+DESCRIPTION = (
+    "The station's memory: sessions, characteristics, seals and station health in SQLite or PostgreSQL, "
+    "with SPC trends and the audit's outside anchor."
+)
+
+
 def add_parsers(command: Callable[..., argparse.ArgumentParser]) -> dict[str, Callable[[argparse.Namespace], int]]:
     """Add ``catalog`` with ``command`` (crossfield.cli's subcommand factory); returns
     {"catalog": run} for the CLI's command table."""
-    catalog = command("catalog", help="the session catalog: add, verify, query, trends (docs/catalog.md)",
-                      description="The station's memory: sessions, characteristics, seals and station health in "
-                      "SQLite or PostgreSQL, with SPC trends and the audit's outside anchor.")
+    catalog = command("catalog", help=HELP, description=DESCRIPTION)
     add_arguments(catalog)
     return {"catalog": run}
 
@@ -395,7 +401,7 @@ def run(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m crossfield.catalog ...``: the catalog commands without the rest of the CLI."""
-    parser = argparse.ArgumentParser(prog="crossfield catalog", description="the session catalog (docs/catalog.md)")
+    parser = argparse.ArgumentParser(prog="crossfield catalog", description=DESCRIPTION)
     add_arguments(parser)
     args = parser.parse_args(argv)
     try:
