@@ -3,7 +3,7 @@ catalog's row of its session (``crossfield audit SESSION --catalog URL``, ``cros
 catalog verify``).
 
 The chain head is compared by the audit's own seal check (``expect_head``, the same
-comparison as ``crossfield audit --expect-head``: :func:`crossfield.audit.seal_check`);
+comparison as ``crossfield audit --expect-head``: :func:`crossfield.audit.report.seal_check`);
 this module adds what the catalog also kept: the file's SHA-256 and the seal's signature
 (and key). A session rewritten consistently after it was catalogued (raw bytes changed,
 everything re-derived and the chain recomputed) passes a plain audit, which proves only
@@ -23,23 +23,6 @@ from crossfield.errors import ConfigError
 
 #: The level a passed anchor check adds to the seal's ``levels``.
 LEVEL = "agreement with the catalog"
-
-
-def _audit_module():
-    """crossfield.audit (its ``audit`` and ``parse_head``)."""
-    import crossfield.audit as audit_module
-
-    return audit_module
-
-
-def _seal_check():
-    """The audit's seal check (``crossfield.audit.report.seal_check`` since issue 21's
-    restructure, ``crossfield.audit.seal_check`` before it)."""
-    try:
-        from crossfield.audit.report import seal_check
-    except ImportError:
-        from crossfield.audit import seal_check
-    return seal_check
 
 
 def row_problems(seal_result: Mapping[str, Any], row: Mapping[str, Any], url: str) -> list[str]:
@@ -112,6 +95,8 @@ def audit_with_catalog(
     the catalog's row of the recording's session, then the SHA-256 and signature compared
     with it (:func:`anchored`). ``catalog``: a URL or an open :class:`Catalog`. An
     ``expect_head`` given as well must agree with the catalog's (ConfigError otherwise)."""
+    from crossfield.audit import audit
+    from crossfield.audit.report import parse_head
     from crossfield.catalog.query import Catalog, open as open_catalog
 
     path = Path(path)
@@ -125,38 +110,40 @@ def audit_with_catalog(
     finally:
         if cat is not catalog:
             cat.close()
-    audit_module = _audit_module()
     head = row["chain_head"] if row is not None else expect_head
-    if row is not None and expect_head is not None and audit_module.parse_head(expect_head) != row["chain_head"]:
+    if row is not None and expect_head is not None and parse_head(expect_head) != row["chain_head"]:
         raise ConfigError(
             f"--expect-head {expect_head} is not the chain head the catalog {url} keeps for "
             f"session {session_id} ({row['chain_head']})"
         )
-    report = audit_module.audit(path, pm, reproduce=reproduce, expect_head=head, public_key=public_key)
+    report = audit(path, pm, reproduce=reproduce, expect_head=head, public_key=public_key)
     return anchored(report, row, url, session_id)
 
 
 def check_row(row: Mapping[str, Any], url: str) -> dict[str, Any]:
     """``crossfield catalog verify`` for one catalogued session: its recording's chain
-    recomputed (:func:`crossfield.recording.integrity.verify`), the seal checked with the
+    recomputed (:func:`crossfield.audit.chain.verify`), the seal checked with the
     catalog's head (the audit's :func:`seal_check`), the SHA-256 and signature compared
     with the row. No replay (``crossfield audit --catalog`` does that for one session).
     Plain data, so a Dask worker can return it."""
-    from crossfield.recording.integrity import file_sha256, verify
+    from crossfield.audit.chain import verify
+    from crossfield.audit.report import seal_check
+    from crossfield.recording.integrity import file_sha256
 
     path = Path(row["folder"]) / str(row["recording"])
     out: dict[str, Any] = {"session_id": row["session_id"], "path": str(path)}
     if not path.is_file():
         return {**out, "passed": False, "problems": [f"{path}: the catalogued recording is gone"]}
     integrity = verify(path)
-    seal_result = _seal_check()(path, integrity, file_sha256(path), expect_head=row["chain_head"])
+    seal_result = seal_check(path, integrity, file_sha256(path), expect_head=row["chain_head"])
     problems = [str(p) for p in integrity.problems]
     problems += list(seal_result["problems"]) + row_problems(seal_result, row, url)
     return {**out, "passed": integrity.passed and not problems, "problems": problems}
 
 
 def verify_all(
-    catalog: Any, *, scheduler: str | None = None, workers: int | None = None, progress: bool = False
+    catalog: Any, *, scheduler: str | None = None, workers: int | None = None, memory_limit: Any = "auto",
+    progress: bool = False,
 ) -> list[dict[str, Any]]:
     """:func:`check_row` for every catalogued session: in this process, or on Dask
     (``crossfield.batch.engine``) when ``scheduler`` or ``workers`` is given."""
@@ -174,6 +161,6 @@ def verify_all(
             "path": str(Path(rows[i]["folder"]) / str(rows[i]["recording"])),
         }
 
-    with engine.client(scheduler, workers) as c:
+    with engine.client(scheduler, workers, memory_limit=memory_limit) as c:
         engine.run_each(c, check_row, [(r, url) for r in rows], done, prefix="catalog-verify", progress=progress)
     return [r for r in results if r is not None]

@@ -2,9 +2,9 @@
 make: :func:`ingest_after_run` (``crossfield run`` with a catalog configured) and
 :func:`add_audit_flag` / :func:`audit_command` (``crossfield audit --catalog``).
 
-:func:`add_parsers` adds the ``catalog`` subcommand to the CLI's subparsers (the
-``command`` factory of ``crossfield.cli.build_parser``) and returns its runner; ``python
--m crossfield.catalog`` runs the same commands on their own.
+:func:`add_arguments` and :func:`run` are the ``catalog`` command of the CLI
+(:mod:`crossfield.cli.catalog`); ``python -m crossfield.catalog`` runs the same commands
+on their own.
 
 Which catalog: ``--catalog URL`` (a SQLAlchemy URL or a SQLite file), else ``[catalog]
 url`` of ``--config FILE``, else ``recordings/catalog.sqlite`` (the embedded default in
@@ -210,14 +210,6 @@ DESCRIPTION = (
 )
 
 
-def add_parsers(command: Callable[..., argparse.ArgumentParser]) -> dict[str, Callable[[argparse.Namespace], int]]:
-    """Add ``catalog`` with ``command`` (crossfield.cli's subcommand factory); returns
-    {"catalog": run} for the CLI's command table."""
-    catalog = command("catalog", help=HELP, description=DESCRIPTION)
-    add_arguments(catalog)
-    return {"catalog": run}
-
-
 def _open(args: argparse.Namespace):
     from crossfield.catalog.query import open as open_catalog
 
@@ -323,7 +315,7 @@ def _run_verify(args: argparse.Namespace) -> int:
     from crossfield.catalog.anchor import verify_all
 
     with _open(args) as cat:
-        results = verify_all(cat, scheduler=args.scheduler, workers=args.workers)
+        results = verify_all(cat, scheduler=args.scheduler, workers=args.workers, memory_limit=args.memory_limit)
     bad = [r for r in results if not r["passed"]]
     if args.json:
         print(json.dumps(results, indent=1))

@@ -158,6 +158,15 @@ def trends(
 # --------------------------------------------------------------------------
 
 
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)  # as crossfield.report.figures: no display
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
 def _ticks(ax, times: Sequence[str]) -> None:
     n = len(times)
     step = max(1, n // 6)
@@ -169,7 +178,7 @@ def control_chart(t: CharacteristicTrend, prefix: str) -> str:
     """Individuals (top) and moving-range (bottom) chart of ``t``: baseline points shaded,
     limits dashed, the tolerance zone's limits in green, points where a test fires red with
     the test numbers."""
-    from crossfield.report.figures import _pyplot, svg
+    from crossfield.report.figures import svg
 
     plt = _pyplot()
     x = np.arange(len(t.values))
@@ -214,7 +223,7 @@ def control_chart(t: CharacteristicTrend, prefix: str) -> str:
 
 def health_chart(df: Any, figure: str, prefix: str) -> str:
     """One station-health figure over the sessions (per station a line)."""
-    from crossfield.report.figures import _pyplot, svg
+    from crossfield.report.figures import svg
 
     rows = df[df["figure"] == figure]
     if rows.empty:

@@ -8,20 +8,16 @@ from __future__ import annotations
 import argparse
 import re
 import shutil
-import sys
-from pathlib import Path
 
 import pytest
+from session_tools import forge, record_session, shift_cfp_x  # tests/, on sys.path by tests/conftest.py
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: session_tools
-from session_tools import forge, record_session, shift_cfp_x  # noqa: E402
-
-import crossfield.catalog  # noqa: E402
-from crossfield.audit import audit  # noqa: E402
-from crossfield.catalog.anchor import LEVEL, audit_with_catalog  # noqa: E402
-from crossfield.catalog.commands import audit_command, main as catalog_main  # noqa: E402
-from crossfield.recording.reader import open_recording  # noqa: E402
-from crossfield.registry import make_plugin_manager  # noqa: E402
+import crossfield.catalog
+from crossfield.audit import audit
+from crossfield.catalog.anchor import LEVEL, audit_with_catalog
+from crossfield.catalog.commands import audit_command, main as catalog_main
+from crossfield.chain.registry import make_plugin_manager
+from crossfield.recording.reader import open_recording
 
 
 @pytest.fixture(scope="module")
