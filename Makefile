@@ -6,8 +6,9 @@ STAMP  := $(VENV)/.installed
 SUDO   := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 # Debian packages the tests need: Mesa's lavapipe Vulkan driver, so the real
 # Rerun viewer renders headless (screenshots, ViewerClient) with no GPU; chromium for
-# the headless screenshot of report.html (tests/report/test_report_html_pictures.py).
-APT_PACKAGES := mesa-vulkan-drivers libvulkan1 chromium
+# the headless screenshot of report.html (tests/report/test_report_html_pictures.py); postgresql
+# for the catalog's tests against a real server they start themselves (tests/catalog/conftest.py).
+APT_PACKAGES := mesa-vulkan-drivers libvulkan1 chromium postgresql
 
 .PHONY: demo test bench install apt-packages clean
 

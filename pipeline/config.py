@@ -23,6 +23,7 @@ when the session starts; every error names the file and the key.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import tomllib
 from dataclasses import dataclass, field
@@ -77,6 +78,9 @@ class Config:
     session: Mapping[str, Any]
     stages: Mapping[str, StageConfig]
     source: str = "<defaults>"
+    #: ``[catalog]``: url, station (crossfield.catalog; docs/catalog.md). Not in :meth:`to_dict`
+    #: (not recorded with the session: a URL may hold a password).
+    catalog: Mapping[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """The resolved config as plain TOML-able data (recorded with the session)."""
@@ -90,10 +94,11 @@ class Config:
 def parse_config(data: Mapping[str, Any], source: str = "<config>") -> Config:
     """Validate a config mapping; errors name ``source`` and the key."""
     for key in data:
-        if key != "session" and key not in STAGES:
+        if key not in ("session", "catalog") and key not in STAGES:
             raise ConfigError(
-                f"{source}: unknown table [{key}]; allowed: session, {', '.join(STAGES)}"
+                f"{source}: unknown table [{key}]; allowed: session, catalog, {', '.join(STAGES)}"
             )
+    catalog = _catalog_table(data.get("catalog", {}), source)
     session = dict(SESSION_DEFAULTS)
     given = data.get("session", {})
     if not isinstance(given, Mapping):
@@ -130,7 +135,22 @@ def parse_config(data: Mapping[str, Any], source: str = "<config>") -> Config:
         if not isinstance(plugin, str) or not plugin:
             raise ConfigError(f"{source}: [{stage}] key 'plugin' must be a non-empty string")
         stages[stage] = StageConfig(plugin, options)
-    return Config(session, stages, source)
+    return Config(session, stages, source, catalog)
+
+
+#: ``[catalog]`` keys (all strings; "" = not set): the catalog's URL and this station's name.
+CATALOG_KEYS = ("url", "station")
+
+
+def _catalog_table(table: Any, source: str) -> dict[str, str]:
+    if not isinstance(table, Mapping):
+        raise ConfigError(f"{source}: [catalog] must be a table")
+    for key, value in table.items():
+        if key not in CATALOG_KEYS:
+            raise ConfigError(f"{source}: [catalog] unknown key {key!r}; allowed: {', '.join(CATALOG_KEYS)}")
+        if not isinstance(value, str):
+            raise ConfigError(f"{source}: [catalog] key {key!r} must be a str, got {value!r}")
+    return {key: table[key] for key in CATALOG_KEYS if table.get(key)}
 
 
 def load_config(path: str | Path | None = None) -> Config:
@@ -196,7 +216,7 @@ def with_overrides(
                 f"{by}: the options of {stage!r} must be a mapping of option -> value, got {table!r}"
             )
         data.setdefault(stage, {}).update(table)
-    return parse_config(data, f"{config.source} (with {by})")
+    return dataclasses.replace(parse_config(data, f"{config.source} (with {by})"), catalog=config.catalog)
 
 
 #: Options of the simulator source that ``crossfield run`` and :func:`crossfield.run`

@@ -7,7 +7,8 @@ tuple of one module of this package, each module filling it the same way:
 * :mod:`crossfield.cli.batch`: batch (audit, replay, compare over an archive, on Dask);
 * :mod:`crossfield.cli.calibration`: calibrate, verify;
 * :mod:`crossfield.cli.planning`: plan, crb;
-* :mod:`crossfield.cli.simulator`: romer-sim.
+* :mod:`crossfield.cli.simulator`: romer-sim;
+* :mod:`crossfield.cli.catalog`: catalog.
 
 :data:`COMMANDS` is their union (name -> command), in that order; :func:`main` parses
 the arguments, runs the command with the ``crossfield`` loggers on stderr, and turns
@@ -21,7 +22,7 @@ import sys
 from collections.abc import Sequence
 
 from crossfield import __version__
-from crossfield.cli import batch, calibration, planning, session, simulator
+from crossfield.cli import batch, calibration, catalog, planning, session, simulator
 from crossfield.cli.common import Command, log_level, logging_to_stderr, stdout_gone, verbosity_flags
 from crossfield.errors import CrossfieldError
 
@@ -30,7 +31,7 @@ __all__ = ["COMMANDS", "Command", "build_parser", "main"]
 #: Every ``crossfield`` command by name, from the modules' ``COMMANDS`` tables.
 COMMANDS: dict[str, Command] = {
     command.name: command
-    for module in (session, batch, calibration, planning, simulator)
+    for module in (session, batch, calibration, planning, simulator, catalog)
     for command in module.COMMANDS
 }
 

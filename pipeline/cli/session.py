@@ -13,6 +13,7 @@ from pathlib import Path
 
 from crossfield.audit import audit, format_report, to_json
 from crossfield.batch.engine import add_engine_flags, engine_from_args
+from crossfield.catalog import commands as catalog
 from crossfield.chain.registry import STAGES, get_implementation, implementations
 from crossfield.chain.runner import run_session
 from crossfield.cli.common import (
@@ -62,6 +63,7 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
         "session's register and measure implementations (= [session] monte_carlo = N; docs/uncertainty.md)",
     )
     add_engine_flags(parser)  # where the Monte Carlo draws run: in this process unless --scheduler or --workers
+    catalog.add_run_flag(parser)  # --catalog URL: the session into the catalog when written (docs/catalog.md)
 
 
 def add_replay_arguments(parser: argparse.ArgumentParser) -> None:
@@ -92,6 +94,7 @@ def add_audit_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--public-key", metavar="KEY", help="the station's Ed25519 public key (PEM file or 64 hex digits)"
     )
+    catalog.add_audit_flag(parser)  # --catalog URL: the outside anchor (docs/catalog.md)
 
 
 def add_keygen_arguments(parser: argparse.ArgumentParser) -> None:
@@ -165,6 +168,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     print(impl.summary_text(summary))
     print_seal(summary.info.out_dir / "session.mcap")
     print_session_files(summary.info.out_dir, "session written to")
+    catalog.ingest_run(args, config, summary.info.out_dir)  # --catalog / [catalog] url; never fails the run
     return 0 if summary.passed else 1
 
 
@@ -254,13 +258,16 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
 
 def cmd_audit(args: argparse.Namespace) -> int:
-    report = audit(
-        args.recording,
-        plugin_manager(),
-        reproduce=not args.no_replay,
-        expect_head=args.expect_head,
-        public_key=args.public_key,
-    )
+    if args.catalog:  # the outside anchor: the head, SHA-256 and signature the catalog keeps
+        report = catalog.audit_command(args, plugin_manager())
+    else:
+        report = audit(
+            args.recording,
+            plugin_manager(),
+            reproduce=not args.no_replay,
+            expect_head=args.expect_head,
+            public_key=args.public_key,
+        )
     print(to_json(report) if args.json else format_report(report))
     return 0 if report.passed else 1
 
