@@ -183,7 +183,9 @@ def build_parser() -> argparse.ArgumentParser:
         "QMS software: name, nominal, measured, deviation, tolerances, u, U, k, decision (mm, unrounded).",
     )
     export.add_argument("session", metavar="SESSION", help="session folder or its report.json")
-    export.add_argument("--csv", metavar="FILE", required=True, help="the CSV file to write ('-' = stdout)")
+    export.add_argument("--csv", metavar="FILE", help="the CSV file to write ('-' = stdout)")
+    export.add_argument("--qif", metavar="FILE", help="the QIF 3.0.0 results document to write (ISO 23952; "
+                        "validated against the official schema; docs/qif.md)")
 
     plugins = command("plugins", help="list every stage's registered implementations")
     plugins.add_argument("--json", action="store_true", help="machine-readable output")
@@ -486,10 +488,16 @@ def cmd_batch(args: argparse.Namespace) -> int:
 def cmd_export(args: argparse.Namespace) -> int:
     from crossfield.export import characteristic_rows, load_report, to_csv, write_csv
 
+    if not (args.csv or args.qif):
+        raise CrossfieldError("crossfield export: give --csv FILE and/or --qif FILE")
     if args.csv == "-":
         sys.stdout.write(to_csv(characteristic_rows(load_report(args.session))))
-    else:
+    elif args.csv:
         print(f"wrote {write_csv(args.session, args.csv)}")
+    if args.qif:
+        from crossfield.report.qif import write_qif
+
+        print(f"wrote {write_qif(args.session, args.qif)} (valid QIF 3.0.0)")
     return 0
 
 
