@@ -76,7 +76,7 @@ def _target_features(plan: Any, per_frame: Sequence[Mapping[str, Any]]) -> list[
 
 def _cmm_features(plan: Any, reference: Any) -> list[QifFeature]:
     """Control points, reference points (one probe each) and the fitted reference lines."""
-    from crossfield.geometry import fit_reference_element
+    from crossfield.geometry import element_probes, fit_reference_element
 
     by_label = {p.label: p for p in reference.points if np.isfinite(p.xyz).all()}
     features = []
@@ -90,13 +90,18 @@ def _cmm_features(plan: Any, reference: Any) -> list[QifFeature]:
         except ValueError:  # too few probes: the measurement refused it too
             continue
         residuals = np.asarray(fit.residuals_mm, dtype=np.float64)
+        diameter = None
+        if fit.radius_mm is not None:
+            balls = np.array([p.probe_diameter_mm for p in element_probes(spec.id, reference.points)], dtype=float)
+            ball = float(balls.mean()) if len(balls) and np.isfinite(balls).all() else 0.0
+            diameter = 2.0 * float(fit.radius_mm) - ball
         features.append(QifFeature(
             spec.id,
             fit.kind,
             "reference_line",
             _xyz(fit.line.point),
             direction=_xyz(fit.line.direction),
-            diameter_mm=None if fit.radius_mm is None else 2.0 * float(fit.radius_mm),
+            diameter_mm=diameter,
             form_mm=float(residuals.max() - residuals.min()) if len(residuals) else None,
             n=len(residuals),
         ))
