@@ -191,7 +191,7 @@ def test_the_layout_opens_recorded_topics_side_by_side():
     topics = set(L.recorded_topics())
     panels = layout["configById"]
     named = set()
-    for panel_id, config in panels.items():
+    for config in panels.values():
         mode = config.get("imageMode", {})
         named |= {mode.get("imageTopic"), mode.get("calibrationTopic"), *mode.get("annotations", {})}
         named |= set(config.get("topics", {})) | {config.get("topicToRender")}

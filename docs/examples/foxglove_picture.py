@@ -17,14 +17,14 @@ import sys
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations  # noqa: E402
-from foxglove_schemas_protobuf.RawImage_pb2 import RawImage  # noqa: E402
-from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
+from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 
-from crossfield.recording import layout as L  # noqa: E402
-from crossfield.recording.reader import open_recording  # noqa: E402
+from crossfield.recording import layout as L
+from crossfield.recording.reader import open_recording
 
 
 def rgba(c):

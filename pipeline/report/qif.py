@@ -37,6 +37,7 @@ the same double as report.json's.
 
 from __future__ import annotations
 
+import math
 import uuid
 from collections.abc import Iterable, Mapping, Sequence
 from decimal import Decimal
@@ -90,8 +91,7 @@ def feature_qpid(plan_name: str, feature: str) -> str:
 
 def _dec(value: float) -> str:
     """``value`` as xs:decimal text: positional notation of its repr (reads back to the same double)."""
-    text = format(Decimal(repr(float(value))), "f")
-    return text
+    return format(Decimal(repr(float(value))), "f")
 
 
 def _xyz(v: Sequence[float]) -> str:
@@ -128,7 +128,8 @@ class _Doc:
 
 
 def _finite(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and value == value and abs(value) != float("inf")
+    """A number that is not NaN or infinite (report.json writes NaN as null)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def _datetime(iso_utc: str | None) -> str | None:
@@ -143,16 +144,18 @@ def _date_time(date: str) -> str | None:
     return None
 
 
-def _header(d: _Doc, root: Any, report: Mapping[str, Any]) -> dict[str, int]:
+def _header(d: _Doc, root: Any, report: Mapping[str, Any]) -> None:
     header = d.el(root, "Header")
     app = d.el(header, "Application")
     d.el(app, "Name", "crossfield")
     d.el(app, "Organization", "crossfield project")
-    session = report["session"]
-    d.el(header, "Description", f"crossfield session {session['id']}: cross-field lengths measured by local "
-         f"stereo vision registered to out-of-view CMM references; plan {report['plan']['name']!r}")
+    d.el(header, "Description", f"crossfield session {report['session']['id']}: cross-field lengths measured "
+         f"by local stereo vision registered to out-of-view CMM references; plan {report['plan']['name']!r}")
     d.el(header, "Scope", "Results")
-    software = d.el(root, "SoftwareDefinitions")
+
+
+def _software(d: _Doc, root: Any, report: Mapping[str, Any]) -> list[int]:
+    """crossfield, Python and every stage plugin with its version: their ids."""
     entries: list[tuple[str, str, str, str]] = []
     packages = report.get("packages") or {}
     entries.append(("crossfield project", "crossfield", str(packages.get("crossfield", "")), "the pipeline"))
@@ -161,26 +164,29 @@ def _header(d: _Doc, root: Any, report: Mapping[str, Any]) -> dict[str, int]:
     for stage, plugin in (report.get("plugins") or {}).items():
         entries.append((str(plugin.get("package") or "unknown"), f"{stage}-{plugin.get('name', '')}",
                         str(plugin.get("version") or ""), f"{stage} stage: {plugin.get('plugin', '')}"))
-    software.set("n", str(len(entries)))
-    software_ids: dict[str, int] = {}
+    software = d.el(root, "SoftwareDefinitions", n=len(entries))
+    ids = []
     for vendor, name, version, description in entries:
-        sid = d.new_id()
-        node = d.el(software, "Software", id=sid)
+        ids.append(d.new_id())
+        node = d.el(software, "Software", id=ids[-1])
         d.el(node, "VendorName", vendor)
         d.el(node, "ApplicationName", name)
         if version:
             d.el(node, "Version", version)
         d.el(node, "Description", description)
-        software_ids[name] = sid
+    return ids
+
+
+def _units(d: _Doc, root: Any) -> None:
+    """mm and radian (QIF fixes ``SIUnitName`` to the SI unit; mm is 0.001 meter)."""
     units = d.el(d.el(root, "FileUnits"), "PrimaryUnits")
     angular = d.el(units, "AngularUnit")
     d.el(angular, "SIUnitName", "radian")
     d.el(angular, "UnitName", "radian")
     linear = d.el(units, "LinearUnit")
-    d.el(linear, "SIUnitName", "meter")  # the schema's fixed value
+    d.el(linear, "SIUnitName", "meter")
     d.el(linear, "UnitName", "mm")
-    d.el(d.el(linear, "UnitConversion"), "Factor", "0.001")  # 1 mm = 0.001 m
-    return software_ids
+    d.el(d.el(linear, "UnitConversion"), "Factor", "0.001")
 
 
 def _instrument_role(kind: str) -> str | None:
@@ -285,13 +291,12 @@ def _characteristic_tag(c: Mapping[str, Any]) -> str:
 
 
 def _characteristics(d: _Doc, root: Any, report: Mapping[str, Any], item_of_feature: Mapping[str, int],
-                     device_ids: Mapping[str, int], frame_id: int) -> dict[str, int]:
+                     device_ids: Mapping[str, int], frame_id: int, standard_id: int) -> dict[str, int]:
     """Characteristic definitions, nominals and items: name -> item id."""
     chars = report["characteristics"]
     plan_name = report["plan"]["name"]
     node = d.el(root, "Characteristics")
-    standards = root.find(f"{{{QIF_NAMESPACE}}}StandardsDefinitions")
-    d.el(node, "FormalStandardId", int(standards[0].get("id")))
+    d.el(node, "FormalStandardId", standard_id)
     definitions = d.el(node, "CharacteristicDefinitions", n=len(chars))
     definition_ids = {}
     for c in chars:
@@ -334,12 +339,15 @@ def _characteristics(d: _Doc, root: Any, report: Mapping[str, Any], item_of_feat
     return item_ids
 
 
-def _standards(d: _Doc, root: Any) -> None:
+def _standards(d: _Doc, root: Any) -> int:
+    """ISO 14253-1, the standard of the decisions: its id."""
     standards = d.el(root, "StandardsDefinitions", n=1)
-    standard = d.el(standards, "Standard", id=d.new_id())
+    sid = d.new_id()
+    standard = d.el(standards, "Standard", id=sid)
     d.el(d.el(standard, "Organization"), "StandardsOrganizationEnum", "ISO")
     d.el(standard, "Designator", "14253-1")
     d.el(standard, "Title", "Decision rules for verifying conformity or nonconformity with specifications")
+    return sid
 
 
 def _coordinate_systems(d: _Doc, root: Any) -> int:
@@ -360,7 +368,7 @@ def _feature_measurements(d: _Doc, parent: Any, features: Sequence[QifFeature], 
         tag = {"point": "PointFeatureMeasurement", "line": "LineFeatureMeasurement",
                "cylinder": "CylinderFeatureMeasurement"}[f.kind]
         m = d.el(node, tag, id=ids[f.id])
-        d.attributes(m, [("AttributeStr", "crossfield:role", f.role), ("AttributeD1", "crossfield:n", f.n)])
+        d.attributes(m, [("AttributeStr", "crossfield:role", f.role), ("AttributeI1", "crossfield:n", f.n)])
         if f.id in item_of_feature:
             d.el(m, "FeatureItemId", item_of_feature[f.id])
         d.el(m, "FeatureName", f.id)
@@ -386,7 +394,7 @@ def _feature_measurements(d: _Doc, parent: Any, features: Sequence[QifFeature], 
 
 def _results(d: _Doc, root: Any, report: Mapping[str, Any], features: Sequence[QifFeature],
              item_of_feature: Mapping[str, int], item_of_characteristic: Mapping[str, int],
-             device_ids: Mapping[str, int], software_ids: Mapping[str, int], results_qpid: str) -> None:
+             device_ids: Mapping[str, int], software_ids: Sequence[int], results_qpid: str) -> None:
     results = d.el(root, "Results")
     result_set = d.el(results, "MeasurementResultsSet", n=1)
     mr = d.el(result_set, "MeasurementResults", id=d.new_id())
@@ -399,7 +407,7 @@ def _results(d: _Doc, root: Any, report: Mapping[str, Any], features: Sequence[Q
     start = _datetime(session.get("start_time_utc"))
     if start:
         d.el(trace, "InspectionStart", start)
-    d.ids(d.el(trace, "InspectionSoftwareItems"), "InspectionProgramExecutionSoftware", list(software_ids.values()))
+    d.ids(d.el(trace, "InspectionSoftwareItems"), "InspectionProgramExecutionSoftware", list(software_ids))
     if job.get("operator"):
         d.el(d.el(trace, "InspectionOperator"), "Name", job["operator"])
     d.el(mr, "ThisResultsInstanceQPId", results_qpid)
@@ -458,16 +466,15 @@ def build_qif(report: Mapping[str, Any], features: Iterable[QifFeature] = ()) ->
     root = etree.Element(f"{{{QIF_NAMESPACE}}}QIFDocument", nsmap={None: QIF_NAMESPACE},
                          versionQIF=QIF_VERSION)
     d.el(root, "QPId", uuid.uuid5(QPID_NAMESPACE, f"document\x00{seed}"))
-    software_ids = _header(d, root, report)
-    # schema order: StandardsDefinitions before SoftwareDefinitions
-    standards_at = list(root).index(root.find(f"{{{QIF_NAMESPACE}}}SoftwareDefinitions"))
-    _standards(d, root)
-    root.insert(standards_at, root[-1])
+    _header(d, root, report)
+    standard_id = _standards(d, root)
+    software_ids = _software(d, root, report)
+    _units(d, root)
     frame_id = _coordinate_systems(d, root)
     device_ids = _resources(d, root, report)
     plan_name = report["plan"]["name"]
     item_of_feature = _features(d, root, features, plan_name)
-    item_of_characteristic = _characteristics(d, root, report, item_of_feature, device_ids, frame_id) \
+    item_of_characteristic = _characteristics(d, root, report, item_of_feature, device_ids, frame_id, standard_id) \
         if report["characteristics"] else {}
     _results(d, root, report, features, item_of_feature, item_of_characteristic, device_ids, software_ids,
              str(uuid.uuid5(QPID_NAMESPACE, f"results\x00{seed}")))
