@@ -275,3 +275,15 @@ def test_a_report_without_recording_incomplete_and_unmeasured_still_validates(tm
     targets = {m.findtext("q:FeatureName", namespaces=NS) for m in root.findall("q:Results//q:MeasuredFeatures/*", NS)}
     listed = {t for f in report["frames"] for t in f["target_points_mm"]}
     assert targets == listed and listed  # the targets of the frames report.json lists
+
+
+def test_a_recording_of_another_session_is_refused(sessions, tmp_path, capsys):
+    import shutil
+
+    folder = tmp_path / "mixed"
+    folder.mkdir()
+    shutil.copy(sessions["table3"] / "report.json", folder / "report.json")
+    shutil.copy(sessions["station"] / "session.mcap", folder / "session.mcap")
+    assert main(["export", str(folder), "--qif", str(tmp_path / "x.qif")]) == 2
+    assert "the recording of session 'station', not of the report's session 'table3'" in capsys.readouterr().err
+    assert not (tmp_path / "x.qif").exists()

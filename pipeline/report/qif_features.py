@@ -108,13 +108,17 @@ def _cmm_features(plan: Any, reference: Any) -> list[QifFeature]:
     return features
 
 
-def features_from_recording(path: str | Path) -> tuple[QifFeature, ...]:
-    """Every measured feature of the session recorded at ``path`` (session.mcap)."""
+def features_from_recording(path: str | Path, session_id: str | None = None) -> tuple[QifFeature, ...]:
+    """Every measured feature of the session recorded at ``path`` (session.mcap); with
+    ``session_id``, a recording of another session is a RecordingError."""
     from crossfield.recording import layout as L
     from crossfield.recording.codec import reference_data
     from crossfield.recording.facts import load_session_facts
 
     facts = load_session_facts(path)
+    if session_id is not None and facts.session_id != session_id:
+        raise RecordingError(f"{path}: the recording of session {facts.session_id!r}, "
+                             f"not of the report's session {session_id!r}")
     recording = facts.recording
     reference = None
     per_frame: list[Mapping[str, Any]] = []
@@ -151,5 +155,5 @@ def session_features(folder: Path, report: Mapping[str, Any]) -> tuple[QifFeatur
     """From ``folder/session.mcap`` when it exists, else from report.json (:func:`features_from_report`)."""
     mcap = folder / "session.mcap"
     if mcap.is_file():
-        return features_from_recording(mcap)
+        return features_from_recording(mcap, str(report["session"]["id"]))
     return features_from_report(report)
