@@ -413,7 +413,8 @@ def _results(d: _Doc, root: Any, report: Mapping[str, Any], features: Sequence[Q
     d.el(mr, "ThisResultsInstanceQPId", results_qpid)
     feature_ids = _feature_measurements(d, mr, features, item_of_feature, device_ids) if features else {}
     chars = report["characteristics"]
-    measured = d.el(d.el(mr, "MeasuredCharacteristics"), "CharacteristicMeasurements", n=len(chars))
+    measured = d.el(d.el(mr, "MeasuredCharacteristics"), "CharacteristicMeasurements", n=len(chars)) \
+        if chars else None  # none evaluated: the schema wants at least one, so no element
     for c in chars:
         tag = _characteristic_tag(c)
         m = d.el(measured, f"{tag}CharacteristicMeasurement", id=d.new_id())
