@@ -118,7 +118,9 @@ def add_view_arguments(parser: argparse.ArgumentParser) -> None:
 
 def add_export_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("session", metavar="SESSION", help="session folder or its report.json")
-    parser.add_argument("--csv", metavar="FILE", required=True, help="the CSV file to write ('-' = stdout)")
+    parser.add_argument("--csv", metavar="FILE", help="the CSV file to write ('-' = stdout)")
+    parser.add_argument("--qif", metavar="FILE", help="the QIF 3.0.0 results document to write (ISO 23952; "
+                        "validated against the official schema; docs/qif.md)")
 
 
 def resolve_run_config(args: argparse.Namespace) -> Config:
@@ -293,10 +295,16 @@ def cmd_view(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
+    if not (args.csv or args.qif):
+        raise ConfigError("crossfield export: give --csv FILE and/or --qif FILE")
     if args.csv == "-":
         sys.stdout.write(to_csv(characteristic_rows(load_report(args.session))))
-    else:
+    elif args.csv:
         print(f"wrote {write_csv(args.session, args.csv)}")
+    if args.qif:
+        from crossfield.report.qif import write_qif
+
+        print(f"wrote {write_qif(args.session, args.qif)} (valid QIF 3.0.0)")
     return 0
 
 

@@ -27,6 +27,8 @@ READABLE_FORMATS = ("crossfield-mcap/1",)
 _TOPIC_IMAGE = "/camera/{camera}/image"
 _TOPIC_CALIBRATION = "/camera/{camera}/calibration"
 _TOPIC_CENTROIDS = "/centroids/{camera}"
+#: foxglove.ImageAnnotations of each camera: centroids and rejected blobs (crossfield.recording.foxglove_overlay).
+_TOPIC_ANNOTATIONS = "/camera/{camera}/annotations"
 
 TOPIC_TF = "/tf"
 TOPIC_POINTS_CAMERA = "/points/camera"
@@ -45,6 +47,8 @@ TOPIC_REFERENCE = "/reference"
 TOPIC_FRAMES = "/frames"
 TOPIC_REPORT = "/report"
 TOPIC_LOG = "/log"
+#: foxglove.SceneUpdate: CMM points, reference lines, targets, characteristics (crossfield.recording.foxglove_overlay).
+TOPIC_SCENE = "/scene"
 #: The integrity chain's records (:mod:`crossfield.recording.integrity`).
 TOPIC_INTEGRITY = "/integrity"
 
@@ -88,6 +92,11 @@ def centroids_topic(camera: str) -> str:
     return _TOPIC_CENTROIDS.format(camera=camera)
 
 
+def annotations_topic(camera: str) -> str:
+    """``/camera/<camera>/annotations`` (foxglove.ImageAnnotations)."""
+    return _TOPIC_ANNOTATIONS.format(camera=camera)
+
+
 #: The raw image topics, one per camera, in :data:`crossfield.types.CAMERAS` order.
 IMAGE_TOPICS = tuple(image_topic(camera) for camera in CAMERAS)
 #: The centroid topics, one per camera.
@@ -97,6 +106,7 @@ CAMERA_OF_TOPIC = {
     **{image_topic(c): c for c in CAMERAS},
     **{calibration_topic(c): c for c in CAMERAS},
     **{centroids_topic(c): c for c in CAMERAS},
+    **{annotations_topic(c): c for c in CAMERAS},
 }
 
 #: Raw inputs: what a replay reads (and so does not reproduce), plus the chain.
@@ -185,7 +195,8 @@ def recorded_topics(cameras: Sequence[str] = CAMERAS) -> list[str]:
     topics = []
     for camera in cameras:
         topics += [image_topic(camera), calibration_topic(camera), centroids_topic(camera)]
-    topics += [TOPIC_TF, TOPIC_LOG, TOPIC_CMM_RAW, TOPIC_REFERENCE, TOPIC_REGISTRATION, TOPIC_MEASUREMENT]
+        topics += [annotations_topic(camera)]
+    topics += [TOPIC_SCENE, TOPIC_TF, TOPIC_LOG, TOPIC_CMM_RAW, TOPIC_REFERENCE, TOPIC_REGISTRATION, TOPIC_MEASUREMENT]
     topics += [TOPIC_FRAMES, TOPIC_REPORT, TOPIC_INTEGRITY]
     for cloud in (TOPIC_POINTS_CAMERA, TOPIC_POINTS_REFERENCE, TOPIC_POINTS_GLOBAL):
         topics += [cloud, cloud + JSON_TWIN]

@@ -40,9 +40,11 @@ from typing import Any, Protocol, Self
 import numpy as np
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
 from foxglove_schemas_protobuf.Log_pb2 import Log
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from mcap.writer import CompressionType, Writer
 
 from crossfield.chain.provenance import crossfield_version, machine_info
@@ -75,6 +77,7 @@ from crossfield.recording.codec import (
     upper_to_lower_pose,
     utc_text,
 )
+from crossfield.recording.foxglove_overlay import FoxgloveOverlay
 from crossfield.recording.integrity import IntegrityChain, file_sha256
 from crossfield.report.document import document_of
 from crossfield.types import CAMERAS, CameraPoints
@@ -485,6 +488,7 @@ class SessionWriter:
         self._static_time_ns: int | None = None
         self._session: Any = None
         self._serial_counts: dict[str, int] = {}
+        self._overlay = FoxgloveOverlay()  # /camera/*/annotations, /scene (foxglove_overlay.py)
 
     # ---- plumbing -------------------------------------------------------
 
@@ -529,6 +533,7 @@ class SessionWriter:
     def session_start(self, session: Any) -> None:
         """The session facts (metadata records), attachments and static data."""
         self._session = session
+        self._overlay.plan = session.plan
         start = int(session.start_time_ns or time.time_ns())
         self._latest_time_ns = max(self._latest_time_ns, start)
         version = crossfield_version(session.packages)
@@ -648,6 +653,7 @@ class SessionWriter:
         }
         self._json(L.TOPIC_POINTS_REFERENCE_JSON, L.SCHEMA_REFERENCE_POINTS, twin, t)
         self._json(L.TOPIC_REFERENCE, L.SCHEMA_REFERENCE, reference_doc(reference), t)
+        self._message(protobuf_channel(L.TOPIC_SCENE, SceneUpdate), t, self._overlay.reference(reference, t))
         self.flush()
 
     def centroids(self, centroids: Any) -> None:
@@ -716,6 +722,9 @@ class SessionWriter:
         seq = int(result.sequence)
         t = int(result.timestamp_ns) or self._frame_time(seq)
         self._json(L.TOPIC_FRAMES, L.SCHEMA_FRAME_STATUS, frame_status_doc(result), t, seq)
+        for camera, data in self._overlay.annotations(result, t).items():
+            self._message(protobuf_channel(L.annotations_topic(camera), ImageAnnotations), t, data, seq)
+        self._message(protobuf_channel(L.TOPIC_SCENE, SceneUpdate), t, self._overlay.frame(result, t), seq)
         self._camera_points.pop(seq, None)
         self.flush()
 

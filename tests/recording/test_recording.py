@@ -327,6 +327,9 @@ EXPECTED_SCHEMAS = {
     "/frames": ("crossfield.FrameStatus", "jsonschema", "json", 2),
     "/report": ("crossfield.Report", "jsonschema", "json", 1),
     "/log": ("foxglove.Log", "protobuf", "protobuf", 3),
+    "/camera/upper/annotations": ("foxglove.ImageAnnotations", "protobuf", "protobuf", 2),
+    "/camera/lower/annotations": ("foxglove.ImageAnnotations", "protobuf", "protobuf", 2),
+    "/scene": ("foxglove.SceneUpdate", "protobuf", "protobuf", 3),  # the CMM elements + one per pair
     # one record per flushed chunk (frame ends, session start, reference, timed flushes) + the final one
     "/integrity": ("crossfield.Integrity", "jsonschema", "json", None),
 }
