@@ -69,6 +69,10 @@ TARGETS = {
     "station": (scenarios.TARGET_RADIUS_MM, 20.0),
     "table3": (scenarios.TARGET_RADIUS_MM, 20.0),
     "camera-limited": (scenarios.CL_TARGET_RADIUS_MM, scenarios.CL_MAX_TILT_DEG),
+    # the mismatch scenarios' targets: their base's, each turned by a further ~2 deg RMS per session
+    "mismatch-cmm": (scenarios.TARGET_RADIUS_MM, 25.0),
+    "mismatch-camera": (scenarios.CL_TARGET_RADIUS_MM, scenarios.CL_MAX_TILT_DEG + 5.0),
+    "mismatch-mixed": (scenarios.CL_TARGET_RADIUS_MM, scenarios.CL_MAX_TILT_DEG + 5.0),
 }
 
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from crossfield.hookspecs import Register, hookimpl
 from crossfield.stages import Acquisition
-from crossfield.simulator.scenarios import SCENARIOS, build_scene
+from crossfield.simulator.scenarios import RENDERERS, SCENARIOS, build_scene
 from crossfield.types import StereoFrame
 
 
@@ -34,6 +34,9 @@ class SimulatorSource:
     calibration file (e.g. written by ``crossfield calibrate --scenario``) that
     the session measures with instead of the rig's true calibration; the
     images are still rendered through the true one ("" = the truth).
+    render: the image model, ``model`` (the default renderer) or ``mismatch``
+    (the independent renderer of ``docs/simulator.md``, its per-session truth
+    drawn from ``seed``; the ``mismatch-*`` scenarios always use it).
     """
 
     def __init__(
@@ -45,6 +48,7 @@ class SimulatorSource:
         arm_sigma_mm: float | None = None,
         start_time_ns: int = 0,
         calibration: str = "",
+        render: str = "model",
     ) -> None:
         if scenario not in SCENARIOS:
             raise ValueError(f"option 'scenario': unknown scenario {scenario!r}; scenarios: {', '.join(SCENARIOS)}")
@@ -55,7 +59,11 @@ class SimulatorSource:
         self.scenario = scenario
         self.n_frames = frames
         self.seed = seed
-        self.scene = build_scene(scenario, arm_sigma_mm=arm_sigma_mm)
+        if render not in RENDERERS:
+            raise ValueError(f"option 'render': unknown renderer {render!r}; renderers: {', '.join(RENDERERS)}")
+        self.scene = build_scene(scenario, arm_sigma_mm=arm_sigma_mm, render=render)
+        if hasattr(self.scene, "for_session"):  # the mismatch renderer: this session's truth from its seed
+            self.scene = self.scene.for_session(seed)
         self.calibration = self.scene.calibration
         self.calibration_file = calibration
         if calibration:
@@ -96,6 +104,7 @@ class SimulatorSource:
             "frames": self.n_frames,
             "seed": self.seed,
             "camera_model": "Basler scA1600-14gm (simulated)",
+            "render": "mismatch" if hasattr(s, "for_session") else "model",
             "image_size": list(s.calibration.upper.image_size),
             "bit_depth": s.sensor.bit_depth,
             "sensor": {
