@@ -131,12 +131,17 @@ def one_session(out: Path, scenario: str, seed: int, frames: int, arm_sigma: flo
     check = summary.aggregate.consistency
     rows = [
         {"name": c.name, "error_mm": c.error_mm, "u_mm": c.uncertainty_mm, "U_mm": c.expanded_uncertainty_mm,
-         "u_ecc_mm": next((t.u_mm for t in c.budget if t.source == "eccentricity"), 0.0)}
+         "u_ecc_mm": next((t.u_mm for t in c.budget if t.source == "eccentricity"), 0.0),
+         "u_cam_mm": next((t.u_mm for t in c.budget if t.source == "camera"), 0.0),
+         "u_cam_sys_mm": next((t.u_mm for t in c.budget if t.source == "camera_systematic"), 0.0)}
         for c in summary.characteristics
         if c.error_mm is not None and c.expanded_uncertainty_mm is not None
     ]
     return {"seed": seed, "warned": bool(check is not None and not check.consistent),
-            "inflation": None if check is None else check.cmm_inflation, "rows": rows}
+            "inflation": None if check is None else check.cmm_inflation,
+            "epipolar_chi2_per_point": None if check is None else getattr(check, "epipolar_chi2_per_point", None),
+            "camera_ratio": None if check is None else getattr(check, "camera_ratio", None),
+            "rows": rows}
 
 
 def _key(line: dict) -> tuple:
