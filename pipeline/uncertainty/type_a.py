@@ -31,9 +31,15 @@ evidence (small nu) it stays near the model, with much it follows the data.
 the positive part of the noise of s^2, ``E[(s^2 - 1)_+] ~ 0.4 sd(s^2)``,
 ``sd(s^2) = sqrt(2 nu) / (nu0 + nu)``.
 
-:data:`PRIOR_DOF` = 8: the model counts as much as eight targets' evidence
+:data:`PRIOR_DOF` = 4: the model counts as much as four targets' evidence
 (tests/test_type_a.py checks, on constructed sessions, that an injected bias
 is covered and that without it U does not grow by more than a few percent).
+
+The estimate has ``nu0 + nu`` degrees of freedom; where a term set by it is a
+large part of u_c, the coverage factor is Student's t for the effective degrees
+of freedom (Welch-Satterthwaite, GUM G.4.1 eq. (G.2b); GUM G.3), at the
+coverage probability k stands for with a normal output, ``p = erf(k / sqrt 2)``
+(:func:`crossfield.uncertainty.budget.coverage_factor`).
 """
 
 from __future__ import annotations
@@ -43,7 +49,7 @@ import math
 __all__ = ["PRIOR_DOF", "excess", "variance_ratio"]
 
 #: Degrees of freedom of the prior on the model's variance (scaled-inverse-chi-square at 1).
-PRIOR_DOF = 8.0
+PRIOR_DOF = 4.0
 
 
 def variance_ratio(statistic: float, dof: float, prior_dof: float = PRIOR_DOF) -> float:
