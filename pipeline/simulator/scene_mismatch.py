@@ -63,14 +63,14 @@ class MismatchOptions:
     """
 
     k_extra: tuple[float, float, float] = (0.015, -0.01, 0.005)
-    prism: tuple[float, float, float, float] = (4e-5, -2e-5, 3e-5, 1e-5)
-    prism_sigma: float = 2e-5
+    prism: tuple[float, float, float, float] = (1.2e-4, -6e-5, 9e-5, 3e-5)
+    prism_sigma: float = 6e-5
     toe_in_sigma_rad: float = 8e-7
     aspect_sigma: float = 5e-6
     tilt_sigma_deg: float = 2.0
     electrons_per_dn: float = 2.4
     background_e: float = 350.0
-    psf: PSF = field(default_factory=PSF)
+    psf: PSF = field(default_factory=lambda: PSF(sigma_px=0.6, defocus_px=1.0, fill_factor=0.6))
     sensor: MismatchSensor = field(default_factory=MismatchSensor)
     oversample: int = 4
 
