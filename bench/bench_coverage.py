@@ -25,6 +25,13 @@ in the plan; ``--plugins weighted`` the defaults before issue 11 (``weighted``,
 ``eccentricity_corrected = false``. Results as one JSON line per
 session (``--jsonl``, appended: a run stopped early still counts) and a table.
 
+Columns beyond coverage: ``U P90/P10``, the spread of U between the sessions of one
+design point (per characteristic the 90th over the 10th percentile of its U, the
+median over the characteristics); ``camera Type A / model``, the median over the
+sessions of ``sqrt(s_cam^2)``, the shrunk ratio of the camera's standard deviation
+its epipolar residuals show to the model's (``crossfield.uncertainty.type_a``).
+``bench/run_coverage_all.py`` runs every case of docs/uncertainty.md in one process.
+
 Speed: the scene of a scenario (geometry and its noise-free images, ~95 % of a
 session's time when rendered afresh) is built once per process and shared by the
 sessions (``--no-scene-cache`` renders it every session); the noise of each session
@@ -35,6 +42,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import tempfile
 import time
@@ -149,6 +157,18 @@ def _key(line: dict) -> tuple:
             line.get("target_radius", 0.0), line.get("max_tilt", 20.0) if line.get("target_radius") else 0.0)
 
 
+def u_spread(per_session: list[list[dict]]) -> float:
+    """The spread of U between the sessions of one design point: per characteristic, the ratio
+    of the 90th to the 10th percentile of its U over the sessions; the median over the
+    characteristics."""
+    by_name: dict[str, list[float]] = {}
+    for rows in per_session:
+        for r in rows:
+            by_name.setdefault(r["name"], []).append(r["U_mm"])
+    ratios = [np.percentile(u, 90) / np.percentile(u, 10) for u in by_name.values() if len(u) > 1]
+    return float(np.median(ratios)) if ratios else float("nan")
+
+
 def table(lines: list[dict], by_name: bool = False) -> str:
     """The coverage table of per-session JSON lines (grouped by scenario, plugins, sigmas and
     the stated targets); ``by_name``: one row per characteristic as well."""
@@ -157,8 +177,9 @@ def table(lines: list[dict], by_name: bool = False) -> str:
         groups.setdefault(_key(line), []).append(line)
     out = [
         "| scenario | plugins | arm sigma (mm) | stated sigma (mm) | r (mm) / tilt (deg) | sessions | lengths "
-        "| within u | within U (k=2) | worst abs(e)/u | median U (mm) | chi-square warnings |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| within u | within U (k=2) | worst abs(e)/u | median U (mm) | U P90/P10 | camera Type A / model "
+        "| chi-square warnings |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for (scenario, plugins, arm, stated, radius, tilt), sessions in groups.items():
         subsets = [("", None)]
@@ -177,11 +198,14 @@ def table(lines: list[dict], by_name: bool = False) -> str:
             worst = max(abs(r["error_mm"]) / r["u_mm"] for r in rows)
             median_U = float(np.median([r["U_mm"] for r in rows]))
             warned = sum(s["warned"] for s in sessions)
+            spread = u_spread(per_session)
+            ratios = [math.sqrt(s["camera_ratio"]) for s in sessions if s.get("camera_ratio") is not None]
+            type_a = f"{np.median(ratios):.2f}" if ratios else "-"
             targets = f"{radius} / {tilt:g}" if radius else "-"
             out.append(
                 f"| {scenario}{label} | {plugins} | {arm} | {stated} | {targets} | {len(sessions)} | {n} | "
                 f"{within_u / n:.1%} | {within_U / n:.1%}{f' +/- {se:.1%}' if np.isfinite(se) else ''} | {worst:.2f} | "
-                f"{median_U:.4f} | "
+                f"{median_U:.4f} | {spread:.2f} | {type_a} | "
                 f"{warned}/{len(sessions)} |"
             )
     return "\n".join(out)

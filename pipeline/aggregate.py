@@ -290,7 +290,6 @@ class _SessionContext:
     cmm_inflation: float
     calibration_ratio: float  # session calibration u / the per-frame one
     camera_excess: float = 0.0  # Type A: the camera variance the epipolar residuals add (crossfield.uncertainty.type_a)
-    camera_dof: float = math.inf  # its degrees of freedom
 
 
 class _CharacteristicRun:
@@ -387,8 +386,6 @@ class _CharacteristicRun:
         budget, dL = self._budget(spec, raw, std, ctx)
         mean = raw + dL
         u_c = _budget.combined(budget)
-        # a Type A term of few degrees of freedom: Student's t (GUM G.4, budget.coverage_factor)
-        k = _budget.coverage_factor(budget, k, {"camera_systematic": ctx.camera_dof})
         U = _budget.expanded(u_c, k)
         deviation = mean - spec.nominal_mm
         verdict = decide(deviation, spec.lower_tol_mm, spec.upper_tol_mm, U, rule)
@@ -596,8 +593,7 @@ class SessionAccumulator:
         stated = self.plan.uncertainty.calibration_scale_u
         per_frame = DEFAULT_SCALE_U if stated is None else stated  # what the measurer used
         ratio = self._calibration.scale_u / per_frame if per_frame > 0 else 1.0
-        ctx = _SessionContext(self.plan, inflation, ratio, 0.0 if check is None else check.camera_excess,
-                              math.inf if check is None else check.camera_dof)
+        ctx = _SessionContext(self.plan, inflation, ratio, 0.0 if check is None else check.camera_excess)
         return SessionAggregate(
             frames_processed=self.frames_processed,
             frames_failed=self.frames_failed,

@@ -25,7 +25,6 @@ __all__ = [
     "SOURCE_TEXT",
     "camera_terms",
     "combined",
-    "coverage_factor",
     "expanded",
     "merge",
     "scaled",
@@ -108,22 +107,3 @@ def camera_terms(camera: BudgetTerm, n_frames: int, camera_excess: float) -> tup
         out.append(BudgetTerm("camera_systematic", camera.u * f, camera.unit, camera.sensitivity, camera.u_mm * f))
     return tuple(out)
 
-
-def coverage_factor(budget: Iterable[BudgetTerm], k: float, dof: Mapping[str, float]) -> float:
-    """The coverage factor for the budget when some sources' u are estimates with few degrees of freedom.
-
-    Welch-Satterthwaite (GUM G.4.1 eq. (G.2b)): ``nu_eff = u_c^4 / sum_i u_i^4 / nu_i``
-    over the sources of ``dof`` (source -> degrees of freedom; the others infinite),
-    then Student's t at ``p = erf(k / sqrt 2)`` (GUM G.3, G.6.4): ``k_p = t_p(nu_eff)``;
-    ``k`` itself when no source of ``dof`` contributes (nu_eff infinite)."""
-    from scipy.special import erf
-    from scipy.stats import t as student_t
-
-    terms = list(budget)
-    u_c2 = sum(t.u_mm * t.u_mm for t in terms)
-    denominator = sum(t.u_mm**4 / dof[t.source] for t in terms if t.source in dof and dof[t.source] > 0)
-    if u_c2 <= 0 or denominator <= 0:
-        return float(k)
-    nu_eff = u_c2 * u_c2 / denominator
-    p = float(erf(k / math.sqrt(2.0)))
-    return max(float(k), float(student_t.ppf(0.5 + p / 2.0, nu_eff)))

@@ -47,7 +47,7 @@ from dataclasses import dataclass
 from scipy.stats import chi2
 
 from crossfield.types import RegistrationConsistency
-from crossfield.uncertainty.type_a import PRIOR_DOF, variance_ratio
+from crossfield.uncertainty.type_a import variance_ratio
 
 __all__ = ["ALPHA", "ConsistencyCheck", "ConsistencyRun", "check"]
 
@@ -62,8 +62,7 @@ class ConsistencyCheck:
     warning text when not consistent. Camera evidence: epipolar_points m (matched
     points per frame), epipolar_chi2_per_point x (mean, E = 1 under the model),
     camera_ratio s_cam^2, camera_excess max(0, s_cam^2 - 1); note: which evidence
-    set the camera and CMM terms (None when the model did); camera_dof: degrees
-    of freedom of the camera evidence, nu0 + m (inf without it)."""
+    set the camera and CMM terms (None when the model did)."""
 
     n_frames: int
     observed_ss_mm2: float
@@ -82,7 +81,6 @@ class ConsistencyCheck:
     camera_ratio: float = 1.0
     camera_excess: float = 0.0
     note: str | None = None
-    camera_dof: float = math.inf
 
 
 class ConsistencyRun:
@@ -154,7 +152,6 @@ def check_means(
     return ConsistencyCheck(
         n, ss, e_cam, e_cmm, dof, T, p, math.sqrt(T / dof), alpha, consistent, inflation, warning,
         m, x, camera_ratio, camera_excess, "; ".join(notes) or None,
-        PRIOR_DOF + m if epipolar_count else math.inf,
     )
 
 

@@ -35,11 +35,9 @@ the positive part of the noise of s^2, ``E[(s^2 - 1)_+] ~ 0.4 sd(s^2)``,
 (tests/test_type_a.py checks, on constructed sessions, that an injected bias
 is covered and that without it U does not grow by more than a few percent).
 
-The estimate has ``nu0 + nu`` degrees of freedom; where a term set by it is a
-large part of u_c, the coverage factor is Student's t for the effective degrees
-of freedom (Welch-Satterthwaite, GUM G.4.1 eq. (G.2b); GUM G.3), at the
-coverage probability k stands for with a normal output, ``p = erf(k / sqrt 2)``
-(:func:`crossfield.uncertainty.budget.coverage_factor`).
+The posterior scale, not an upper quantile, and k = 2 (no Student-t on top): the
+shrinkage is the rule for few degrees of freedom; on the mismatch scenarios a
+Welch-Satterthwaite t-factor on top covered 98 % (docs/uncertainty.md).
 """
 
 from __future__ import annotations
