@@ -119,7 +119,7 @@ def plan_file(out: Path, scenario: str, target_radius: float, max_tilt: float, c
 
 
 def one_session(out: Path, scenario: str, seed: int, frames: int, arm_sigma: float, stated: float, pm,
-                plan: str = "", plugins: str = "default") -> dict:
+                plan: str = "", plugins: str = "default", station_seed: int | None = None) -> dict:
     """One simulator session through ``run_session``: per characteristic its error, u, U and
     the budget's eccentricity contribution (mm)."""
     config = parse_config(
@@ -128,7 +128,8 @@ def one_session(out: Path, scenario: str, seed: int, frames: int, arm_sigma: flo
                 "output_dir": str(out), "name": f"s{seed}", "record": False, "rerun": False, "plan": plan,
             },
             "acquire": {"plugin": "simulator", "scenario": scenario, "frames": frames, "seed": seed,
-                        "arm_sigma_mm": arm_sigma},
+                        "arm_sigma_mm": arm_sigma,
+                        **({} if station_seed is None else {"station_seed": station_seed})},
             "reference": {"plugin": "romer-serial", "port": "simulator", "sigma_mm": stated},
             "report": {"plugin": "json"},
             **PLUGINS[plugins],
@@ -153,7 +154,8 @@ def one_session(out: Path, scenario: str, seed: int, frames: int, arm_sigma: flo
 
 
 def _key(line: dict) -> tuple:
-    return (line["scenario"], line.get("plugins", "default"), line["arm_sigma"], line["stated_sigma"],
+    scenario = line["scenario"] + (f" (station {line['station_seed']})" if "station_seed" in line else "")
+    return (scenario, line.get("plugins", "default"), line["arm_sigma"], line["stated_sigma"],
             line.get("target_radius", 0.0), line.get("max_tilt", 20.0) if line.get("target_radius") else 0.0)
 
 
@@ -229,6 +231,9 @@ def main(argv: list[str] | None = None) -> int:
                              "0 = none")
     parser.add_argument("--max-tilt", type=float, default=None,
                         help="the targets' largest tilt (deg) stated with it; default the scenario's")
+    parser.add_argument("--station-seed", type=int, default=None,
+                        help="mismatch scenarios: one station (its systematic truth from this seed) for every "
+                             "session, the noise new in each (the spread of U of one design point)")
     parser.add_argument("--jsonl", metavar="FILE", help="append one JSON line per session")
     parser.add_argument("--summarise", nargs="+", metavar="JSONL", help="only print the table of these files")
     parser.add_argument("--by-name", action="store_true", help="with --summarise: a row per characteristic too")
@@ -257,9 +262,10 @@ def main(argv: list[str] | None = None) -> int:
         for k in range(args.sessions):
             t0 = time.perf_counter()
             result = one_session(Path(tmp), args.scenario, args.first_seed + k, args.frames, arm, stated, pm,
-                                 plan, args.plugins)
+                                 plan, args.plugins, args.station_seed)
             line = {"scenario": args.scenario, "plugins": args.plugins, "arm_sigma": arm, "stated_sigma": stated,
                     "target_radius": radius, "max_tilt": tilt, "frames": args.frames,
+                    **({} if args.station_seed is None else {"station_seed": args.station_seed}),
                     "seconds": round(time.perf_counter() - t0, 2), **result}
             lines.append(line)
             if args.jsonl:

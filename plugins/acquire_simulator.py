@@ -37,6 +37,9 @@ class SimulatorSource:
     render: the image model, ``model`` (the default renderer) or ``mismatch``
     (the independent renderer of ``docs/simulator.md``, its per-session truth
     drawn from ``seed``; the ``mismatch-*`` scenarios always use it).
+    station_seed: with ``mismatch``, draw the station's truth (its lens, rig,
+    target tilts, fixed pattern) from this seed instead of ``seed``: sessions
+    of one station, differing in their noise only.
     """
 
     def __init__(
@@ -49,6 +52,7 @@ class SimulatorSource:
         start_time_ns: int = 0,
         calibration: str = "",
         render: str = "model",
+        station_seed: int | None = None,
     ) -> None:
         if scenario not in SCENARIOS:
             raise ValueError(f"option 'scenario': unknown scenario {scenario!r}; scenarios: {', '.join(SCENARIOS)}")
@@ -63,7 +67,7 @@ class SimulatorSource:
             raise ValueError(f"option 'render': unknown renderer {render!r}; renderers: {', '.join(RENDERERS)}")
         self.scene = build_scene(scenario, arm_sigma_mm=arm_sigma_mm, render=render)
         if hasattr(self.scene, "for_session"):  # the mismatch renderer: this session's truth from its seed
-            self.scene = self.scene.for_session(seed)
+            self.scene = self.scene.for_session(seed if station_seed is None else station_seed)
         self.calibration = self.scene.calibration
         self.calibration_file = calibration
         if calibration:
