@@ -171,3 +171,19 @@ def test_mismatch_scene_gives_the_estimator_a_plumb_bob_and_draws_each_session()
             for s, t in zip(a.targets, scene.targets)]
     assert 0.1 < np.sqrt(np.mean(np.square(tilt))) < 5.0
     np.testing.assert_array_equal(a.ground_truth.points_global["P1"], scene.ground_truth.points_global["P1"])
+
+
+def test_simulator_source_selects_the_renderer_and_the_station():
+    from crossfield.plugins.acquire_simulator import SimulatorSource
+    from crossfield.simulator.scene_mismatch import MismatchScene
+
+    source = SimulatorSource(scenario="station", frames=1, seed=3, render="mismatch")
+    assert isinstance(source.scene, MismatchScene) and source.scene.session_seed == 3
+    assert source.describe()["render"] == "mismatch"
+    one = SimulatorSource(scenario="mismatch-camera", frames=1, seed=3, station_seed=9)
+    assert one.scene.session_seed == 9
+    frame = next(one.frames())
+    assert frame.upper.dtype == np.uint16 and frame.upper.max() <= 4095
+    assert not isinstance(SimulatorSource(scenario="station", frames=1).scene, MismatchScene)
+    with pytest.raises(ValueError, match="renderer"):
+        SimulatorSource(scenario="station", render="raytraced")
