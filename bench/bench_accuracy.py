@@ -52,7 +52,7 @@ from crossfield.registry import implementations, make_plugin_manager  # noqa: E4
 from crossfield.rigid import kabsch  # noqa: E402
 from crossfield.runner import register_frame  # noqa: E402
 from crossfield.session_registration import SessionPoseAccumulator  # noqa: E402
-from crossfield.simulator.scenarios import MISMATCH_BASE, build_scene  # noqa: E402
+from crossfield.simulator.scenarios import build_scene  # noqa: E402
 from crossfield.types import CAMERAS, ProbedPoint, ReferenceData, StereoCentroids  # noqa: E402
 
 CONFIGS = ("opencv", "weighted", "+modelfit", "+eccentricity", "+ml", "default", "+session")
@@ -292,6 +292,8 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     # a mismatch scenario (docs/simulator.md): the bound is the model's, that of its base scenario's images
     # (the same geometry and signal rendered by the estimator's own image model)
+    from crossfield.simulator.scenarios import MISMATCH_BASE
+
     base_name = MISMATCH_BASE.get(args.scenario)
     fisher_scene = build_scene(base_name) if base_name else scene
     fisher = {cam: centroid_fisher(fisher_scene, cam) for cam in CAMERAS}

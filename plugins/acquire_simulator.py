@@ -17,7 +17,7 @@ import numpy as np
 
 from crossfield.hookspecs import Register, hookimpl
 from crossfield.stages import Acquisition
-from crossfield.simulator.scenarios import RENDERERS, SCENARIOS, build_scene
+from crossfield.simulator.scenarios import SCENARIOS, build_scene
 from crossfield.types import StereoFrame
 
 
@@ -63,9 +63,10 @@ class SimulatorSource:
         self.scenario = scenario
         self.n_frames = frames
         self.seed = seed
-        if render not in RENDERERS:
-            raise ValueError(f"option 'render': unknown renderer {render!r}; renderers: {', '.join(RENDERERS)}")
-        self.scene = build_scene(scenario, arm_sigma_mm=arm_sigma_mm, render=render)
+        try:
+            self.scene = build_scene(scenario, arm_sigma_mm=arm_sigma_mm, render=render)
+        except ValueError as error:  # an unknown renderer (the scenario is checked above)
+            raise ValueError(f"option 'render': {error}") from None
         if hasattr(self.scene, "for_session"):  # the mismatch renderer: this session's truth from its seed
             self.scene = self.scene.for_session(seed if station_seed is None else station_seed)
         self.calibration = self.scene.calibration
