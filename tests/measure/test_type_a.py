@@ -14,7 +14,7 @@ import math
 import numpy as np
 import pytest
 
-from crossfield.aggregate import SessionAccumulator
+from crossfield.chain.aggregate import SessionAccumulator
 from crossfield.session import FrameResult
 from crossfield.types import BudgetTerm, CameraPoints, ProbedPoint, ReferenceData
 from crossfield.uncertainty.budget import camera_terms
