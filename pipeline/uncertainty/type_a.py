@@ -32,7 +32,7 @@ the positive part of the noise of s^2, ``E[(s^2 - 1)_+] ~ 0.4 sd(s^2)``,
 ``sd(s^2) = sqrt(2 nu) / (nu0 + nu)``.
 
 :data:`PRIOR_DOF` = 4: the model counts as much as four targets' evidence
-(tests/test_type_a.py checks, on constructed sessions, that an injected bias
+(tests/measure/test_type_a.py checks, on constructed sessions, that an injected bias
 is covered and that without it U does not grow by more than a few percent).
 
 The posterior scale, not an upper quantile, and k = 2 (no Student-t on top): the
