@@ -25,6 +25,13 @@ in the plan; ``--plugins weighted`` the defaults before issue 11 (``weighted``,
 ``eccentricity_corrected = false``. Results as one JSON line per
 session (``--jsonl``, appended: a run stopped early still counts) and a table.
 
+Columns beyond coverage: ``U P90/P10``, the spread of U between the sessions of one
+design point (per characteristic the 90th over the 10th percentile of its U, the
+median over the characteristics); ``camera Type A / model``, the median over the
+sessions of ``sqrt(s_cam^2)``, the shrunk ratio of the camera's standard deviation
+its epipolar residuals show to the model's (``crossfield.uncertainty.type_a``).
+``bench/run_coverage_all.py`` runs every case of docs/uncertainty.md in one process.
+
 Speed: the scene of a scenario (geometry and its noise-free images, ~95 % of a
 session's time when rendered afresh) is built once per process and shared by the
 sessions (``--no-scene-cache`` renders it every session); the noise of each session
@@ -35,6 +42,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import tempfile
 import time
@@ -69,6 +77,10 @@ TARGETS = {
     "station": (scenarios.TARGET_RADIUS_MM, 20.0),
     "table3": (scenarios.TARGET_RADIUS_MM, 20.0),
     "camera-limited": (scenarios.CL_TARGET_RADIUS_MM, scenarios.CL_MAX_TILT_DEG),
+    # the mismatch scenarios' targets: their base's, each turned by a further ~2 deg RMS per session
+    "mismatch-cmm": (scenarios.TARGET_RADIUS_MM, 25.0),
+    "mismatch-camera": (scenarios.CL_TARGET_RADIUS_MM, scenarios.CL_MAX_TILT_DEG + 5.0),
+    "mismatch-mixed": (scenarios.CL_TARGET_RADIUS_MM, scenarios.CL_MAX_TILT_DEG + 5.0),
 }
 
 
@@ -107,7 +119,7 @@ def plan_file(out: Path, scenario: str, target_radius: float, max_tilt: float, c
 
 
 def one_session(out: Path, scenario: str, seed: int, frames: int, arm_sigma: float, stated: float, pm,
-                plan: str = "", plugins: str = "default") -> dict:
+                plan: str = "", plugins: str = "default", station_seed: int | None = None) -> dict:
     """One simulator session through ``run_session``: per characteristic its error, u, U and
     the budget's eccentricity contribution (mm)."""
     config = parse_config(
@@ -116,7 +128,8 @@ def one_session(out: Path, scenario: str, seed: int, frames: int, arm_sigma: flo
                 "output_dir": str(out), "name": f"s{seed}", "record": False, "rerun": False, "plan": plan,
             },
             "acquire": {"plugin": "simulator", "scenario": scenario, "frames": frames, "seed": seed,
-                        "arm_sigma_mm": arm_sigma},
+                        "arm_sigma_mm": arm_sigma,
+                        **({} if station_seed is None else {"station_seed": station_seed})},
             "reference": {"plugin": "romer-serial", "port": "simulator", "sigma_mm": stated},
             "report": {"plugin": "json"},
             **PLUGINS[plugins],
@@ -127,17 +140,35 @@ def one_session(out: Path, scenario: str, seed: int, frames: int, arm_sigma: flo
     check = summary.aggregate.consistency
     rows = [
         {"name": c.name, "error_mm": c.error_mm, "u_mm": c.uncertainty_mm, "U_mm": c.expanded_uncertainty_mm,
-         "u_ecc_mm": next((t.u_mm for t in c.budget if t.source == "eccentricity"), 0.0)}
+         "u_ecc_mm": next((t.u_mm for t in c.budget if t.source == "eccentricity"), 0.0),
+         "u_cam_mm": next((t.u_mm for t in c.budget if t.source == "camera"), 0.0),
+         "u_cam_sys_mm": next((t.u_mm for t in c.budget if t.source == "camera_systematic"), 0.0)}
         for c in summary.characteristics
         if c.error_mm is not None and c.expanded_uncertainty_mm is not None
     ]
     return {"seed": seed, "warned": bool(check is not None and not check.consistent),
-            "inflation": None if check is None else check.cmm_inflation, "rows": rows}
+            "inflation": None if check is None else check.cmm_inflation,
+            "epipolar_chi2_per_point": None if check is None else getattr(check, "epipolar_chi2_per_point", None),
+            "camera_ratio": None if check is None else getattr(check, "camera_ratio", None),
+            "rows": rows}
 
 
 def _key(line: dict) -> tuple:
-    return (line["scenario"], line.get("plugins", "default"), line["arm_sigma"], line["stated_sigma"],
+    scenario = line["scenario"] + (f" (station {line['station_seed']})" if "station_seed" in line else "")
+    return (scenario, line.get("plugins", "default"), line["arm_sigma"], line["stated_sigma"],
             line.get("target_radius", 0.0), line.get("max_tilt", 20.0) if line.get("target_radius") else 0.0)
+
+
+def u_spread(per_session: list[list[dict]]) -> float:
+    """The spread of U between the sessions of one design point: per characteristic, the ratio
+    of the 90th to the 10th percentile of its U over the sessions; the median over the
+    characteristics."""
+    by_name: dict[str, list[float]] = {}
+    for rows in per_session:
+        for r in rows:
+            by_name.setdefault(r["name"], []).append(r["U_mm"])
+    ratios = [np.percentile(u, 90) / np.percentile(u, 10) for u in by_name.values() if len(u) > 1]
+    return float(np.median(ratios)) if ratios else float("nan")
 
 
 def table(lines: list[dict], by_name: bool = False) -> str:
@@ -148,8 +179,9 @@ def table(lines: list[dict], by_name: bool = False) -> str:
         groups.setdefault(_key(line), []).append(line)
     out = [
         "| scenario | plugins | arm sigma (mm) | stated sigma (mm) | r (mm) / tilt (deg) | sessions | lengths "
-        "| within u | within U (k=2) | worst abs(e)/u | median U (mm) | chi-square warnings |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| within u | within U (k=2) | worst abs(e)/u | median U (mm) | U P90/P10 | camera Type A / model "
+        "| chi-square warnings |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for (scenario, plugins, arm, stated, radius, tilt), sessions in groups.items():
         subsets = [("", None)]
@@ -168,11 +200,14 @@ def table(lines: list[dict], by_name: bool = False) -> str:
             worst = max(abs(r["error_mm"]) / r["u_mm"] for r in rows)
             median_U = float(np.median([r["U_mm"] for r in rows]))
             warned = sum(s["warned"] for s in sessions)
+            spread = u_spread(per_session)
+            ratios = [math.sqrt(s["camera_ratio"]) for s in sessions if s.get("camera_ratio") is not None]
+            type_a = f"{np.median(ratios):.2f}" if ratios else "-"
             targets = f"{radius} / {tilt:g}" if radius else "-"
             out.append(
                 f"| {scenario}{label} | {plugins} | {arm} | {stated} | {targets} | {len(sessions)} | {n} | "
                 f"{within_u / n:.1%} | {within_U / n:.1%}{f' +/- {se:.1%}' if np.isfinite(se) else ''} | {worst:.2f} | "
-                f"{median_U:.4f} | "
+                f"{median_U:.4f} | {spread:.2f} | {type_a} | "
                 f"{warned}/{len(sessions)} |"
             )
     return "\n".join(out)
@@ -196,6 +231,9 @@ def main(argv: list[str] | None = None) -> int:
                              "0 = none")
     parser.add_argument("--max-tilt", type=float, default=None,
                         help="the targets' largest tilt (deg) stated with it; default the scenario's")
+    parser.add_argument("--station-seed", type=int, default=None,
+                        help="mismatch scenarios: one station (its systematic truth from this seed) for every "
+                             "session, the noise new in each (the spread of U of one design point)")
     parser.add_argument("--jsonl", metavar="FILE", help="append one JSON line per session")
     parser.add_argument("--summarise", nargs="+", metavar="JSONL", help="only print the table of these files")
     parser.add_argument("--by-name", action="store_true", help="with --summarise: a row per characteristic too")
@@ -224,9 +262,10 @@ def main(argv: list[str] | None = None) -> int:
         for k in range(args.sessions):
             t0 = time.perf_counter()
             result = one_session(Path(tmp), args.scenario, args.first_seed + k, args.frames, arm, stated, pm,
-                                 plan, args.plugins)
+                                 plan, args.plugins, args.station_seed)
             line = {"scenario": args.scenario, "plugins": args.plugins, "arm_sigma": arm, "stated_sigma": stated,
                     "target_radius": radius, "max_tilt": tilt, "frames": args.frames,
+                    **({} if args.station_seed is None else {"station_seed": args.station_seed}),
                     "seconds": round(time.perf_counter() - t0, 2), **result}
             lines.append(line)
             if args.jsonl:

@@ -248,6 +248,10 @@ class CameraPoints:
     cov_xyz: optional (N, 3, 3) mm^2 full covariance of each point, camera
     frame (the stereo depth error is along the line of sight, not an axis);
     its diagonal is sigma_xyz^2. None when the implementation gives axes only.
+    chi2: optional (N,) weighted residual sum of squares of each point,
+    ``sum_k r_k^2 / sigma_k^2`` over its four image coordinates (1 degree of
+    freedom: E = 1 when the centroids' sigma_uv are right); the Type A
+    evidence on the camera term (``crossfield.uncertainty.type_a``).
     """
 
     sequence: int
@@ -259,6 +263,7 @@ class CameraPoints:
     rejected: tuple[str, ...] = ()
     method: str = ""
     cov_xyz: np.ndarray | None = None
+    chi2: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         _freeze(self, "xyz", shape=(None, 3))
@@ -269,6 +274,8 @@ class CameraPoints:
         _freeze(self, "residual_px", shape=(n,))
         if self.cov_xyz is not None:
             _freeze(self, "cov_xyz", shape=(n, 3, 3))
+        if self.chi2 is not None:
+            _freeze(self, "chi2", shape=(n,))
 
     def __len__(self) -> int:
         return len(self.xyz)
@@ -447,6 +454,9 @@ class RegistrationConsistency:
     pose_cov_camera / pose_cov_cmm: (6, 6) covariance of the pose's small
     rotation (rad, rotation vector in the global frame) and of the translation
     t_global_camera (mm), from the camera-side and the CMM sigmas.
+    epipolar_chi2 / epipolar_count: the sum of the matched points' ``chi2``
+    (``CameraPoints.chi2``) and how many points it sums (0: no such evidence);
+    expected_camera_ss_mm2 is the model's, not scaled by that evidence.
     """
 
     observed_ss_mm2: float
@@ -456,6 +466,8 @@ class RegistrationConsistency:
     expected_residual_mm: Mapping[str, float] = field(default_factory=dict)
     pose_cov_camera: np.ndarray | None = None
     pose_cov_cmm: np.ndarray | None = None
+    epipolar_chi2: float = 0.0
+    epipolar_count: int = 0
 
 
 @dataclass(frozen=True)

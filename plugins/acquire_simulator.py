@@ -40,6 +40,12 @@ class SimulatorSource:
     calibration file (e.g. written by ``crossfield calibrate --scenario``) that
     the session measures with instead of the rig's true calibration; the
     images are still rendered through the true one ("" = the truth).
+    render: the image model, ``model`` (the default renderer) or ``mismatch``
+    (the independent renderer of ``docs/simulator.md``, its per-session truth
+    drawn from ``seed``; the ``mismatch-*`` scenarios always use it).
+    station_seed: with ``mismatch``, draw the station's truth (its lens, rig,
+    target tilts, fixed pattern) from this seed instead of ``seed``: sessions
+    of one station, differing in their noise only.
     """
 
     def __init__(
@@ -51,6 +57,8 @@ class SimulatorSource:
         arm_sigma_mm: float | None = None,
         start_time_ns: int = 0,
         calibration: str = "",
+        render: str = "model",
+        station_seed: int | None = None,
     ) -> None:
         if scenario not in SCENARIOS:
             raise ValueError(f"option 'scenario': unknown scenario {scenario!r}; scenarios: {', '.join(SCENARIOS)}")
@@ -61,7 +69,12 @@ class SimulatorSource:
         self.scenario = scenario
         self.n_frames = frames
         self.seed = seed
-        self.scene = build_scene(scenario, arm_sigma_mm=arm_sigma_mm)
+        try:
+            self.scene = build_scene(scenario, arm_sigma_mm=arm_sigma_mm, render=render)
+        except ValueError as error:  # an unknown renderer (the scenario is checked above)
+            raise ValueError(f"option 'render': {error}") from None
+        if hasattr(self.scene, "for_session"):  # the mismatch renderer: this session's truth from its seed
+            self.scene = self.scene.for_session(seed if station_seed is None else station_seed)
         self.calibration = self.scene.calibration
         self.calibration_file = calibration
         if calibration:
@@ -100,6 +113,7 @@ class SimulatorSource:
             "frames": self.n_frames,
             "seed": self.seed,
             "camera_model": "Basler scA1600-14gm (simulated)",
+            "render": "mismatch" if hasattr(s, "for_session") else "model",
             "image_size": list(s.calibration.upper.image_size),
             "bit_depth": s.sensor.bit_depth,
             "sensor": {

@@ -284,6 +284,7 @@ class PlanMeasurer:
                 expected_residual_mm={cid: float(np.sqrt(factor * t)) for cid, t in trace_k.items()},
                 pose_cov_camera=to_pose @ camera_side @ to_pose.T,
                 pose_cov_cmm=to_pose @ cov["control_cmm"] @ to_pose.T,
+                **_epipolar_evidence(points),
             )
         return cov, g_bar, consistency
 
@@ -379,6 +380,16 @@ class PlanMeasurer:
         if spec.kind == "point_line":  # the axis fit's own covariance, its sigma data-supported
             table["reference_line"] = (line_sigma, "mm", line_var)
         return merge(table)
+
+
+def _epipolar_evidence(points: CameraPoints) -> dict[str, float | int]:
+    """The frame's Type A evidence on the camera term: the sum of its matched points' epipolar
+    chi-square (``CameraPoints.chi2``, 1 dof each) and their number (``crossfield.uncertainty.type_a``)."""
+    chi2 = getattr(points, "chi2", None)
+    if chi2 is None:
+        return {}
+    finite = np.asarray(chi2)[np.isfinite(chi2)]
+    return {"epipolar_chi2": float(finite.sum()), "epipolar_count": int(finite.size)}
 
 
 @hookimpl

@@ -228,6 +228,7 @@ class EpipolarTriangulator:
             covariance = covariance + np.matmul(np.matmul(G, offset_cov), np.swapaxes(G, 1, 2))
         sigma_xyz = np.sqrt(np.abs(np.diagonal(covariance, axis1=1, axis2=2)))
         residual_px = np.sqrt(0.5 * np.sum(residual**2, axis=1))
+        chi2 = np.sum(weights * residual**2, axis=1)  # 4 coordinates - 3 unknowns: 1 dof (H&Z 4.2.6)
         return CameraPoints(
             sequence=centroids.sequence,
             xyz=X,
@@ -238,6 +239,7 @@ class EpipolarTriangulator:
             rejected=tuple(rejected),
             method="epipolar",
             cov_xyz=covariance,
+            chi2=chi2,
         )
 
     # ---- eccentricity ----------------------------------------------------------------------------

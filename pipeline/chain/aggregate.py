@@ -141,6 +141,7 @@ class _SessionContext:
     plan: MeasurementPlan
     cmm_inflation: float
     calibration_ratio: float  # session calibration u / the per-frame one
+    camera_excess: float = 0.0  # Type A: the camera variance the epipolar residuals add (crossfield.uncertainty.type_a)
 
 
 class _CharacteristicRun:
@@ -186,7 +187,10 @@ class _CharacteristicRun:
             # The camera term is the centroid noise of one frame, drawn anew in every
             # frame: its part of the mean of n frames is u / sqrt(n) (GUM 4.2.3). The
             # other sources are one error shared by every frame: not divided.
-            terms = [_budget.scaled(t, 1.0 / math.sqrt(n)) if t.source == "camera" else t for t in terms]
+            # The Type A excess of the session's epipolar residuals is a bias: its own source,
+            # camera_systematic, not divided (budget.camera_terms).
+            terms = [u for t in terms
+                     for u in (_budget.camera_terms(t, n, ctx.camera_excess) if t.source == "camera" else (t,))]
             random_part = next((t.u_mm for t in terms if t.source == "camera"), 0.0)
         elif self.uncertainty.n:  # a measurer without a budget: its u as one term, not divided
             terms.append(_budget.term("camera", 0.0, "mm", self.uncertainty.mean))
@@ -441,7 +445,7 @@ class SessionAccumulator:
         stated = self.plan.uncertainty.calibration_scale_u
         per_frame = DEFAULT_SCALE_U if stated is None else stated  # what the measurer used
         ratio = self._calibration.scale_u / per_frame if per_frame > 0 else 1.0
-        ctx = _SessionContext(self.plan, inflation, ratio)
+        ctx = _SessionContext(self.plan, inflation, ratio, 0.0 if check is None else check.camera_excess)
         return SessionAggregate(
             frames_processed=self.frames_processed,
             frames_failed=self.frames_failed,

@@ -43,7 +43,7 @@ logger = logging.getLogger(__name__)
 
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-c", "--config", metavar="FILE", help="session config (TOML); defaults apply otherwise")
-    parser.add_argument("--scenario", help="simulator scenario: station, table3 or camera-limited")
+    parser.add_argument("--scenario", help="simulator scenario: station, table3, camera-limited, mismatch-cmm, mismatch-camera or mismatch-mixed")
     parser.add_argument("--frames", type=int, help="number of stereo pairs (simulator)")
     parser.add_argument("--seed", type=int, help="noise seed (simulator)")
     parser.add_argument("--plan", metavar="FILE", help="measurement plan (TOML)")

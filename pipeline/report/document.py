@@ -184,9 +184,16 @@ def _consistency_section(summary: SessionSummary) -> dict[str, Any] | None:
         "alpha": real(check.alpha),
         "consistent": bool(check.consistent),
         "cmm_inflation": real(check.cmm_inflation),
-        "rule": "when p < alpha, the CMM standard deviation is multiplied by "
-        "sqrt(max(1, (observed - expected_camera) / expected_cmm)) in every budget",
+        "epipolar_points_per_frame": real(check.epipolar_points),
+        "epipolar_chi2_per_point": real(check.epipolar_chi2_per_point),
+        "camera_ratio": real(check.camera_ratio),
+        "camera_excess": real(check.camera_excess),
+        "rule": "Type A evidence through a shrunk variance ratio s^2 = (nu0 + chi2) / (nu0 + dof), nu0 = 8 "
+        "(crossfield.uncertainty.type_a): the camera's from the epipolar residuals (camera_systematic = "
+        "max(0, s_cam^2 - 1) x the model's camera variance, not divided by the frames), then the registration "
+        "residuals' rest on the CMM, f = sqrt(max(1, (s_reg^2 E' - E_cam') / E_cmm)); continuous, no threshold",
         "warning": check.warning,
+        "note": check.note,
     }
 
 
@@ -315,6 +322,8 @@ def problems(summary: SessionSummary) -> list[str]:
     check = summary.aggregate.consistency
     if check is not None and check.warning:
         lines.append(f"uncertainty: {check.warning}")
+    if check is not None and check.note:
+        lines.append(f"uncertainty (Type A): {check.note}")
     listed = set()
     for frame in summary.frames:
         if frame.error:

@@ -16,6 +16,12 @@ CMM gives), small 3 mm targets tilted up to 25 degrees at ~380 mm (so the
 perspective eccentricity of their centres matters), stronger lens
 distortion and a lower camera toed in by 2 degrees towards the upper
 camera's view.
+
+``mismatch-cmm``, ``mismatch-camera``, ``mismatch-mixed``: the geometry of
+``station`` (CMM-limited, arm 0.01 mm), of ``camera-limited`` (arm 0.001 mm) and
+of ``camera-limited`` with an arm of 0.003 mm (mixed), their images made by the
+independent model-mismatch renderer (:mod:`crossfield.simulator.scene_mismatch`),
+the estimator given a plumb-bob fit of the true lenses.
 """
 
 from __future__ import annotations
@@ -35,6 +41,8 @@ __all__ = [
     "FOCAL_LENGTH_MM",
     "IMAGE_SIZE",
     "PIXEL_PITCH_MM",
+    "MISMATCH_BASE",
+    "RENDERERS",
     "SCENARIOS",
     "TABLE3_ACTUAL_MM",
     "TARGET_RADIUS_MM",
@@ -44,10 +52,19 @@ __all__ = [
     "station_calibration",
 ]
 
-SCENARIOS = ("station", "table3", "camera-limited")
+SCENARIOS = ("station", "table3", "camera-limited", "mismatch-cmm", "mismatch-camera", "mismatch-mixed")
+
+#: Scenarios rendered by the model-mismatch renderer (``docs/simulator.md``), and the scenario
+#: whose geometry, targets, arm and plan each takes.
+MISMATCH_BASE = {"mismatch-cmm": "station", "mismatch-camera": "camera-limited", "mismatch-mixed": "camera-limited"}
 
 #: Arm (reference) noise per coordinate (mm) of each scenario, when not given.
-DEFAULT_ARM_SIGMA_MM = {"station": 0.01, "table3": 0.01, "camera-limited": 0.001}
+DEFAULT_ARM_SIGMA_MM = {"station": 0.01, "table3": 0.01, "camera-limited": 0.001,
+                        "mismatch-cmm": 0.01, "mismatch-camera": 0.001, "mismatch-mixed": 0.003}
+
+#: Image models of the simulator: ``model``, the default renderer (:mod:`.render`, the
+#: estimator's own model); ``mismatch``, the independent one (:mod:`.scene_mismatch`).
+RENDERERS = ("model", "mismatch")
 
 #: Paper, Table 3, "Actual Size" column (mm).
 TABLE3_ACTUAL_MM = (
@@ -150,18 +167,29 @@ def _facing_normal(rng: np.random.Generator, p: np.ndarray, max_tilt_deg: float 
 
 
 def build_scene(
-    name: str = "station", *, arm_sigma_mm: float | None = None, layout_seed: int = 20251122
+    name: str = "station", *, arm_sigma_mm: float | None = None, layout_seed: int = 20251122,
+    render: str = "model",
 ) -> "Scene":
-    """Build a named scenario (``station``, ``table3`` or ``camera-limited``).
+    """Build a named scenario (``station``, ``table3``, ``camera-limited`` or a ``mismatch-*``).
 
     arm_sigma_mm: standard deviation of the simulated arm per coordinate
     (mm); None = the scenario's own (:data:`DEFAULT_ARM_SIGMA_MM`).
-    layout_seed: fixes the geometry (not the noise).
+    layout_seed: fixes the geometry (not the noise). render: ``model`` (the
+    default renderer) or ``mismatch`` (:func:`scene_mismatch.mismatch_scene`, the
+    independent image model; the ``mismatch-*`` scenarios are rendered so whatever
+    ``render`` says).
     """
     if name not in SCENARIOS:
         raise ValueError(f"unknown scenario {name!r}; scenarios: {', '.join(SCENARIOS)}")
+    if render not in RENDERERS:
+        raise ValueError(f"unknown renderer {render!r}; renderers: {', '.join(RENDERERS)}")
     if arm_sigma_mm is None:
         arm_sigma_mm = DEFAULT_ARM_SIGMA_MM[name]
+    if name in MISMATCH_BASE or render == "mismatch":
+        from crossfield.simulator.scene_mismatch import mismatch_scene
+
+        base = build_scene(MISMATCH_BASE.get(name, name), arm_sigma_mm=arm_sigma_mm, layout_seed=layout_seed)
+        return mismatch_scene(base, name if name in MISMATCH_BASE else f"{name} (mismatch)")
     if name == "camera-limited":
         return _camera_limited_scene(arm_sigma_mm, layout_seed)
     rng = np.random.default_rng(layout_seed)

@@ -23,6 +23,7 @@ from crossfield.types import BudgetTerm
 __all__ = [
     "SOURCES",
     "SOURCE_TEXT",
+    "camera_terms",
     "combined",
     "expanded",
     "merge",
@@ -34,6 +35,10 @@ __all__ = [
 SOURCE_TEXT: dict[str, str] = {
     "camera": "centroid noise of the camera points (target and control points, through the triangulation "
     "and the registration); drawn anew in every frame: the per-frame value divided by sqrt(n) for the mean",
+    "camera_systematic": "Type A: the part of the centroid error the session's own epipolar residuals show "
+    "beyond the model's (a bias the model does not know: PSF, lens, sensor), max(0, s^2 - 1) x the camera "
+    "variance of one frame (s^2 the shrunk variance ratio, crossfield.uncertainty.type_a); fixed for the "
+    "session: not divided by sqrt(n)",
     "eccentricity": "perspective eccentricity of circle centres (projected centre of a tilted circle is "
     "not the projection of its centre), uniform over the stated tilt range",
     "calibration": "the stereo calibration's parameter uncertainty, as a relative scale of camera-frame "
@@ -84,3 +89,21 @@ def merge(variances: Mapping[str, tuple[float, str, float]]) -> tuple[BudgetTerm
         for source in SOURCES
         if source in variances
     )
+
+
+def camera_terms(camera: BudgetTerm, n_frames: int, camera_excess: float) -> tuple[BudgetTerm, ...]:
+    """The session's camera sources from the per-frame ``camera`` term (RMS over the frames).
+
+    ``camera``: the random part, drawn anew in every frame, of the mean of
+    ``n_frames``: ``u / sqrt(n)`` (GUM 4.2.3). ``camera_systematic`` (when
+    ``camera_excess`` > 0, :mod:`crossfield.uncertainty.type_a`): the part the
+    session's epipolar residuals show beyond the model, ``sqrt(camera_excess)``
+    times the per-frame term, a bias fixed for the session: **not** divided by
+    sqrt(n) (a systematic effect does not average out, GUM 3.2.3-3.2.4)."""
+    n = max(int(n_frames), 1)
+    out = [scaled(camera, 1.0 / math.sqrt(n))]
+    if camera_excess > 0:
+        f = math.sqrt(camera_excess)
+        out.append(BudgetTerm("camera_systematic", camera.u * f, camera.unit, camera.sensitivity, camera.u_mm * f))
+    return tuple(out)
+

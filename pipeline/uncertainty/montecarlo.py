@@ -14,6 +14,8 @@ implementation (its ``measure``) give, corrected to 20 degC. One draw
 * one eccentricity offset per target (and per control), shared by every frame
   (the same tilted circle): ``N(0, sigma_ecc^2 I)``, the budget's Gaussian
   equivalent of its uniform distribution;
+* one camera bias per target and control ``N(0, camera_excess diag(sigma_xyz^2))``, shared by
+  every frame, when the budget has a ``camera_systematic`` term (issue 22);
 * per frame, the camera points' own centroid noise ``N(0, diag(sigma_xyz^2))``
   (camera frame), independent from frame to frame;
 * the frames' mean, then the temperature correction through
@@ -110,7 +112,8 @@ class MonteCarloProblem:
     calibration_scale_u: relative scale u_s; names: characteristics in report
     order, kinds their kinds; repeatability_mm: (C,) the budget's repeatability
     terms (mm); temperature: the plan's temperatures; register / measure: the
-    implementations' (name, options).
+    implementations' (name, options); camera_excess: the Type A camera excess
+    (``camera_systematic``: a centroid bias per target shared by the frames).
     """
 
     plan: MeasurementPlan
@@ -125,6 +128,7 @@ class MonteCarloProblem:
     temperature: Temperature
     register: tuple[str, Mapping[str, Any]]
     measure: tuple[str, Mapping[str, Any]]
+    camera_excess: float = 0.0
 
 
 # --------------------------------------------------------------------------
@@ -188,6 +192,7 @@ def problem_from_summary(summary: Any) -> MonteCarloProblem | None:
         temperature=plan.temperature,
         register=_stage(config, "register"),
         measure=_stage(config, "measure"),
+        camera_excess=0.0 if aggregate.consistency is None else float(getattr(aggregate.consistency, "camera_excess", 0.0)),
     )
 
 
@@ -249,6 +254,9 @@ def draw_chunk(problem: MonteCarloProblem, seed: np.random.SeedSequence, n_draws
         by_label = reference.by_label()
         scale = 1.0 + rng.normal(0.0, problem.calibration_scale_u)
         offsets = dict(zip(labels, rng.normal(size=(len(labels), 3))))  # eccentricity, per target
+        # camera_systematic: a bias per target, shared by the frames (drawn only when the budget has it,
+        # so that the draws of a session without it stay as they were)
+        biases = dict(zip(labels, rng.normal(size=(len(labels), 3)))) if problem.camera_excess > 0 else {}
         sums = np.zeros(len(problem.names))
         counts = np.zeros(len(problem.names))
         for frame in problem.frames:
@@ -256,7 +264,11 @@ def draw_chunk(problem: MonteCarloProblem, seed: np.random.SeedSequence, n_draws
             unit = np.array([offsets[label] if label else rng.normal(size=3) for label in frame.labels])
             unit = unit.reshape(xyz0.shape)
             noise = rng.normal(size=xyz0.shape) * np.asarray(frame.points.sigma_xyz) * problem.camera_scale
-            xyz = (xyz0 + noise + unit * frame.eccentricity_mm[:, None]) * scale
+            xyz = xyz0 + noise + unit * frame.eccentricity_mm[:, None]
+            if biases:
+                bias = np.array([biases[label] if label else rng.normal(size=3) for label in frame.labels])
+                xyz = xyz + bias.reshape(xyz0.shape) * np.asarray(frame.points.sigma_xyz) * math.sqrt(problem.camera_excess)
+            xyz = xyz * scale
             corr = frame.correspondence
             Q = np.array([by_label[c].xyz for c in corr.control_ids])
             fit = registrar.fit(xyz[np.asarray(corr.camera_index)], Q)

@@ -69,10 +69,17 @@ def test_the_session_budget_is_that_of_the_mean_of_its_frames(demo):
                 continue
             rms = math.sqrt(np.mean(np.square(per)))
             expected = rms / math.sqrt(n) if source == "camera" else rms
+            if source in ("control_cmm", "reference_cmm"):  # the Type A inflation (issue 22: always, smooth)
+                expected *= demo.aggregate.consistency.cmm_inflation
             assert terms[source].u_mm == pytest.approx(expected, rel=1e-12)
         values = np.array([r.measured_mm for r in per_frame])
         type_a = values.std(ddof=1) / math.sqrt(n)
         excess = math.sqrt(max(0.0, type_a**2 - terms["camera"].u_mm ** 2))
+        if "camera_systematic" in terms:  # not divided by sqrt(n) (budget.camera_terms)
+            per = [next(t.u_mm for t in r.budget if t.source == "camera") for r in per_frame]
+            ratio = math.sqrt(demo.aggregate.consistency.camera_excess)
+            assert terms["camera_systematic"].u_mm == pytest.approx(math.sqrt(np.mean(np.square(per))) * ratio,
+                                                                   rel=1e-12)
         assert terms["repeatability"].u_mm == pytest.approx(excess, rel=1e-9, abs=1e-15)
         assert c.uncertainty_mm == pytest.approx(math.sqrt(sum(t.u_mm**2 for t in c.budget)), rel=1e-12)
 

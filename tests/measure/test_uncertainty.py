@@ -202,9 +202,10 @@ def test_understated_cmm_sigma_is_detected_and_the_inflated_u_covers(stated, fir
 
 
 def test_consistency_rule_on_constructed_numbers():
-    # 18 dof, observed 4x the expectation, all of it CMM: inflation 2
+    # 18 dof, observed 4x the expectation, all of it CMM: inflation the shrunk ratio's
+    # sqrt((nu0 + 72) / (nu0 + 18)) (issue 22: no longer the raw Birge ratio 2, and continuous)
     check = check_means(1, 4.0, 0.0, 1.0, 18)
-    assert not check.consistent and check.cmm_inflation == pytest.approx(2.0)
+    assert not check.consistent and check.cmm_inflation == pytest.approx(math.sqrt((4 + 72) / (4 + 18)))
     assert check.birge_ratio == pytest.approx(2.0) and "contradict" in check.warning
     assert check.p_value == pytest.approx(1 - __import__("scipy").stats.chi2.cdf(72.0, 18))
     ok = check_means(1, 1.0, 0.5, 0.5, 18)
