@@ -45,8 +45,6 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from crossfield.geometry import perpendicular_basis
-
 __all__ = [
     "CircleFit",
     "View",
@@ -146,6 +144,17 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     ))
 
 
+def _basis(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`crossfield.geometry.perpendicular_basis` of (N, 3) rows with :func:`_cross`:
+    the same operations in the same order (np.cross computes a1 b2 - a2 b1 too), without
+    np.cross's per-call overhead, which dominated the per-frame fit."""
+    d = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    helper = np.eye(3)[np.argmin(np.abs(d), axis=-1)]
+    e1 = _cross(d, helper)
+    e1 /= np.linalg.norm(e1, axis=-1, keepdims=True)
+    return e1, _cross(d, e1)
+
+
 def _normals(n0, b1, b2, w):
     """Rodrigues: n0 rotated by the rotation vector w1 b1 + w2 b2 (perpendicular to n0)."""
     axis = w[:, :1] * b1 + w[:, 1:2] * b2
@@ -157,7 +166,7 @@ def _normals(n0, b1, b2, w):
 def predicted_shape(C: np.ndarray, n: np.ndarray, r: np.ndarray) -> np.ndarray:
     """(N, 3) shape (s_uu, s_uv, s_vv) in normalised coordinates of the image ellipse of
     circles (C, n, r) in the view frame: S = A / (c^T A c - s) of Q = H^-T diag(1, 1, -r^2) H^-1."""
-    e1, e2 = perpendicular_basis(n)
+    e1, e2 = _basis(n)
     H = np.stack([e1, e2, C], axis=-1)  # columns
     G = np.linalg.inv(H)
     D = np.zeros((len(C), 3, 3))
@@ -207,15 +216,22 @@ def fit_circles(
     n = len(X)
     obs = _observed(views, X, ellipses, ellipse_covs)
     n0 = -X / np.linalg.norm(X, axis=1, keepdims=True)
-    b1, b2 = perpendicular_basis(n0)
+    b1, b2 = _basis(n0)
 
     def residuals(p, idx):
         normal = _normals(n0[idx], b1[idx], b2[idx], p[:, :2])
         r = np.exp(p[:, 2])
-        parts = []
-        for view, (Xv, S_n, Wc) in zip(views, obs):
-            pred = predicted_shape(Xv[idx], normal @ view.R.T, r)
-            parts.append(np.einsum("nij,nj->ni", Wc[idx], S_n[idx] - pred))
+        k = len(idx)
+        # both views' predicted shapes in one call (row-wise: the same values as one call per view)
+        pred = predicted_shape(
+            np.concatenate([Xv[idx] for Xv, _, _ in obs]),
+            np.concatenate([normal @ view.R.T for view in views]),
+            np.concatenate([r, r]),
+        )
+        parts = [
+            np.einsum("nij,nj->ni", Wc[idx], S_n[idx] - pred[v * k:(v + 1) * k])
+            for v, (_, S_n, Wc) in enumerate(obs)
+        ]
         return np.concatenate(parts, axis=1)  # (K, 6)
 
     # starts: tilt theta = acos(b/a) about the major axis of each view's ellipse, both signs
@@ -273,6 +289,8 @@ def centre_offsets(X: np.ndarray, normal: np.ndarray, radius: np.ndarray, views)
     Sigma = S^-1 / 4), taken as the |det Df|-weighted mean of f at the four points
     x_e +- sqrt(2) L_k, Sigma = L L^T (exact to second order in the blob's size).
     """
+    n = len(X)
+    h = 1e-6  # the step of _lens_jacobian's central differences
     out = []
     for view in views:
         C = X @ view.R.T + view.t
@@ -281,28 +299,40 @@ def centre_offsets(X: np.ndarray, normal: np.ndarray, radius: np.ndarray, views)
         xe = Xe[:, :2] / Xe[:, 2:3]
         S = _sym(predicted_shape(C, nv, radius))
         L = np.linalg.cholesky(np.linalg.inv(S) / 4.0)
-        ones = np.ones((len(X), 1))
-        total = np.zeros((len(X), 2))
-        weight = np.zeros((len(X), 1))
-        for k in range(2):
-            for sign in (1.0, -1.0):
-                point = np.hstack([xe + sign * np.sqrt(2.0) * L[:, :, k], ones])
-                w = np.abs(np.linalg.det(_lens_jacobian(view, point)))[:, None]  # image area per unit area
-                total += w * project(view, point)
-                weight += w
-        out.append(total / weight - project(view, C))
+        # the four points x_e +- sqrt(2) L_k (z = 1), in the order (k, sign) = (0, +), (0, -), (1, +), (1, -)
+        points = [xe + sign * np.sqrt(2.0) * L[:, :, k] for k in range(2) for sign in (1.0, -1.0)]
+        # one cv2.projectPoints call per view: each point, its +-h neighbours in x and in y (the
+        # central differences of _lens_jacobian), and the circle centre C; the projection is
+        # per point, so the values are those of one call per point
+        probes = [p for x in points for p in (x, x + (h, 0.0), x - (h, 0.0), x + (0.0, h), x - (0.0, h))]
+        uv = project(view, np.vstack([np.column_stack([x, np.ones(n)]) for x in probes] + [C]))
+        uv = uv.reshape(len(probes) + 1, n, 2)
+        J = np.stack([np.stack([(uv[5 * i + 1] - uv[5 * i + 2]) / (2 * h), (uv[5 * i + 3] - uv[5 * i + 4]) / (2 * h)],
+                               axis=-1) for i in range(4)])  # (4, N, 2, 2) d(uv) / d(x, y)
+        w = np.abs(np.linalg.det(J))[:, :, None]  # image area per unit area
+        total = np.zeros((n, 2))
+        weight = np.zeros((n, 1))
+        for i in range(4):
+            total += w[i] * uv[5 * i]
+            weight += w[i]
+        out.append(total / weight - uv[-1])
     return np.hstack(out)
 
 
 def offset_covariance(X: np.ndarray, fit: CircleFit, views) -> np.ndarray:
     """(N, 4, 4) px^2 covariance of :func:`centre_offsets` from the circle fit's covariance."""
     n0 = -X / np.linalg.norm(X, axis=1, keepdims=True)
-    b1, b2 = perpendicular_basis(n0)
+    b1, b2 = _basis(n0)
 
-    def offsets(p):
-        return centre_offsets(X, _normals(n0, b1, b2, p[:, :2]), np.exp(p[:, 2]), views)
-
-    base = offsets(fit.params)
     h = np.array([1e-5, 1e-5, 1e-5])
-    D = np.stack([(offsets(fit.params + h * e) - base) / h[k] for k, e in enumerate(np.eye(3))], axis=-1)
+    # the offsets at the parameters and at their 3 forward-difference neighbours, in one
+    # (row-wise) call: the values of four calls
+    p = np.concatenate([fit.params] + [fit.params + h * e for e in np.eye(3)])
+    n = len(X)
+    every = centre_offsets(
+        np.tile(X, (4, 1)), _normals(np.tile(n0, (4, 1)), np.tile(b1, (4, 1)), np.tile(b2, (4, 1)), p[:, :2]),
+        np.exp(p[:, 2]), views,
+    ).reshape(4, n, 4)
+    base = every[0]
+    D = np.stack([(every[1 + k] - base) / h[k] for k in range(3)], axis=-1)
     return D @ fit.cov @ np.swapaxes(D, 1, 2)
