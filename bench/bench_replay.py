@@ -37,6 +37,9 @@ from crossfield.registry import make_plugin_manager  # noqa: E402
 from crossfield.replay import RecordingSource, load_recorded_session, replay_session  # noqa: E402
 from crossfield.runner import run_session  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from figures import record  # noqa: E402
+
 
 def timed(fn, repeat: int) -> float:
     times = []
@@ -113,6 +116,8 @@ def main() -> int:
             print(
                 f"{name:<18} {rate:>10.1f} {size / seconds / 1e6:>8.0f} {rate / plain:>9.3f} {rate / mcap:>8.3f}"
             )
+        for name, key in (("frames decoded", "decoded"), ("replay", "replay"), ("replay + record", "replay_record")):
+            record(f"replay.{key}_vs_mcap_read", results["MCAP read"] / results[name], "higher")
     finally:
         shutil.rmtree(work, ignore_errors=True)
     return 0
