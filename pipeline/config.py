@@ -51,6 +51,7 @@ SESSION_DEFAULTS: dict[str, Any] = {
     "rerun_image_every": 5,  # session.rrd: images of every n-th pair (0 = none); docs/visualisation.md
     "match_tolerance_mm": 0.5,  # rigid-distance agreement for control-point matching
     "signing_key": "",  # Ed25519 station key (PEM) that signs the recording's seal; docs/replay-and-audit.md
+    "compression": "zstd",  # session.mcap chunk compression: "zstd", "lz4" or "none" (lossless); docs/recording.md
 }
 
 
@@ -59,6 +60,7 @@ _SESSION_CHECKS: dict[str, Callable[[Any], str | None]] = {
     "match_tolerance_mm": lambda v: None if math.isfinite(v) and v > 0 else "a finite number of mm > 0",
     "rerun_image_every": lambda v: None if v >= 0 else "an integer >= 0 (0: no images)",
     "output_dir": lambda v: None if v.strip() else "a folder (not empty)",
+    "compression": lambda v: None if v in ("zstd", "lz4", "none") else 'one of "zstd", "lz4", "none"',
 }
 
 

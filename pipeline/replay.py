@@ -46,7 +46,7 @@ from crossfield.types import CAMERAS, StereoFrame
 READABLE_FORMATS = L.READABLE_FORMATS
 
 #: Session keys that say where and how a replay is written, not what it computes.
-OUTPUT_KEYS = ("name", "output_dir", "record", "rerun", "rerun_image_every", "signing_key")
+OUTPUT_KEYS = ("name", "output_dir", "record", "rerun", "rerun_image_every", "signing_key", "compression")
 
 #: The facts of a recorded session (:class:`crossfield.recording.facts.SessionFacts`).
 RecordedSession = SessionFacts
