@@ -3,7 +3,7 @@
 Run: ``.venv/bin/python bench/bench_triangulate.py [--runs N] [--points N] [--noise PX]``
 
 Frames: ``--points`` targets at z = 350..450 mm seen by the synthetic
-scA1600-like rig of ``tests/test_triangulate.py`` (fx ~ 3636 px, 50 mm vertical
+scA1600-like rig of ``tests/triangulate/test_triangulate.py`` (fx ~ 3636 px, 50 mm vertical
 baseline, mild distortion), centroids with ``--noise`` px Gaussian noise and
 the lower set shuffled.
 
@@ -28,7 +28,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "tests" / "triangulate"))
 
 from test_triangulate import make_calibration, observe, random_points, stereo  # noqa: E402
 

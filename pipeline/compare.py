@@ -35,7 +35,7 @@ from crossfield.recording import layout as L
 from crossfield.recording.facts import require_session
 from crossfield import rigid
 from crossfield.recording.reader import Recording, open_recording
-from crossfield.registry import STAGES
+from crossfield.chain.registry import STAGES
 from crossfield.types import CAMERAS
 
 #: Per-characteristic values compared (report.json keys).

@@ -8,7 +8,7 @@ the simulator's ground truth when there is one, and the recorded config
 read. Frames are fed in the order they were recorded, with their recorded
 capture times; serial bytes with their recorded read times; the session
 start time is the recorded one. The chain is the live one
-(:func:`crossfield.runner.run_pipeline`), so with the recorded plugins every
+(:func:`crossfield.chain.runner.run_pipeline`), so with the recorded plugins every
 stage output, and every number of the report, is the same float as
 recorded, and the replayed session's own recording holds the same
 messages. With swapped plugins or options the replay is a new session
@@ -37,7 +37,7 @@ from crossfield.recording import layout as L
 from crossfield.recording.codec import decode_image, decode_link_event, ground_truth_from_doc  # noqa: F401 - public here too
 from crossfield.recording.facts import SessionFacts, load_session_facts, require_session  # noqa: F401
 from crossfield.recording.integrity import file_sha256, utc
-from crossfield.runner import run_session, safe_session_name
+from crossfield.chain.runner import run_session, safe_session_name
 from crossfield.session import SessionSummary
 from crossfield.stages import STAGES, SerialChunk
 from crossfield.types import CAMERAS, StereoFrame
@@ -191,7 +191,7 @@ def _default_output(recorded: RecordedSession) -> tuple[Path, str]:
     """(base folder, session id) for a replay written next to the recorded session.
 
     The recorded session id is data: it names the replay's folder only if it
-    is a plain folder name (:func:`crossfield.runner.safe_session_name`);
+    is a plain folder name (:func:`crossfield.chain.runner.safe_session_name`);
     otherwise (``../..``, an absolute path, ...) the recording's own folder
     or file name does."""
     path = recorded.path.resolve()

@@ -39,7 +39,7 @@ per-target arithmetic of :func:`centre_offsets` are compiled (numba, scalar
 3 x 3 algebra per target, the same formulas as :func:`predicted_shape` and
 :func:`ellipse_centre_point`); the lens goes through one ``cv2.projectPoints``
 call per view. Against the NumPy formulas the points move by < 1e-9 mm and the
-offsets by < 1e-9 px (rounding of the finite differences); tests/test_eccentricity.py.
+offsets by < 1e-9 px (rounding of the finite differences); tests/centroid/test_eccentricity.py.
 
 Units: mm in the camera frames, pixels in the images, normalised image
 coordinates where stated; views are given as ``p_view = R @ p_upper + t``.

@@ -40,7 +40,6 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-
 from crossfield.imaging.eccentricity import centre_offsets, stereo_views
 from crossfield.simulator.render import SensorModel, background_image, compose_clean_image, render_disc
 from crossfield.types import StereoCalibration
@@ -96,14 +95,14 @@ def antithetic_pair(clean: np.ndarray, sensor: SensorModel, rng: np.random.Gener
 
 @lru_cache(maxsize=1)
 def _plugin_manager():
-    from crossfield.registry import make_plugin_manager
+    from crossfield.chain.registry import make_plugin_manager
 
     return make_plugin_manager()
 
 
 def centroid_implementation(name: str):
     """The registered ``centroid`` implementation ``name`` (a PluginError listing the names if none)."""
-    from crossfield.registry import get_implementation
+    from crossfield.chain.registry import get_implementation
 
     return get_implementation(_plugin_manager(), "centroid", name)
 

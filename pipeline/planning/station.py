@@ -26,12 +26,11 @@ from types import MappingProxyType
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
-from scipy.stats import qmc
-
 from crossfield.errors import ConfigError
 from crossfield.precision.centroid import NoiseModel
 from crossfield.types import CameraIntrinsics, Line3D, StereoCalibration
+from scipy.spatial.transform import Rotation
+from scipy.stats import qmc
 
 KINDS = ("point_point", "point_line", "depth")
 #: How the fixed centroid bias is predicted (``Station.bias_model``, docs/planning.md).
@@ -274,7 +273,12 @@ def station_from_scenario(
     if bias_model not in BIAS_MODELS:
         raise ValueError(f"bias_model must be one of {', '.join(BIAS_MODELS)}, got {bias_model!r}")
     from crossfield.simulator.scenarios import (
-        BASELINE_MM, FOCAL_LENGTH_MM, PIXEL_PITCH_MM, SCENARIOS, TARGET_RADIUS_MM, build_scene,
+        BASELINE_MM,
+        FOCAL_LENGTH_MM,
+        PIXEL_PITCH_MM,
+        SCENARIOS,
+        TARGET_RADIUS_MM,
+        build_scene,
     )
     from crossfield.simulator.scene import probe_ring_basis
 

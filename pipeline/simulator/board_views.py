@@ -26,7 +26,7 @@ from functools import lru_cache
 
 import cv2
 import numpy as np
-from crossfield.camera.boards import Board
+from crossfield.calibration.boards import Board
 from crossfield.simulator.optics import project
 from crossfield.simulator.render import SensorModel, add_noise, background_image
 from crossfield.simulator.scenarios import SCENARIOS, VIEW_CENTRE, station_calibration

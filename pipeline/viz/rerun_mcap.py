@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
-from crossfield.aggregate import SessionAccumulator
+from crossfield.chain.aggregate import SessionAccumulator
 from crossfield.errors import RecordingError
 from crossfield.recording import codec
 from crossfield.recording import layout as L

@@ -1,4 +1,4 @@
-"""A deliberately slowed kernel for the bench guard's test (tests/test_bench_guard.py).
+"""A deliberately slowed kernel for the bench guard's test (tests/structure/test_bench_guard.py).
 
 On ``PYTHONPATH`` with ``CROSSFIELD_SLOW_KERNEL=1``, every Python process started
 (the bench scripts ``bench/run.py`` runs) wraps
