@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_pipeline import MemoryPlugin, pipeline_rate, write_reference_csv  # noqa: E402
 
-from crossfield.registry import make_plugin_manager  # noqa: E402
+from crossfield.chain.registry import make_plugin_manager  # noqa: E402
 from crossfield.simulator.scenarios import build_scene  # noqa: E402
 
 

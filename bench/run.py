@@ -37,7 +37,7 @@ BENCHMARKS = (
     ("bench_centroid.py", ["--source", "station"], ["--source", "station", "--runs", "100"]),
     ("bench_pipeline.py", ["--frames", "300", "--repeat", "3", "--scenario", "station"],
      ["--frames", "100", "--repeat", "1", "--scenario", "station"]),
-    ("bench_recording.py", [], ["--pairs", "40", "--repeats", "2"]),
+    ("bench_recording.py", ["--repeats", "3"], ["--pairs", "40", "--repeats", "2"]),
     ("bench_replay.py", ["--frames", "60", "--repeat", "3"], ["--frames", "20", "--repeat", "1"]),
     ("bench_triangulate.py", [], ["--runs", "500"]),
     ("bench_batch.py", [], ["--sessions", "4", "--noops", "50"]),

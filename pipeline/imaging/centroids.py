@@ -11,7 +11,7 @@ intensity-weighted centroid, area and roundness from the detector. A
 subclass declares its own options as keyword-only ``__init__`` parameters
 (it passes the detector's on with ``**detector``) and implements
 :meth:`BlobCentroids.subpixel`; its signature, the one the registry reads
-the options from (``crossfield.registry.Implementation.options``), is its own
+the options from (``crossfield.chain.registry.Implementation.options``), is its own
 parameters plus the detector's (:meth:`BlobCentroids.__init_subclass__`).
 
 Pixels in u, v; (0, 0) is the centre of the top-left pixel (OpenCV).

@@ -15,7 +15,7 @@ from crossfield.imaging.centroids import BlobCentroids, SubPixel
 from crossfield.plugins.centroid_ellipse import EllipseCentroids
 from crossfield.plugins.centroid_modelfit import ModelFitCentroids
 from crossfield.plugins.centroid_weighted import WeightedCentroids, weighted_centroid
-from crossfield.registry import implementations, make_plugin_manager
+from crossfield.chain.registry import implementations, make_plugin_manager
 
 DETECTOR = list(inspect.signature(BlobCentroids).parameters)
 

@@ -12,7 +12,7 @@ from mcap.writer import Writer
 from session_tools import record_session, report_numbers
 
 from crossfield.config import DEFAULT_PLUGINS
-from crossfield.cli.session import main
+from crossfield.cli import main
 from crossfield.errors import ConfigError
 from crossfield.recording.integrity import file_sha256
 from crossfield.recording.reader import open_recording
