@@ -61,13 +61,18 @@ def main() -> int:
     parser.add_argument("--frames", type=int, default=60)
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--scenario", default="station")
+    parser.add_argument("--compression", default=None, choices=("zstd", "lz4", "none"),
+                        help="[session] compression of the recorded session (default: the default, zstd)")
     args = parser.parse_args()
 
     work = Path(tempfile.mkdtemp(prefix="crossfield-bench-replay-"))
     try:
         config = parse_config(
             {
-                "session": {"output_dir": str(work), "name": "recorded", "rerun": False},
+                "session": {
+                    "output_dir": str(work), "name": "recorded", "rerun": False,
+                    **({"compression": args.compression} if args.compression else {}),
+                },
                 "acquire": {
                     "plugin": "simulator",
                     "scenario": args.scenario,
