@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def crossfield() -> list[str]:
     script = Path(sys.executable).with_name("crossfield")
-    return [str(script)] if script.exists() else [sys.executable, "-m", "crossfield.cli.session"]
+    return [str(script)] if script.exists() else [sys.executable, "-m", "crossfield.cli"]
 
 
 def measured(args: list[str]) -> tuple[float, float, int]:

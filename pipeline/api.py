@@ -24,9 +24,9 @@ from typing import Any
 
 import pluggy
 
+from crossfield.chain.registry import make_plugin_manager
 from crossfield.config import Config, session_config
 from crossfield.recording.reader import Recording, open_recording
-from crossfield.chain.registry import make_plugin_manager
 from crossfield.session import SessionSummary
 
 __all__ = ["run", "run_config", "open_recording", "Recording", "SessionSummary"]

@@ -30,14 +30,14 @@ from typing import Any
 
 import pluggy
 
+from crossfield.chain.runner import run_session, safe_session_name
 from crossfield.config import Config, with_overrides
 from crossfield.errors import ConfigError, RecordingError
 from crossfield.prefetch import ahead
 from crossfield.recording import layout as L
-from crossfield.recording.codec import decode_image, decode_link_event, ground_truth_from_doc  # noqa: F401 - public here too
+from crossfield.recording.codec import decode_image, decode_link_event, ground_truth_from_doc, utc_text  # noqa: F401 - public here too
 from crossfield.recording.facts import SessionFacts, load_session_facts, require_session  # noqa: F401
-from crossfield.recording.integrity import file_sha256, utc
-from crossfield.chain.runner import run_session, safe_session_name
+from crossfield.recording.integrity import file_sha256
 from crossfield.session import SessionSummary
 from crossfield.stages import STAGES, SerialChunk
 from crossfield.types import CAMERAS, StereoFrame
@@ -126,7 +126,7 @@ class RecordingSource:
         notes = []
         if not rec.complete:
             ends = (
-                f"the last complete stereo pair is sequence {last[0]} at {utc(last[1])}"
+                f"the last complete stereo pair is sequence {last[0]} at {utc_text(last[1])}"
                 if last
                 else "no complete stereo pair was recorded"
             )
@@ -296,7 +296,7 @@ def replay_session(
         "session_id": recorded.session_id,
         "complete": recorded.complete,
         "changed": changed,
-        "replayed_at_utc": utc(time.time_ns()),
+        "replayed_at_utc": utc_text(time.time_ns()),
     }
     return run_session(
         config,

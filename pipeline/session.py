@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
+
 from crossfield.config import Config
 from crossfield.plan import MeasurementPlan
 from crossfield.tables import SummaryTables

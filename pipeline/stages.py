@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
+
 from crossfield.errors import PluginError
 from crossfield.plan import MeasurementPlan
 from crossfield.types import (

@@ -49,9 +49,7 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from crossfield.hookspecs import hookimpl
-from crossfield.imaging.blobs import Background, BlobStack
-from crossfield.imaging.centroids import BlobCentroids, SubPixel
+from crossfield.plugin_api import Background, BlobCentroids, BlobStack, SubPixel, hookimpl
 
 #: fewer edge points than this and the fit is not trusted
 MIN_EDGE_POINTS = 12

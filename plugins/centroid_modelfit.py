@@ -30,10 +30,17 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from crossfield.hookspecs import hookimpl
-from crossfield.imaging.blobs import Background, BlobStack
-from crossfield.imaging.centroids import BlobCentroids, SubPixel
-from crossfield.imaging.disc_model import PSF_ORDERS, edge_profile, fit_discs, shape_from_moments
+from crossfield.plugin_api import (
+    PSF_ORDERS,
+    Background,
+    BlobCentroids,
+    BlobStack,
+    SubPixel,
+    edge_profile,
+    fit_discs,
+    hookimpl,
+    shape_from_moments,
+)
 
 #: a fitted centre further than this from its seed (px) is a failed fit
 MAX_SHIFT_PX = 1.5

@@ -42,9 +42,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from crossfield.hookspecs import hookimpl
-from crossfield.imaging.blobs import Background, Blob, BlobStack
-from crossfield.imaging.centroids import BlobCentroids, SubPixel
+from crossfield.plugin_api import Background, Blob, BlobCentroids, BlobStack, SubPixel, hookimpl
 
 
 def weighted_centroid(

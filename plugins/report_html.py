@@ -19,10 +19,20 @@ from typing import Any, Iterable, Mapping, Sequence
 
 from markupsafe import Markup
 
-from crossfield.hookspecs import hookimpl
-from crossfield.session import SessionSummary
-
-from crossfield.report import document as doc
+from crossfield.plugin_api import (
+    KIND_CONTROL,
+    KIND_TARGET,
+    REPORT_JSON,
+    TEMPLATE_DIR,
+    SessionSummary,
+    deviation_chart,
+    document_of,
+    dumps,
+    hookimpl,
+    residual_chart,
+    thumbnail_chart,
+    trend_chart,
+)
 
 KIND_LABELS = {
     "point_point": "point to point",
@@ -33,7 +43,7 @@ KIND_LABELS = {
 DASH = "\u2014"
 
 #: crossfield's own report templates (Jinja2) and style sheet.
-TEMPLATE_DIR = doc.TEMPLATE_DIR
+TEMPLATE_DIR = TEMPLATE_DIR
 
 
 # --------------------------------------------------------------------------
@@ -500,12 +510,11 @@ def _job_html(report: Mapping[str, Any]) -> str:
 
 def report_figures(report: Mapping[str, Any], positions: Mapping[str, Any] | None = None) -> dict[str, str]:
     """The report's inline SVG pictures (:mod:`crossfield.report.figures`)."""
-    from crossfield.report import figures
 
     return {
-        "deviations": figures.deviation_chart(report),
-        "residuals": figures.residual_chart(report, positions or {}),
-        "trends": figures.trend_chart(report),
+        "deviations": deviation_chart(report),
+        "residuals": residual_chart(report, positions or {}),
+        "trends": trend_chart(report),
     }
 
 
@@ -520,10 +529,8 @@ _PAIR_TEXT = {
 
 def camera_figures(thumbnails: Sequence[Any]) -> list[dict[str, Any]]:
     """The "Cameras" section: per :class:`~crossfield.report.thumbnails.CameraThumbnail`
-    (``summary.thumbnails``) its ``camera``, ``svg`` (:func:`crossfield.report.figures.thumbnail_chart`)
+    (``summary.thumbnails``) its ``camera``, ``svg`` (:func:`crossfield.report.thumbnail_chart`)
     and ``caption`` (plain text)."""
-    from crossfield.report import figures
-    from crossfield.report.thumbnails import KIND_CONTROL, KIND_TARGET
 
     out = []
     for t in thumbnails:
@@ -535,7 +542,7 @@ def camera_figures(thumbnails: Sequence[Any]) -> list[dict[str, Any]]:
             f"{n_control} control point{'s' if n_control != 1 else ''} (blue) and "
             f"{n_target} measured target{'s' if n_target != 1 else ''} (orange) labelled"
         )
-        out.append({"camera": t.camera, "svg": figures.thumbnail_chart(t), "caption": caption})
+        out.append({"camera": t.camera, "svg": thumbnail_chart(t), "caption": caption})
     return out
 
 
@@ -551,7 +558,7 @@ def _printable(text: Any) -> str:
 
 def summary_text(summary: SessionSummary, decimals: int = 4) -> str:
     """A few lines for the terminal: frames, registration, Table 3, RMS error, verdict."""
-    return render_text(doc.document_of(summary), decimals)
+    return render_text(document_of(summary), decimals)
 
 
 def render_text(report: Mapping[str, Any], decimals: int = 4) -> str:
@@ -625,18 +632,18 @@ class JsonReport:
     def report_files(self, out_dir: Path) -> list[Path]:
         """The files :meth:`write` writes into ``out_dir`` (the recording lists
         them: it is closed before they are written)."""
-        return [Path(out_dir) / doc.REPORT_JSON]
+        return [Path(out_dir) / REPORT_JSON]
 
     def write(self, summary: SessionSummary, out_dir: Path) -> list[Path]:
         """Write report.json into ``out_dir`` (created if missing)."""
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
-        path = out_dir / doc.REPORT_JSON
-        _write_atomic(path, doc.dumps(doc.document_of(summary)))
+        path = out_dir / REPORT_JSON
+        _write_atomic(path, dumps(document_of(summary)))
         return [path]
 
     def summary_text(self, summary: SessionSummary) -> str:
-        return render_text(doc.document_of(summary), self.decimals)
+        return render_text(document_of(summary), self.decimals)
 
 
 class HtmlReport(JsonReport):
@@ -668,7 +675,7 @@ class HtmlReport(JsonReport):
     def write(self, summary: SessionSummary, out_dir: Path) -> list[Path]:
         """Write report.json and report.html into ``out_dir`` (created if missing)."""
         (json_path,) = super().write(summary, out_dir)
-        report = doc.document_of(summary)
+        report = document_of(summary)
         html_path = Path(out_dir) / "report.html"
         positions = {p.label: tuple(float(v) for v in p.xyz) for p in summary.reference.points}
         figures = report_figures(report, positions) if self.figures else None

@@ -19,6 +19,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pluggy
+
 from crossfield.audit.calibration import audit_calibration, format_calibration_report
 from crossfield.audit.report import AuditReport, parse_head, to_json
 from crossfield.audit.session import audit_session, format_session_report

@@ -2,7 +2,7 @@
 
 A calibration is audited like a measurement session (:mod:`crossfield.audit.session`):
 
-* **integrity**: the recording's SHA-256 chain (:func:`crossfield.recording.integrity.verify`),
+* **integrity**: the recording's SHA-256 chain (:func:`crossfield.audit.chain.verify`),
   the same chain a session has; a changed, removed or reordered image,
   detection, result, metadata record or attachment is named;
 * **provenance**: the recorded board, solver settings, bit depth and view
@@ -43,6 +43,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+
 from crossfield.audit.report import (
     AuditReport,
     audit_recording,

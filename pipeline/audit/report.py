@@ -17,11 +17,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from crossfield.audit.chain import IntegrityResult, name_message, verify
 from crossfield.chain.provenance import package_versions
 from crossfield.errors import ConfigError, RecordingError
 from crossfield.recording import layout as L
 from crossfield.recording import seal
-from crossfield.recording.integrity import IntegrityResult, file_sha256, name_message, verify
+from crossfield.recording.integrity import file_sha256
 from crossfield.recording.reader import open_recording
 
 LOG_TOPIC = L.TOPIC_LOG

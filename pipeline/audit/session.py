@@ -32,6 +32,8 @@ from pathlib import Path
 from typing import Any
 
 import pluggy
+
+from crossfield.audit.chain import name_message, verify
 from crossfield.audit.report import (
     IGNORED,
     LOG_TOPIC,
@@ -52,7 +54,6 @@ from crossfield.recording import layout as L
 from crossfield.recording import seal
 from crossfield.recording.codec import decode_log
 from crossfield.recording.facts import load_session_facts, require_session
-from crossfield.recording.integrity import name_message, verify
 from crossfield.recording.reader import open_recording
 from crossfield.recording.recorder import SessionRecorder
 from crossfield.recording.writer import MemorySink

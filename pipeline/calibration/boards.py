@@ -32,6 +32,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+
 from crossfield.errors import ConfigError
 
 BOARD_TYPES = ("charuco", "chessboard", "circles")

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
 from crossfield.calibration.detect import BoardDetection
 
 __all__ = [

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
 from crossfield.calibration.boards import Board
 from crossfield.types import frozen_array
 

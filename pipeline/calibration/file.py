@@ -23,6 +23,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+
 from crossfield.calibration.solve import CalibrationResult
 from crossfield.camera.calibration_io import stereo_calibration_to_yaml, write_stereo_calibration
 from crossfield.errors import ConfigError

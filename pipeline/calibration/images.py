@@ -14,8 +14,9 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from crossfield.errors import ConfigError
+
 from crossfield.camera.pair_files import pattern_regex
+from crossfield.errors import ConfigError
 from crossfield.types import CAMERAS
 
 

@@ -42,9 +42,10 @@ from typing import Any, TextIO
 
 import cv2
 import numpy as np
-from crossfield.calibration.detect import BoardDetection, BoardDetector, to_uint8
+
 from crossfield.calibration.boards import Board
 from crossfield.calibration.coverage import CameraCoverage, camera_coverage, coverage_line, coverage_picture
+from crossfield.calibration.detect import BoardDetection, BoardDetector, to_uint8
 from crossfield.errors import ConfigError, RecordingError
 from crossfield.types import CAMERAS, StereoFrame
 

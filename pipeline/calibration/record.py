@@ -36,6 +36,8 @@ from typing import Any
 
 import cv2
 import numpy as np
+from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+
 from crossfield.calibration.boards import Board, board_from_dict
 from crossfield.calibration.file import calibration_result_yaml
 from crossfield.calibration.report import report_dict
@@ -47,7 +49,6 @@ from crossfield.recording.reader import Recording, open_recording
 from crossfield.recording.seal import Seal
 from crossfield.recording.writer import ChannelSpec, McapFileSink, protobuf_channel, write_provenance
 from crossfield.types import CAMERAS
-from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
 # The names of a calibration recording, defined with every other topic in the layout.
 ATTACHMENT_CALIBRATION = L.CALIBRATION_ATTACHMENT

@@ -18,8 +18,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from crossfield.calibration.coverage import COVERAGE_GRID, coverage_cells
+
 from crossfield.calibration.covariance import triangulation_sensitivity
+from crossfield.calibration.coverage import COVERAGE_GRID, coverage_cells
 from crossfield.calibration.solve import CalibrationResult
 from crossfield.types import CAMERAS
 

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-from crossfield.calibration.detect import BoardDetection, BoardDetector
+
 from crossfield.calibration.boards import Board
 from crossfield.calibration.covariance import (
     StereoObservations,
@@ -39,6 +39,7 @@ from crossfield.calibration.covariance import (
     stereo_jacobian,
     triangulation_sensitivity,
 )
+from crossfield.calibration.detect import BoardDetection, BoardDetector
 from crossfield.errors import CrossfieldError
 from crossfield.types import CAMERAS, CameraIntrinsics, StereoCalibration
 

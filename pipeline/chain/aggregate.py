@@ -33,6 +33,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
 from crossfield.plan import CharacteristicSpec, MeasurementPlan
 from crossfield.rigid import chord_to_angle, project_to_rotation, rotation_angle
 from crossfield.session import (

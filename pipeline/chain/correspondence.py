@@ -53,6 +53,7 @@ from __future__ import annotations
 from typing import Sequence
 
 import numpy as np
+
 from crossfield.errors import CorrespondenceError
 from crossfield.rigid import kabsch
 from crossfield.types import Correspondence

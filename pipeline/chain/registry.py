@@ -21,6 +21,7 @@ from pathlib import Path, PurePath
 from typing import Any, Generic, TypeVar
 
 import pluggy
+
 from crossfield import hookspecs
 from crossfield.chain.provenance import crossfield_version
 from crossfield.errors import ConfigError, PluginError

@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 import pluggy
+
 from crossfield.chain.aggregate import SessionAccumulator, session_summary
 from crossfield.chain.correspondence import match_control_points
 from crossfield.chain.provenance import package_versions

@@ -36,9 +36,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.stats import chi2 as chi2_distribution
+
 from crossfield.chain.weights import fit_registration
 from crossfield.types import CameraPoints, Registration, RigidFit
-from scipy.stats import chi2 as chi2_distribution
 
 #: default significance level of the motion test
 ALPHA = 1e-3

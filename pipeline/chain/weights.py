@@ -22,6 +22,7 @@ Used by the runner (every stereo pair), the session's joint pose
 from __future__ import annotations
 
 import numpy as np
+
 from crossfield.stages import AcceptsCovariance, Registrar
 from crossfield.types import RigidFit
 

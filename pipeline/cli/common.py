@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pluggy
+
 from crossfield.chain.registry import STAGES, make_plugin_manager
 from crossfield.recording.seal import read_sidecar, sidecar_path
 
@@ -22,7 +23,7 @@ __all__ = [
     "print_session_files", "stage_choices", "stdout_gone", "verbosity_flags",
 ]
 
-logger = logging.getLogger("crossfield.cli")
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -103,7 +104,7 @@ def log_level(verbose: int = 0, quiet: int = 0) -> int:
 
 
 class _Formatter(logging.Formatter):
-    """``<logger>: <level>: <message>``, e.g. ``crossfield.cli: warning: ...``."""
+    """``<logger>: <level>: <message>``, e.g. ``crossfield.cli.session: warning: ...``."""
 
     def format(self, record: logging.LogRecord) -> str:
         return f"{record.name}: {record.levelname.lower()}: {record.getMessage()}" + (

@@ -8,6 +8,7 @@ import sys
 import time
 
 import numpy as np
+
 from crossfield.batch.engine import add_engine_flags, client, engine_from_args
 from crossfield.cli.common import Command
 from crossfield.errors import ConfigError

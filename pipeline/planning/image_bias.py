@@ -40,6 +40,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
+
 from crossfield.imaging.eccentricity import centre_offsets, stereo_views
 from crossfield.simulator.render import SensorModel, background_image, compose_clean_image, render_disc
 from crossfield.types import StereoCalibration

@@ -43,6 +43,7 @@ from functools import lru_cache
 from typing import Any
 
 import numpy as np
+
 from crossfield.chain.weights import registration_weights
 from crossfield.geometry import fit_cylinder_axis, fit_line, point_line_distance
 from crossfield.imaging.eccentricity import centre_offsets, stereo_views

@@ -26,11 +26,12 @@ from types import MappingProxyType
 from typing import Any
 
 import numpy as np
+from scipy.spatial.transform import Rotation
+from scipy.stats import qmc
+
 from crossfield.errors import ConfigError
 from crossfield.precision.centroid import NoiseModel
 from crossfield.types import CameraIntrinsics, Line3D, StereoCalibration
-from scipy.spatial.transform import Rotation
-from scipy.stats import qmc
 
 KINDS = ("point_point", "point_line", "depth")
 #: How the fixed centroid bias is predicted (``Station.bias_model``, docs/planning.md).

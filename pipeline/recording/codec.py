@@ -31,6 +31,15 @@ from typing import Any
 import cv2
 import numpy as np
 import tomli_w
+from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+from foxglove_schemas_protobuf.Log_pb2 import Log
+from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
+from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+from mcap_protobuf.schema import build_file_descriptor_set
+from scipy.spatial.transform import Rotation
+
 from crossfield.errors import RecordingError
 from crossfield.jsonable import ints, plain, real, reals
 from crossfield.recording.layout import FRAME_CAMERA, FRAME_GLOBAL, JSON_SCHEMAS, META_JSON
@@ -52,14 +61,6 @@ from crossfield.types import (
     RigidFit,
     StereoCalibration,
 )
-from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
-from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
-from foxglove_schemas_protobuf.Log_pb2 import Log
-from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
-from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
-from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
-from mcap_protobuf.schema import build_file_descriptor_set
-from scipy.spatial.transform import Rotation
 
 _MM_PER_M = 1000.0
 _LOG_LEVELS = {

@@ -38,6 +38,13 @@ from pathlib import Path
 from typing import Any, Protocol, Self
 
 import numpy as np
+from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+from foxglove_schemas_protobuf.Log_pb2 import Log
+from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+from mcap.writer import CompressionType, Writer
+
 from crossfield.chain.provenance import crossfield_version, machine_info
 from crossfield.covariance import global_sigma
 from crossfield.errors import RecordingError
@@ -71,12 +78,6 @@ from crossfield.recording.codec import (
 from crossfield.recording.integrity import IntegrityChain, file_sha256
 from crossfield.report.document import document_of
 from crossfield.types import CAMERAS, CameraPoints
-from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
-from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
-from foxglove_schemas_protobuf.Log_pb2 import Log
-from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
-from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
-from mcap.writer import CompressionType, Writer
 
 #: Chunk compression by name (lossless; ``[session] compression``). zstd (level 3, the
 #: mcap library's) is the default since issue 27: a simulated 12-bit image shrinks to

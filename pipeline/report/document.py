@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
+
 from crossfield.errors import RecordingError
 from crossfield.jsonable import matrix, plain, real, vector
 from crossfield.rigid import rotation_angle

@@ -29,6 +29,7 @@ from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
+
 from crossfield.report.thumbnails import KIND_CONTROL, KIND_TARGET
 
 __all__ = ["LABEL_OFFSET", "THUMBNAIL_GID", "deviation_chart", "residual_chart", "svg", "thumbnail_chart", "trend_chart"]

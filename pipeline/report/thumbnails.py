@@ -31,6 +31,7 @@ import math
 
 import cv2
 import numpy as np
+
 from crossfield.hookspecs import hookimpl
 from crossfield.session import CameraThumbnail, FrameResult
 from crossfield.types import CAMERAS, CentroidSet, StereoFrame

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+
 from crossfield.errors import CrossfieldError
 from crossfield.plan import load_plan
 from crossfield.simulator.arm import ArmProbe, SimulatedArm, bad_checksum, probes_from_points

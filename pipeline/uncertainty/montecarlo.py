@@ -60,6 +60,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+
 from crossfield.batch.engine import Engine, client
 from crossfield.errors import CrossfieldError
 from crossfield.plan import MeasurementPlan

@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from crossfield.errors import CrossfieldError
 from crossfield.types import StereoCalibration, StereoCentroids, StereoFrame
 

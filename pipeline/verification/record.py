@@ -32,6 +32,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+
 from crossfield.errors import CrossfieldError, RecordingError
 from crossfield.jsonable import plain
 from crossfield.recording import layout as L
@@ -41,7 +43,6 @@ from crossfield.recording.seal import Seal
 from crossfield.recording.writer import ChannelSpec, McapFileSink, protobuf_channel, write_provenance
 from crossfield.types import CAMERAS, StereoFrame
 from crossfield.verification.procedure import PositionResult, VerificationResult
-from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
 POSITION_CHANNEL = ChannelSpec(L.TOPIC_VERIFICATION_POSITION, "json", None)
 RESULT_CHANNEL = ChannelSpec(L.TOPIC_VERIFICATION_RESULT, "json", None)

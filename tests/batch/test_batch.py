@@ -21,7 +21,7 @@ from session_tools import Msg, rewrite_mcap, sigint_default
 
 from crossfield.batch.report import JSON_NAME, sort_key
 from crossfield.batch.tasks import characteristic_shifts, expanded_uncertainty
-from crossfield.cli.session import main
+from crossfield.cli import main
 
 BIN = Path(sys.executable).parent
 GOOD = ("s0", "s1", "s2")

@@ -12,8 +12,11 @@ import json
 
 import numpy as np
 import pytest
+from session_tools import edit_json, rewrite_mcap
+
 from crossfield.audit import audit, format_report
 from crossfield.audit.calibration import PARAMETER_TOLERANCE_STD, parameter_vector
+from crossfield.audit.chain import verify
 from crossfield.calibration.record import (
     TOPIC_IMAGE,
     TOPIC_RESULT,
@@ -21,13 +24,11 @@ from crossfield.calibration.record import (
     record_calibration,
 )
 from crossfield.calibration.solve import calibrate_images
-from crossfield.cli.session import main
-from crossfield.recording.integrity import verify
+from crossfield.chain.registry import make_plugin_manager
+from crossfield.cli import main
 from crossfield.recording.reader import open_recording
 from crossfield.recording.seal import read_sidecar, sidecar_path
-from crossfield.chain.registry import make_plugin_manager
 from crossfield.simulator.board_views import cached_calibration_views
-from session_tools import edit_json, rewrite_mcap
 
 NAMES = [f"sim view {k}" for k in range(10)]
 

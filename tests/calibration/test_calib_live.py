@@ -31,21 +31,22 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from crossfield.calibration.detect import BoardDetector
+from session_tools import sigint_default
+
 from crossfield.calibration.coverage import (
     camera_coverage,
     coverage_cells,
     coverage_picture,
     empty_regions,
 )
+from crossfield.calibration.detect import BoardDetector
 from crossfield.calibration.live import KeyEvents, capture_live, write_provisional_calibration
 from crossfield.calibration.record import read_calibration_recording
 from crossfield.calibration.report import coverage_fraction
 from crossfield.camera.calibration_io import read_stereo_calibration
-from crossfield.cli.session import main
+from crossfield.cli import main
 from crossfield.errors import ConfigError
 from crossfield.simulator.board_views import cached_calibration_views
-from session_tools import sigint_default
 
 N_FILES = 12  # views on disk
 N_TAKEN = 10  # key presses
@@ -448,8 +449,8 @@ def test_free_running_source_key_takes_a_pair_arriving_after_the_press(views, em
 def test_live_options_are_the_run_options_with_the_live_defaults(tmp_path):
     """--trigger makes the basler source wait for a line; frames default to 0 (until stopped);
     the config file's [acquire] options come first, --option after, as for `crossfield run`."""
+    from crossfield.cli import build_parser
     from crossfield.cli.calibration import _live_options
-    from crossfield.cli.session import build_parser
 
     config = tmp_path / "cameras.toml"
     config.write_text('[acquire]\nupper = "A"\nlower = "B"\nexposure_us = 800.0\n')

@@ -12,8 +12,10 @@ import json
 import cv2
 import numpy as np
 import pytest
-from crossfield.calibration.detect import BoardDetection, BoardDetector
+from scipy.spatial.transform import Rotation
+
 from crossfield.calibration.boards import Board, board_from_dict, board_toml, load_board
+from crossfield.calibration.detect import BoardDetection, BoardDetector
 from crossfield.calibration.file import read_calibration_uncertainty, write_calibration_result
 from crossfield.calibration.report import report_dict, write_report
 from crossfield.calibration.solve import (
@@ -25,7 +27,7 @@ from crossfield.calibration.solve import (
     solve_stereo,
 )
 from crossfield.camera.calibration_io import read_stereo_calibration
-from crossfield.cli.session import main
+from crossfield.cli import main
 from crossfield.errors import ConfigError
 from crossfield.simulator.board_views import (
     board_texture,
@@ -36,7 +38,6 @@ from crossfield.simulator.board_views import (
 from crossfield.simulator.optics import project
 from crossfield.simulator.render import SensorModel
 from crossfield.simulator.scenarios import station_calibration
-from scipy.spatial.transform import Rotation
 
 
 def truth_vector(calibration) -> np.ndarray:

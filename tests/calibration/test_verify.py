@@ -7,16 +7,17 @@ import json
 
 import numpy as np
 import pytest
+from session_tools import edit_json, rewrite_mcap
+
 from crossfield.audit import audit, format_report
 from crossfield.camera.calibration_io import write_stereo_calibration
-from crossfield.cli.session import main
+from crossfield.chain.registry import get_implementation, make_plugin_manager
+from crossfield.cli import main
 from crossfield.config import DEFAULT_PLUGINS, load_config
 from crossfield.errors import CrossfieldError
-from crossfield.chain.registry import get_implementation, make_plugin_manager
 from crossfield.simulator.scale_bar import bar_scene, scale_bar_positions
 from crossfield.simulator.scenarios import station_calibration
 from crossfield.verification.procedure import MIN_POSITIONS, evaluate, simulate_positions
-from session_tools import edit_json, rewrite_mcap
 
 
 def message_data(path, topic, sequence) -> bytes:
@@ -83,7 +84,7 @@ def test_verify_records_and_re_evaluates_from_the_recording(tmp_path, capsys):
     """verify --record writes the pairs with the session's chain and seal; verify --recording
     gives the same E per position (bit for bit: the same pixels through the same stages), and
     with another calibration the E of that calibration."""
-    from crossfield.recording.integrity import verify
+    from crossfield.audit.chain import verify
     from crossfield.recording.seal import read_sidecar
     from crossfield.verification.record import read_verification_recording
 

@@ -24,11 +24,13 @@ from crossfield.chain.aggregate import (
     RunningStats,
     SessionAccumulator,
     aggregate_frames,
+    summarise,
+    summary_of_frames,
 )
 from crossfield.config import parse_config
 from crossfield.plan import parse_plan
 from crossfield.chain.runner import finish_session
-from crossfield.session import FrameResult, SessionInfo, SessionSummary, summarise
+from crossfield.session import FrameResult, SessionInfo, SessionSummary
 from crossfield.types import (
     CameraIntrinsics,
     CharacteristicResult,
@@ -326,9 +328,9 @@ def test_feeding_the_same_frames_again_reproduces_every_float(frames, aggregate,
     )
 
 
-def test_a_summary_built_by_hand_is_aggregated_from_its_frames(frames, tmp_path):
+def test_a_summary_of_frames_is_aggregated_from_every_frame(frames, tmp_path):
     few = frames[:120]
-    summary = SessionSummary(session_info(tmp_path), ReferenceData(()), tuple(few), summarise(few, PLAN))
+    summary = summary_of_frames(session_info(tmp_path), ReferenceData(()), few)
     direct = aggregate_frames(few, PLAN)
     assert summary.frames_processed == 120 and summary.frames_omitted == 0 and summary.frames_failed == 1
     assert summary.aggregate.characteristics == direct.characteristics

@@ -3,6 +3,7 @@ its summary statistics on an analytic case, and its draws on Dask (the same samp
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import signal
@@ -15,8 +16,10 @@ import numpy as np
 import pytest
 
 from crossfield.api import run
+from crossfield.config import parse_config
+from crossfield.errors import ConfigError
 from crossfield.report import document
-from crossfield.uncertainty.montecarlo import monte_carlo, problem_from_summary, run_draws, summarise
+from crossfield.uncertainty.montecarlo import monte_carlo, problem_from_summary, run_draws, session_monte_carlo, summarise
 
 #: Draws of the demo check (a draw is a whole 3-frame session, ~0.2 s, most of it the cylinder
 #: fit of the drawn L3 probes). Statistical tolerance: u_MC / u has a numerical relative standard
@@ -104,18 +107,25 @@ def test_summary_statistics_on_normal_samples():
 
 
 def test_monte_carlo_section_in_report_json(demo, tmp_path):
+    """The check runs at the session end ([session] monte_carlo); its result is on the
+    summary, and the report document (report.json, report.html, the terminal) shows it."""
     from crossfield.plugins.report_html import HtmlReport
 
-    reporter = HtmlReport(monte_carlo=4)
-    reporter.write(demo, tmp_path)
+    session = dict(demo.info.config.session, monte_carlo=4)
+    info = dataclasses.replace(demo.info, config=dataclasses.replace(demo.info.config, session=session))
+    checked = dataclasses.replace(demo, info=info, monte_carlo=tuple(session_monte_carlo(demo, 4)), report=None)
+    reporter = HtmlReport()
+    reporter.write(checked, tmp_path)
     report = json.loads((tmp_path / "report.json").read_text(encoding="utf-8"))
     document.validate(report)
     mc = report["monte_carlo"]
     assert mc["n_draws"] == 4 and len(mc["characteristics"]) == len(demo.characteristics)
     assert 'id="monte-carlo"' in (tmp_path / "report.html").read_text(encoding="utf-8")
-    assert "Monte Carlo (GUM-S1, 4 draws)" in reporter.summary_text(demo)
-    with pytest.raises(ValueError, match="monte_carlo"):
-        HtmlReport(monte_carlo=1)
+    assert "Monte Carlo (GUM-S1, 4 draws)" in reporter.summary_text(checked)
+    with pytest.raises(ConfigError, match="monte_carlo.*draws >= 2"):
+        parse_config({"session": {"monte_carlo": 1}})
+    # a recording made before 0.2 kept it as the report stage's option: the session's now
+    assert parse_config({"report": {"monte_carlo": 8}}).session["monte_carlo"] == 8
 
 
 @pytest.fixture(scope="module")
@@ -149,7 +159,7 @@ def test_on_a_dask_scheduler_and_workers(small_sample, tmp_path):
     bit for bit, and ``crossfield run --monte-carlo N --scheduler tcp://...`` runs its chunks there."""
     from dask.distributed import Client
 
-    from crossfield.cli.session import main
+    from crossfield.cli import main
 
     problem, local = small_sample
     bin_dir = Path(sys.executable).parent
@@ -185,7 +195,7 @@ def test_on_a_dask_scheduler_and_workers(small_sample, tmp_path):
 
 
 def test_scheduler_flags_without_monte_carlo_are_an_error(tmp_path, capsys):
-    from crossfield.cli.session import main
+    from crossfield.cli import main
 
     code = main(["run", "--scenario", "table3", "--frames", "1", "--no-record", "--no-rerun",
                  "-o", str(tmp_path), "--workers", "2"])

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crossfield.cli.session import main
+from crossfield.cli import main
 from crossfield.errors import ConfigError
 from crossfield.planning.report import write_report
 from crossfield.planning.routes import analytic, predict, true_value

@@ -16,12 +16,13 @@ from pathlib import Path
 import pytest
 from session_tools import Msg, edit_json, record_session, rewrite_mcap, sigint_default
 
-from crossfield.config import DEFAULT_PLUGINS
 from crossfield.audit import audit, format_report
-from crossfield.cli import main
-from crossfield.recording.integrity import GENESIS, INTEGRITY_FORMAT, verify
-from crossfield.recording.reader import open_recording
+from crossfield.audit.chain import verify
 from crossfield.chain.registry import make_plugin_manager
+from crossfield.cli import main
+from crossfield.config import DEFAULT_PLUGINS
+from crossfield.recording.integrity import GENESIS, INTEGRITY_FORMAT
+from crossfield.recording.reader import open_recording
 from crossfield.replay import replay_session
 
 REPO = Path(__file__).resolve().parents[2]
@@ -277,7 +278,7 @@ def test_audit_of_a_replay_names_the_parent(recorded, tmp_path):
 
 def crossfield_command() -> list[str]:
     script = Path(sys.executable).with_name("crossfield")
-    return [str(script)] if script.exists() else [sys.executable, "-m", "crossfield.cli.session"]
+    return [str(script)] if script.exists() else [sys.executable, "-m", "crossfield.cli"]
 
 
 def count_images(path: Path) -> int:
@@ -565,7 +566,7 @@ def test_a_session_longer_than_the_report_rows_passes_its_own_audit(tmp_path, mo
     are not listed; that note depends on an output setting (session.record), not on a
     result, so the audit's replay (which writes no file) must not count it as a
     difference. The row limit is lowered to 2 to test it with 4 pairs."""
-    from crossfield import aggregate
+    from crossfield.chain import aggregate
 
     defaults = dict(aggregate.SessionAccumulator.__init__.__kwdefaults__)
     monkeypatch.setattr(aggregate.SessionAccumulator.__init__, "__kwdefaults__", {**defaults, "rows_kept": 2})

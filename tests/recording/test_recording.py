@@ -29,15 +29,16 @@ from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from scipy.spatial.transform import Rotation
 
 from crossfield.camera.calibration_io import stereo_calibration_from_yaml
+from crossfield.chain.aggregate import summary_of_frames
+from crossfield.chain.registry import make_plugin_manager
 from crossfield.config import load_config, parse_config
 from crossfield.errors import RecordingError
 from crossfield.plan import parse_plan
 from crossfield.recording.codec import calibration_yaml, load_json_schema, raw_image_message, toml_text
 from crossfield.recording.layout import JSON_SCHEMAS, recorded_topics
-from crossfield.recording.recorder import McapRecorder
 from crossfield.recording.reader import open_recording
-from crossfield.chain.registry import make_plugin_manager
-from crossfield.session import FrameResult, SessionInfo, SessionSummary, summarise
+from crossfield.recording.recorder import McapRecorder
+from crossfield.session import FrameResult, SessionInfo, SessionSummary
 from crossfield.types import (
     CameraIntrinsics,
     CameraPoints,
@@ -279,9 +280,7 @@ class Synthetic:
             result = FrameResult(seq, frame.timestamp_ns, centroids, points, registration, measurement)
             hook.on_frame_done(result=result)
             self.results.append(result)
-        summary = SessionSummary(
-            self.info, self.reference, tuple(self.results), characteristics=summarise(self.results, self.plan)
-        )
+        summary = summary_of_frames(self.info, self.reference, self.results)
         hook.on_session_end(summary=summary)
         return summary
 
@@ -672,6 +671,7 @@ CRASH_SCRIPT = """
 import os, signal, sys
 sys.path.insert(0, {root!r})
 sys.path.insert(0, {tests!r})
+sys.path.insert(0, {helpers!r})
 from pathlib import Path
 from test_recording import Synthetic
 from crossfield.recording.recorder import McapRecorder
@@ -696,7 +696,9 @@ os.kill(os.getpid(), signal.SIGKILL)
 
 
 def test_a_killed_session_keeps_everything_up_to_the_last_finished_frame(tmp_path):
-    script = CRASH_SCRIPT.format(root=str(ROOT), tests=str(ROOT / "tests"), out=str(tmp_path))
+    script = CRASH_SCRIPT.format(
+        root=str(ROOT), tests=str(Path(__file__).parent), helpers=str(ROOT / "tests"), out=str(tmp_path)
+    )
     proc = subprocess.run([sys.executable, "-c", script], check=False, capture_output=True, timeout=120)
     assert proc.returncode == -signal.SIGKILL, proc.stderr.decode()
     synthetic = Synthetic(tmp_path)
@@ -958,12 +960,12 @@ def test_replay_and_the_viewer_load_the_same_facts_and_refuse_the_same_damage(se
     """One loader (crossfield.recording.facts): the same facts for replay and the
     viewer, and the same one-line error naming the file and the record."""
     from mcap.records import Attachment
+    from session_tools import rewrite_mcap
 
     from crossfield.recording.facts import load_session_facts
     from crossfield.replay import load_recorded_session
     from crossfield.viz.rerun_log import RerunLogger
     from crossfield.viz.rerun_mcap import log_recording, session_info
-    from session_tools import rewrite_mcap
 
     synthetic, out = session
     good = out / "session.mcap"

@@ -11,12 +11,12 @@ import pytest
 from mcap.writer import Writer
 from session_tools import record_session, report_numbers
 
-from crossfield.config import DEFAULT_PLUGINS
+from crossfield.chain.registry import implementations, make_plugin_manager
 from crossfield.cli import main
+from crossfield.config import DEFAULT_PLUGINS
 from crossfield.errors import ConfigError
 from crossfield.recording.integrity import file_sha256
 from crossfield.recording.reader import open_recording
-from crossfield.chain.registry import implementations, make_plugin_manager
 from crossfield.replay import load_recorded_session, replay_session
 
 #: Whole-chain tolerance on the simulator (mm): every characteristic's error

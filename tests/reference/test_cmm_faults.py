@@ -120,7 +120,9 @@ def test_recorded_session_keeps_the_link_events_and_replay_splits_as_live(tmp_pa
         def __init__(self, probes, **kwargs):
             super().__init__(probes, unplug_after={1: 0.2}, cut_after={1: 30}, **kwargs)
 
-    monkeypatch.setattr(arm_module, "SimulatedArm", CutArm)
+    import crossfield.plugins.acquire_simulator as simulator_plugin
+
+    monkeypatch.setattr(simulator_plugin, "SimulatedArm", CutArm)
     live = record_session(tmp_path, "live", frames=1)
     assert live.reference.points and len(live.frames) == 1
     path = tmp_path / "live" / "session.mcap"

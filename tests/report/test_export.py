@@ -8,7 +8,7 @@ import io
 import pytest
 
 from crossfield import export
-from crossfield.cli.session import main
+from crossfield.cli import main
 from crossfield.plugins.report_html import HtmlReport
 
 from test_report import make_summary

@@ -22,7 +22,8 @@ from crossfield.config import parse_config
 from crossfield.errors import ConfigError
 from crossfield.plan import parse_plan
 from crossfield.chain.registry import get_implementation, make_plugin_manager
-from crossfield.session import FrameResult, SessionInfo, SessionSummary, summarise
+from crossfield.chain.aggregate import summarise, summary_of_frames
+from crossfield.session import FrameResult, SessionInfo, SessionSummary
 from crossfield.types import (
     CameraIntrinsics,
     CameraPoints,
@@ -200,13 +201,7 @@ def make_summary(
             FrameResult(sequence=3, timestamp_ns=FAILED_NS, error=FAILED_ERROR)
         )
     reference = ReferenceData(points=(), problems=(EVIL_PROBLEM,), source="/dev/pts/7")
-    return SessionSummary(
-        info=info,
-        reference=reference,
-        frames=tuple(frames),
-        characteristics=summarise(frames, plan),
-        incomplete=incomplete,
-    )
+    return summary_of_frames(info, reference, frames, incomplete=incomplete)
 
 
 # --------------------------------------------------------------------------
@@ -335,7 +330,7 @@ def test_characteristics_round_trip_exactly(summary, report):
         for key in fields:
             assert entry[key] == getattr(c, key), key  # exact: floats are written with repr
         assert entry["passed"] is c.passed
-        # independent check of the aggregation (crossfield.session.summarise)
+        # independent check of the aggregation (crossfield.chain.aggregate.summarise)
         values = MEASURED[c.name]
         assert entry["measured_mm"] == pytest.approx(np.mean(values), abs=1e-12)
         assert entry["std_mm"] == pytest.approx(np.std(values, ddof=1), rel=1e-12)
@@ -445,9 +440,7 @@ def test_pose_error_against_ground_truth(report):
 def test_report_json_is_strict_json_when_nothing_was_measured(tmp_path):
     base = make_summary(failed_frame=False)
     frames = tuple(FrameResult(f.sequence, f.timestamp_ns, error="triangulation failed") for f in base.frames)
-    empty = SessionSummary(
-        base.info, base.reference, frames, summarise(frames, base.info.plan), incomplete="stopped by user"
-    )
+    empty = summary_of_frames(base.info, base.reference, frames, incomplete="stopped by user")
     reporter = report_html.HtmlReport()
     reporter.write(empty, tmp_path)
     text = (tmp_path / "report.json").read_text(encoding="utf-8")
@@ -467,7 +460,7 @@ def test_incomplete_session_does_not_pass():
     passing = make_summary(failed_frame=False)
     # make every characteristic pass
     chars = tuple(dataclasses.replace(c, passed=True) for c in passing.characteristics)
-    ok = SessionSummary(passing.info, passing.reference, passing.frames, chars)
+    ok = dataclasses.replace(passing, characteristics=chars)
     assert ok.passed
     assert not dataclasses.replace(ok, incomplete="crash").passed
 

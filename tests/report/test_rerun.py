@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 import pytest
 
-from crossfield.cli.session import main
+from crossfield.cli import main
 from crossfield.config import parse_config
 from crossfield.errors import ConfigError, RecordingError
 from crossfield.geometry import fit_cylinder_axis

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 import crossfield
-from crossfield.cli.session import build_parser, resolve_run_config
+from crossfield.cli import build_parser
+from crossfield.cli.session import resolve_run_config
 from crossfield.errors import ConfigError, PluginError
 from crossfield.chain.registry import make_plugin_manager
 from crossfield.simulator.scenarios import TABLE3_ACTUAL_MM

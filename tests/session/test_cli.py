@@ -15,7 +15,9 @@ from pathlib import Path
 import pytest
 
 import crossfield
-from crossfield.cli.session import build_parser, log_level, main, resolve_run_config
+from crossfield.cli import build_parser, main
+from crossfield.cli.common import log_level
+from crossfield.cli.session import resolve_run_config
 from crossfield.config import DEFAULT_PLUGINS, SESSION_DEFAULTS
 from crossfield.chain.registry import STAGES, get_implementation, make_plugin_manager
 
@@ -33,7 +35,7 @@ def test_closed_pipe_ends_quietly():
     """The reader is gone before the first line is written: no traceback, the
     status of a command stopped by SIGPIPE."""
     proc = subprocess.Popen(
-        [sys.executable, "-m", "crossfield.cli.session", "plugins"], stdout=subprocess.PIPE, stderr=subprocess.PIPE
+        [sys.executable, "-m", "crossfield.cli", "plugins"], stdout=subprocess.PIPE, stderr=subprocess.PIPE
     )
     proc.stdout.close()  # before the child has imported anything, let alone written
     _, err = proc.communicate(timeout=120)
@@ -44,7 +46,7 @@ def test_closed_pipe_ends_quietly():
 @pytest.mark.skipif(shutil.which("head") is None, reason="needs head(1)")
 def test_plugins_into_head():
     proc = subprocess.run(
-        f"{sys.executable} -m crossfield.cli.session plugins | head -1", shell=True, capture_output=True, text=True,
+        f"{sys.executable} -m crossfield.cli plugins | head -1", shell=True, capture_output=True, text=True,
         timeout=120, check=False,
     )
     assert proc.stdout == "acquire:\n"
@@ -77,13 +79,13 @@ def test_verbosity_flags_set_the_crossfield_loggers(tmp_path, capsys, flags, inf
 
 
 def test_one_logger_per_module(caplog, tmp_path):
-    import crossfield.cli.session as cli_module
+    import crossfield.cli.common as cli_module
 
     caplog.set_level(logging.DEBUG, logger="crossfield")
     assert main(["plugins", "-vv"]) == 0
     names = {r.name for r in caplog.records}
-    assert cli_module.logger.name == cli_module.__name__ == "crossfield.cli.session"
-    assert "crossfield.cli.session" in names
+    assert cli_module.logger.name == cli_module.__name__ == "crossfield.cli.common"
+    assert "crossfield.cli.common" in names
     assert all(n.startswith("crossfield.") for n in names)
 
 
@@ -188,7 +190,7 @@ def test_user_guide_states_the_defaults():
     (["batch", "replay", "x.mcap"], 0),
 ])
 def test_batch_verbosity_is_kept_on_either_side_of_the_kind(argv, verbose) -> None:
-    from crossfield.cli.session import build_parser
+    from crossfield.cli import build_parser
 
     args = build_parser().parse_args(argv)
     assert args.verbose == verbose and args.quiet == 0

@@ -8,7 +8,7 @@ import pytest
 from session_tools import edit_json, record_session, rewrite_mcap
 
 from crossfield.config import DEFAULT_PLUGINS
-from crossfield.cli.session import main
+from crossfield.cli import main
 from crossfield.compare import compare, format_table
 from crossfield.recording.reader import open_recording
 from crossfield.chain.registry import make_plugin_manager

@@ -58,7 +58,7 @@ def site(tmp_path_factory):
 def crossfield(site: Path, *args: str) -> subprocess.CompletedProcess:
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(site), str(REPO)]))
     return subprocess.run(
-        [sys.executable, "-m", "crossfield.cli.session", *args],
+        [sys.executable, "-m", "crossfield.cli", *args],
         env=env,
         capture_output=True,
         text=True,
@@ -129,8 +129,9 @@ def test_replay_and_audit_with_the_entry_point_plugin(site, recorded, tmp_path):
 
 
 def test_the_example_uses_only_the_public_api_and_the_core_blob_detector():
-    """The example imports only names the core declares public (``__all__``) and
-    leaves blob detection to crossfield.imaging.blobs (no OpenCV of its own)."""
+    """The example imports crossfield through the plugin facade only
+    (``crossfield.plugin_api``) and leaves blob detection to the core's detector
+    (no OpenCV of its own)."""
     import ast
     import importlib
 
@@ -142,7 +143,6 @@ def test_the_example_uses_only_the_public_api_and_the_core_blob_detector():
         elif isinstance(node, ast.Import):
             imported.update({a.name: set() for a in node.names})
     assert "cv2" not in imported
-    assert "BlobDetector" in imported["crossfield.imaging.blobs"]
-    for module, names in imported.items():
-        if module.startswith("crossfield"):
-            assert names <= set(importlib.import_module(module).__all__), module
+    assert {m for m in imported if m.startswith("crossfield")} == {"crossfield.plugin_api"}
+    assert "BlobDetector" in imported["crossfield.plugin_api"]
+    assert imported["crossfield.plugin_api"] <= set(importlib.import_module("crossfield.plugin_api").__all__)

@@ -34,7 +34,7 @@ from session_tools import record_session
 def crossfield(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
     """The installed console script, as a user runs it."""
     script = Path(sys.executable).with_name("crossfield")
-    cmd = [str(script)] if script.exists() else [sys.executable, "-m", "crossfield.cli.session"]
+    cmd = [str(script)] if script.exists() else [sys.executable, "-m", "crossfield.cli"]
     return subprocess.run([*cmd, *args], capture_output=True, text=True, cwd=cwd, timeout=600)
 
 

@@ -6,7 +6,7 @@ import re
 import numpy as np
 import pytest
 
-from crossfield.cli.session import main
+from crossfield.cli import main
 from crossfield.config import parse_config
 from crossfield.hookspecs import hookimpl
 from crossfield.chain.registry import make_plugin_manager

@@ -125,6 +125,28 @@ def module_level_imports(name: str) -> set[str]:
     return {m for m in out if m in MODULES and m != name}
 
 
+def every_import(name: str) -> set[str]:
+    """The crossfield modules ``name`` imports anywhere: module level, ``if
+    TYPE_CHECKING:`` blocks and function bodies alike (a circle hidden in a function or
+    behind TYPE_CHECKING is still a circle of the design)."""
+    out: set[str] = set()
+    for node in ast.walk(tree(name)):
+        if isinstance(node, ast.Import):
+            out.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            module = absolute(name, node)
+            out.add(module)
+            out.update(f"{module}.{a.name}" for a in node.names)
+    return {m for m in out if m in MODULES and m != name}
+
+
+def import_graph(imports) -> dict[str, set[str]]:
+    """module -> the modules it imports (by ``imports(name)``), without the edge from a
+    module to its own package (a package's ``__init__`` is imported with it)."""
+    graph = {name: imports(name) for name in MODULES}
+    return {n: {m for m in deps if not n.startswith(m + ".")} for n, deps in graph.items()}
+
+
 def cycle(graph: dict[str, set[str]]) -> list[str] | None:
     """One import circle of ``graph`` (module -> imported modules), or None."""
     state: dict[str, int] = {}
@@ -153,12 +175,26 @@ def cycle(graph: dict[str, set[str]]) -> list[str] | None:
 
 
 def test_the_core_imports_have_no_circle():
-    graph = {name: module_level_imports(name) for name in MODULES}
-    # packages import their __init__: drop the edge from a module to its own package
-    graph = {n: {m for m in deps if not n.startswith(m + ".")} for n, deps in graph.items()}
+    graph = import_graph(module_level_imports)
     assert cycle(graph) is None
     assert "crossfield.chain.registry" not in graph["crossfield.config"]  # STAGES comes from stages.py
     assert graph["crossfield.stages"] <= {"crossfield.errors", "crossfield.plan", "crossfield.types"}
+
+
+def test_no_circle_hides_in_a_function_or_behind_type_checking():
+    assert cycle(import_graph(every_import)) is None
+
+
+def test_the_full_scan_sees_function_and_type_checking_imports(tmp_path, monkeypatch):
+    hidden = tmp_path / "hidden.py"
+    hidden.write_text(
+        "from typing import TYPE_CHECKING\n"
+        "if TYPE_CHECKING:\n    from crossfield.session import SessionSummary\n"
+        "def f():\n    from crossfield.chain.runner import run_session\n"
+    )
+    monkeypatch.setitem(MODULES, "crossfield.hidden", hidden)
+    assert {"crossfield.session", "crossfield.chain.runner"} <= every_import("crossfield.hidden")
+    assert not module_level_imports("crossfield.hidden") & {"crossfield.session", "crossfield.chain.runner"}
 
 
 def test_the_circle_finder_finds_one():
@@ -168,10 +204,11 @@ def test_the_circle_finder_finds_one():
 
 # ---- the session's facts and summary are each made in one place --------------------
 
-#: class -> the modules that construct it. SessionInfo: the runner (every session
+#: class -> the modules that construct it. SessionSummary: the chain's aggregate module
+#: (session_summary; session.py holds data only). SessionInfo: the runner (every session
 #: run) and the viewer, which reads a recorded session's facts back for display.
 CONSTRUCTED_IN = {
-    "SessionSummary": {"crossfield.session"},
+    "SessionSummary": {"crossfield.chain.aggregate"},
     "SessionInfo": {"crossfield.chain.runner", "crossfield.viz.rerun_mcap"},
 }
 
@@ -184,11 +221,9 @@ def test_session_info_and_summary_are_each_built_in_one_place():
                 called = node.func.id if isinstance(node.func, ast.Name) else getattr(node.func, "attr", "")
                 if called in found:
                     found[called].add(name)
-                elif called == "cls" and name == "crossfield.session":
-                    found["SessionSummary"].add(name)
     assert found == CONSTRUCTED_IN
     runner = ast.unparse(tree("crossfield.chain.runner"))
-    assert runner.count("SessionInfo(") == 1 and "SessionSummary.of_session(" in runner
+    assert runner.count("SessionInfo(") == 1 and "session_summary(" in runner
 
 
 # ---- plugins/ holds implementations only ---------------------------------------------
@@ -325,61 +360,70 @@ def test_every_hook_is_documented_with_its_signature(name):
     assert f"`{signature}`" in text, f"docs/plugins.md does not document {signature}"
 
 
-# ---- the public API the plugins use ------------------------------------------------
+# ---- the public API the plugins use: one facade ------------------------------------
 
 
 def plugin_imports() -> dict[str, set[str]]:
-    """Core module -> names the built-in plugins import from it."""
+    """Core module -> names the built-in plugins import from it (every import, function level too)."""
     used: dict[str, set[str]] = {}
     for name in PLUGIN_MODULES:
         for node in ast.walk(tree(name)):
             if isinstance(node, ast.ImportFrom):
                 module = absolute(name, node)
-                if module.startswith("crossfield.") and not module.startswith("crossfield.plugins"):
+                if module.startswith("crossfield") and not module.startswith("crossfield.plugins"):
                     used.setdefault(module, set()).update(a.name for a in node.names)
             elif isinstance(node, ast.Import):
                 for a in node.names:
-                    if a.name.startswith("crossfield."):
+                    if a.name.startswith("crossfield"):
                         used.setdefault(a.name, set())
-        # ``from crossfield.report import document as doc``: the names used are ``doc.NAME``
-        aliases = {}
-        for node in ast.walk(tree(name)):
-            if isinstance(node, ast.ImportFrom):
-                module = absolute(name, node)
-                for a in node.names:
-                    if f"{module}.{a.name}" in MODULES:
-                        aliases[a.asname or a.name] = f"{module}.{a.name}"
-                        used[module].discard(a.name)
-                        used.setdefault(f"{module}.{a.name}", set())
-        for node in ast.walk(tree(name)):
-            if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id in aliases:
-                used[aliases[node.value.id]].add(node.attr)
-    return {m: names for m, names in used.items() if m in MODULES and (names or MODULES[m].name != "__init__.py")}
+    return used
 
 
 PUBLIC = plugin_imports()
 
 
-def test_the_plugins_use_the_core():
-    assert {"crossfield.hookspecs", "crossfield.types", "crossfield.imaging.blobs"} <= set(PUBLIC)
+def test_the_plugins_import_the_core_through_the_facade_only():
+    assert set(PUBLIC) == {"crossfield.plugin_api"}
+    import crossfield.plugin_api as api
+
+    assert PUBLIC["crossfield.plugin_api"] <= set(api.__all__)
 
 
-@pytest.mark.parametrize("module_name", sorted(PUBLIC))
-def test_core_modules_the_plugins_import_declare_their_public_api(module_name):
-    module = importlib.import_module(module_name)
-    declared = getattr(module, "__all__", None)
-    assert declared is not None, f"{module_name} has no __all__"
-    assert sorted(set(declared)) == sorted(declared), "duplicates in __all__"
-    assert all(hasattr(module, n) for n in declared), [n for n in declared if not hasattr(module, n)]
-    assert PUBLIC[module_name] <= set(declared), sorted(PUBLIC[module_name] - set(declared))
+def test_the_facade_names_only_public_names_of_their_home_modules():
+    """Every name of crossfield.plugin_api is re-exported from the module it lives in,
+    whose own ``__all__`` declares it; the facade defines nothing itself."""
+    import crossfield.plugin_api as api
+
+    declared = api.__all__
+    assert sorted(set(declared)) == sorted(declared) == declared, "__all__ sorted, no duplicates"
+    for name in declared:
+        value = getattr(api, name)
+        home = FACADE_HOMES[name]
+        module = importlib.import_module(home)
+        assert getattr(module, name) is value and name in module.__all__, (name, home)
+
+
+def facade_homes() -> dict[str, str]:
+    """facade name -> the module its ``from X import`` in plugin_api.py names."""
+    out = {}
+    for node in tree("crossfield.plugin_api").body:
+        if isinstance(node, ast.ImportFrom):
+            for a in node.names:
+                out[a.asname or a.name] = node.module
+    return out
+
+
+FACADE_HOMES = facade_homes()
 
 
 def test_docs_list_the_public_api():
+    """docs/plugins.md's table lists every facade name in the row of its home module."""
     text = PLUGINS_DOC.read_text(encoding="utf-8")
     section = text.split("## The public API", 1)[1].split("\n## ", 1)[0]
-    listed = set(re.findall(r"^\| `(crossfield(?:\.\w+)+)` \|", section, flags=re.MULTILINE))
-    assert listed == set(PUBLIC)
-    for module_name in PUBLIC:
-        row = next(line for line in section.splitlines() if line.startswith(f"| `{module_name}` |"))
-        for name in importlib.import_module(module_name).__all__:
-            assert f"`{name}`" in row, (module_name, name)
+    rows = {
+        m.group(1): m.group(0)
+        for m in re.finditer(r"^\| `(crossfield(?:\.\w+)+)` \|.*$", section, flags=re.MULTILINE)
+    }
+    assert set(rows) == set(FACADE_HOMES.values())
+    for name, home in FACADE_HOMES.items():
+        assert f"`{name}`" in rows[home], (home, name)
