@@ -39,6 +39,9 @@ from crossfield.config import parse_config  # noqa: E402
 from crossfield.chain.registry import make_plugin_manager  # noqa: E402
 from crossfield.chain.runner import run_session  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from figures import record as record_figure  # noqa: E402
+
 
 def record(root: Path, n: int, frames: int) -> list[str]:
     paths = []
@@ -100,6 +103,7 @@ def main() -> int:
         for workers in (1, 2):
             s, inside = on_dask(workers, args.kind, paths, work / f"dask{workers}")
             one = s if workers == 1 else one
+            record_figure(f"batch.workers{workers}_vs_sequential", sequential / s, "higher")
             print(
                 f"  {workers} worker(s)       {n / s:7.3f} sessions/s   {sequential / s:4.2f} x the sequential loop"
                 f"   (inside the tasks: {inside / n * 1e3:.0f} ms per session, sequential {sequential / n * 1e3:.0f})"

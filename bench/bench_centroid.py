@@ -51,6 +51,9 @@ from synthetic_targets import distractors, random_targets, render
 from crossfield.chain.registry import implementations, make_plugin_manager
 from crossfield.imaging.blobs import estimate_background
 
+sys.path.insert(0, str(ROOT / "bench"))
+from figures import record  # noqa: E402
+
 
 def baseline(image: np.ndarray, threshold_dn: int) -> list[tuple[float, float]]:
     """threshold + findContours + moments: contour-polygon centroids."""
@@ -241,6 +244,7 @@ def main(argv: list[str] | None = None) -> int:
             f"found {int(matched.sum())}/{len(truth)}, rejected {len(result.rejected)}, "
             f"radial RMS error {rms:.4f} px, median sigma_uv {np.median(result.sigma_uv):.4f} px"
         )
+        record(f"centroid.{name}_vs_opencv", ms / base_ms, "lower")
     return 0
 
 

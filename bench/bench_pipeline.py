@@ -7,6 +7,12 @@ Run on demand (never part of the tests)::
 Measures, in one run on this machine:
 
 * baseline: a plain write of the same image bytes to a file (pairs/s);
+* CPU baseline: the least OpenCV work that finds the targets of a pair
+  (``cv2.threshold`` + ``cv2.findContours`` + ``cv2.moments`` on both images, as
+  ``bench_centroid.py``'s baseline), pairs/s: the page cache and the disk of a
+  shared machine make the write baseline swing 10x between runs, this one not;
+  the guard's figures (``bench/run.py``) are the pipeline's rate against it and
+  the recorded pipeline's against the unrecorded one;
 * the pipeline without recording (pairs/s, target >= 150);
 * the pipeline with lossless MCAP recording (pairs/s, target >= 60);
 * peak RSS growth between a short and a 4x longer session (must not grow with
@@ -26,9 +32,13 @@ import tempfile
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from figures import record  # noqa: E402
 
 from crossfield.config import parse_config  # noqa: E402
 from crossfield.hookspecs import hookimpl  # noqa: E402
@@ -92,6 +102,22 @@ def baseline_write(pairs, count: int, path: Path) -> float:
     return count / elapsed
 
 
+def baseline_opencv(pairs, count: int) -> float:
+    """Pairs/s of threshold + findContours + moments on both images of each pair."""
+    from crossfield.imaging.blobs import estimate_background
+
+    thresholds = [[estimate_background(im, 8.0).threshold_dn for im in (f.upper, f.lower)] for f in pairs]
+    start = time.perf_counter()
+    for k in range(count):
+        f = pairs[k % len(pairs)]
+        for image, threshold in zip((f.upper, f.lower), thresholds[k % len(pairs)]):
+            _, mask16 = cv2.threshold(image, threshold, 1, cv2.THRESH_BINARY)
+            contours, _ = cv2.findContours(mask16.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+            for contour in contours:
+                cv2.moments(contour)
+    return count / (time.perf_counter() - start)
+
+
 def pipeline_rate(pm, csv: Path, out: Path, count: int, record: bool, name: str) -> tuple[float, object]:
     config = parse_config(
         {
@@ -131,16 +157,20 @@ def main() -> None:
         rows = []
         for r in range(args.repeat):
             base = baseline_write(pairs, args.frames, tmp / "plain.bin")
+            cpu = baseline_opencv(pairs, args.frames)
             plain, summary = pipeline_rate(pm, csv, tmp, args.frames, False, f"norec{r}")
             rec, _ = pipeline_rate(pm, csv, tmp, args.frames, True, f"rec{r}")
-            rows.append((base, plain, rec))
+            rows.append((base, plain, rec, cpu))
             print(
-                f"run {r + 1}: baseline write {base:7.1f} pairs/s | pipeline {plain:6.1f} pairs/s "
-                f"(x{plain / base:.3f}) | pipeline+MCAP {rec:6.1f} pairs/s (x{rec / base:.3f})"
+                f"run {r + 1}: baseline write {base:7.1f} pairs/s | OpenCV {cpu:6.1f} pairs/s | pipeline "
+                f"{plain:6.1f} pairs/s (x{plain / base:.3f}, x{plain / cpu:.3f} OpenCV) | pipeline+MCAP "
+                f"{rec:6.1f} pairs/s (x{rec / base:.3f}, x{rec / plain:.3f} unrecorded)"
             )
-        base, plain, rec = np.median(np.array(rows), axis=0)
+        base, plain, rec, cpu = np.median(np.array(rows), axis=0)
+        record("pipeline.unrecorded_vs_opencv", plain / cpu, "higher")
+        record("pipeline.recorded_vs_unrecorded", rec / plain, "higher")
         failed = sum(f.error is not None for f in summary.frames)
-        print(f"\nmedian of {args.repeat}: baseline {base:.1f} pairs/s")
+        print(f"\nmedian of {args.repeat}: baseline {base:.1f} pairs/s, OpenCV baseline {cpu:.1f} pairs/s")
         print(f"  pipeline, no recording : {plain:6.1f} pairs/s  ratio {plain / base:.3f}  target >= 150: {'met' if plain >= 150 else 'NOT met'}")
         print(f"  pipeline, MCAP recorded: {rec:6.1f} pairs/s  ratio {rec / base:.3f}  target >= 60:  {'met' if rec >= 60 else 'NOT met'}")
         print(f"  frames failed in the last session: {failed} of {args.frames}")

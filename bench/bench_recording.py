@@ -8,13 +8,14 @@ For each repeat (interleaved, so that both see the same disk state):
   written with ``file.write`` into one file;
 * recorder: the same pairs through ``pm.hook.on_frame`` into a
   :class:`crossfield.recording.recorder.McapRecorder` (writer thread on, then off),
-  closed at the end (summary and indexes written);
+  closed at the end (summary and indexes written, the file sealed), uncompressed
+  and with each chunk compression (``--compressions``, ``[session] compression``);
 * with ``--rerun``: the same pairs through :class:`crossfield.viz.rerun_log.RerunLogger`.
 
 Reports pairs/s (wall clock, file closed; with ``--fsync`` also synced to
 disk), the CPU time per pair of the process, and for the recorder the time
-the pipeline thread spends inside the hook per pair. Medians over the
-repeats. Without ``--fsync`` the writes land in the page cache, so the
+the pipeline thread spends inside the hook per pair, and the file's size
+(MB, and as a fraction of the plain write's). Medians over the repeats. Without ``--fsync`` the writes land in the page cache, so the
 figures measure CPU cost; with it they include the disk.
 """
 
@@ -35,6 +36,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from crossfield.recording.recorder import McapRecorder
 from crossfield.chain.registry import make_plugin_manager
 from crossfield.types import StereoFrame
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from figures import record  # noqa: E402
 
 HEIGHT, WIDTH = 1236, 1626
 
@@ -72,6 +76,7 @@ def run_baseline(path: Path, frames: list[StereoFrame], pairs: int, fsync: bool)
         "pairs_per_s": pairs / wall,
         "cpu_ms_per_pair": 1e3 * cpu / pairs,
         "hook_ms_per_pair": float("nan"),
+        "mb": path.stat().st_size / 1e6,
     }
 
 
@@ -99,13 +104,17 @@ def run_observer(observer, path: Path, frames: list[StereoFrame], pairs: int, fs
         "pairs_per_s": pairs / wall,
         "cpu_ms_per_pair": 1e3 * cpu / pairs,
         "hook_ms_per_pair": 1e3 * in_hook / pairs,
+        "mb": path.stat().st_size / 1e6,
     }
 
 
 def run_recorder(
-    path: Path, frames: list[StereoFrame], pairs: int, fsync: bool, writer_thread: bool
+    path: Path, frames: list[StereoFrame], pairs: int, fsync: bool, writer_thread: bool, compression: str = "none"
 ) -> dict[str, float]:
-    return run_observer(McapRecorder(path, overwrite=True, writer_thread=writer_thread), path, frames, pairs, fsync)
+    recorder = McapRecorder(path, overwrite=True, writer_thread=writer_thread, compression=compression)
+    result = run_observer(recorder, path, frames, pairs, fsync)
+    Path(f"{path}.seal.json").unlink(missing_ok=True)  # the sidecar of the seal
+    return result
 
 
 def run_rerun_logger(path: Path, frames: list[StereoFrame], pairs: int, fsync: bool) -> dict[str, float]:
@@ -124,6 +133,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--rerun", action="store_true", help="also time RerunLogger (images into session.rrd)"
     )
+    parser.add_argument("--compressions", nargs="*", default=["zstd", "lz4"],
+                        help="chunk compressions to time besides none (writer thread on)")
     args = parser.parse_args(argv)
 
     frames = make_frames()
@@ -137,6 +148,10 @@ def main(argv: list[str] | None = None) -> None:
         "McapRecorder (writer thread)": lambda p: run_recorder(p, frames, args.pairs, args.fsync, True),
         "McapRecorder (synchronous)": lambda p: run_recorder(p, frames, args.pairs, args.fsync, False),
     }
+    for compression in args.compressions:
+        cases[f"McapRecorder {compression} (thread)"] = (
+            lambda p, c=compression: run_recorder(p, frames, args.pairs, args.fsync, True, c)
+        )
     if args.rerun:
         cases["RerunLogger (images)"] = lambda p: run_rerun_logger(p, frames, args.pairs, args.fsync)
     results: dict[str, list[dict[str, float]]] = {name: [] for name in cases}
@@ -146,14 +161,26 @@ def main(argv: list[str] | None = None) -> None:
             for name, run in cases.items():
                 results[name].append(run(path))
                 path.unlink()
-    print(f"{'case':30s} {'pairs/s':>9s} {'(min..max)':>15s} {'CPU ms/pair':>12s} {'in hook ms/pair':>16s}")
+    print(
+        f"{'case':30s} {'pairs/s':>9s} {'(min..max)':>15s} {'CPU ms/pair':>12s} {'in hook ms/pair':>16s} "
+        f"{'CPU / plain':>12s} {'MB':>7s} {'size / plain':>13s}"
+    )
+    plain_cpu = statistics.median(r["cpu_ms_per_pair"] for r in results["plain file write"])
+    plain_mb = results["plain file write"][0]["mb"]
     for name, runs in results.items():
         rates = [r["pairs_per_s"] for r in runs]
         cpu = statistics.median(r["cpu_ms_per_pair"] for r in runs)
         hook = statistics.median(r["hook_ms_per_pair"] for r in runs)
+        mb = runs[0]["mb"]
         span = f"({min(rates):.0f}..{max(rates):.0f})"
         hook_text = "-" if np.isnan(hook) else f"{hook:.2f}"
-        print(f"{name:30s} {statistics.median(rates):9.1f} {span:>15s} {cpu:12.2f} {hook_text:>16s}")
+        print(
+            f"{name:30s} {statistics.median(rates):9.1f} {span:>15s} {cpu:12.2f} {hook_text:>16s} "
+            f"{cpu / plain_cpu:12.2f} {mb:7.0f} {mb / plain_mb:13.3f}"
+        )
+        if name != "plain file write":
+            key = name.removeprefix("McapRecorder ").replace("(", "").replace(")", "").replace(" ", "_")
+            record(f"recording.{key}_cpu_vs_plain", cpu / plain_cpu, "lower")
 
 
 if __name__ == "__main__":

@@ -28,11 +28,14 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "tests" / "triangulate"))
 
 from test_triangulate import make_calibration, observe, random_points, stereo  # noqa: E402
 
 from crossfield.plugins.triangulate_epipolar import EpipolarTriangulator  # noqa: E402
+
+sys.path.insert(0, str(ROOT / "bench"))
+from figures import record  # noqa: E402
 
 
 def baseline(calibration, uv_u: np.ndarray, uv_l: np.ndarray) -> np.ndarray:
@@ -79,6 +82,7 @@ def main() -> None:
     print(f"  baseline : median {np.median(base_us):7.1f} us, p90 {np.percentile(base_us, 90):7.1f} us "
           f"(undistortPoints x2 + triangulatePoints, pre-paired)")
     print(f"  ratio    : {np.median(ours_us) / np.median(base_us):.1f} x baseline")
+    record("triangulate.epipolar_vs_opencv", float(np.median(ours_us) / np.median(base_us)), "lower")
 
     errors, normalised, matched, total = [], [], 0, 0
     for X, centroids, *_ in frames:

@@ -53,6 +53,7 @@ SESSION_DEFAULTS: dict[str, Any] = {
     "match_tolerance_mm": 0.5,  # rigid-distance agreement for control-point matching
     "signing_key": "",  # Ed25519 station key (PEM) that signs the recording's seal; docs/replay-and-audit.md
     "monte_carlo": 0,  # GUM-S1 Monte Carlo check of the budget at the session end: draws (0 = off); docs/uncertainty.md
+    "compression": "zstd",  # session.mcap chunk compression: "zstd", "lz4" or "none" (lossless); docs/recording.md
 }
 
 
@@ -62,6 +63,7 @@ _SESSION_CHECKS: dict[str, Callable[[Any], str | None]] = {
     "rerun_image_every": lambda v: None if v >= 0 else "an integer >= 0 (0: no images)",
     "output_dir": lambda v: None if v.strip() else "a folder (not empty)",
     "monte_carlo": lambda v: None if v == 0 or v >= 2 else "0 (off) or a number of draws >= 2",
+    "compression": lambda v: None if v in ("zstd", "lz4", "none") else 'one of "zstd", "lz4", "none"',
 }
 
 

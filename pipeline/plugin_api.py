@@ -82,10 +82,12 @@ from crossfield.imaging.blobs import (
     Background,
     Blob,
     BlobDetector,
+    BlobStack,
     DetectorOptions,
     sort_order,
     sort_rejected,
 )
+from crossfield.imaging.centroids import BlobCentroids, SubPixel
 from crossfield.imaging.disc_model import PSF_ORDERS, edge_profile, fit_discs, shape_from_moments
 from crossfield.imaging.eccentricity import View, centre_offsets, fit_circles, offset_covariance
 from crossfield.plan import CharacteristicSpec, MeasurementPlan
@@ -155,7 +157,9 @@ __all__ = [
     "AxisFit",
     "Background",
     "Blob",
+    "BlobCentroids",
     "BlobDetector",
+    "BlobStack",
     "BlockCounter",
     "BytesSink",
     "CAMERAS",
@@ -229,6 +233,7 @@ __all__ = [
     "StereoCentroids",
     "StereoFrame",
     "StereoGeometry",
+    "SubPixel",
     "TEMPLATE_DIR",
     "Transport",
     "Triangulator",

@@ -24,7 +24,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +33,7 @@ import pluggy
 from crossfield.chain.runner import run_session, safe_session_name
 from crossfield.config import Config, with_overrides
 from crossfield.errors import ConfigError, RecordingError
+from crossfield.prefetch import ahead
 from crossfield.recording import layout as L
 from crossfield.recording.codec import decode_image, decode_link_event, ground_truth_from_doc, utc_text  # noqa: F401 - public here too
 from crossfield.recording.facts import SessionFacts, load_session_facts, require_session  # noqa: F401
@@ -45,7 +46,7 @@ from crossfield.types import CAMERAS, StereoFrame
 READABLE_FORMATS = L.READABLE_FORMATS
 
 #: Session keys that say where and how a replay is written, not what it computes.
-OUTPUT_KEYS = ("name", "output_dir", "record", "rerun", "rerun_image_every", "signing_key")
+OUTPUT_KEYS = ("name", "output_dir", "record", "rerun", "rerun_image_every", "signing_key", "compression")
 
 #: The facts of a recorded session (:class:`crossfield.recording.facts.SessionFacts`).
 RecordedSession = SessionFacts
@@ -80,7 +81,30 @@ class RecordingSource:
         self.frames_read = 0
 
     def frames(self) -> Iterator[StereoFrame]:
+        """The recorded pairs, read and decoded ahead on a second thread
+        (:func:`crossfield.prefetch.ahead`, two pairs ahead): the same pairs in the
+        same order, and the same errors at the same point, as :meth:`decoded_frames`."""
+        notes: list[str | None] = []
+        for frame in ahead(lambda: self._decode(notes.append), depth=2, name="replay-decode"):
+            self.frames_read += 1
+            yield frame
+        self.incomplete = notes[0] if notes else None
+
+    def decoded_frames(self) -> Iterator[StereoFrame]:
+        """The recorded pairs, read and decoded on the calling thread; ``incomplete``
+        is set once they are exhausted."""
+        def finished(notes: str | None) -> None:
+            self.incomplete = notes
+
+        for frame in self._decode(finished):
+            self.frames_read += 1
+            yield frame
+
+    def _decode(self, finished: Callable[[str | None], None]) -> Iterator[StereoFrame]:
+        """The pairs in file order; at the end ``finished(notes)`` with what the
+        ``incomplete`` note says (None for a complete recording)."""
         rec = self.recorded.recording
+        pairs = 0
         pending: dict[int, dict[str, Any]] = {}
         last: tuple[int, int] | None = None
         for m in rec.messages(L.IMAGE_TOPICS, decode=False, file_order=True):
@@ -94,7 +118,7 @@ class RecordingSource:
             entry["bit_depth"] = int(m.channel_metadata.get(L.CHANNEL_BIT_DEPTH) or 8 * pixels.itemsize)
             if all(c in entry for c in CAMERAS):
                 del pending[m.sequence]
-                self.frames_read += 1
+                pairs += 1
                 last = (m.sequence, entry["time"])
                 yield StereoFrame(
                     m.sequence, entry["time"], entry["upper"], entry["lower"], entry["bit_depth"]
@@ -107,19 +131,19 @@ class RecordingSource:
                 else "no complete stereo pair was recorded"
             )
             notes.append(
-                f"the recording {rec.path} is incomplete ({rec.damage}); {self.frames_read} stereo pair(s) "
+                f"the recording {rec.path} is incomplete ({rec.damage}); {pairs} stereo pair(s) "
                 f"replayed, {ends}"
             )
         elif self.recorded.result is None:
             notes.append(
                 f"the session recorded in {rec.path} did not end normally (no {L.META_RESULT!r} record: "
                 f"it was interrupted, e.g. by Ctrl-C, before its results were written); "
-                f"{self.frames_read} stereo pair(s) replayed"
+                f"{pairs} stereo pair(s) replayed"
             )
         for seq, entry in sorted(pending.items()):
             have = [c for c in CAMERAS if c in entry]
             notes.append(f"stereo pair {seq} has only its {' and '.join(have)} image, not replayed")
-        self.incomplete = "; ".join(notes) or None
+        finished("; ".join(notes) or None)
 
     def serial_chunks(self) -> list[SerialChunk]:
         """Every recorded read from the CMM line, and its link events:

@@ -1,8 +1,10 @@
 """Centroid plugin "ellipse": ellipse fitted to the sub-pixel edge of each blob.
 
-Detection (threshold, blobs, rejection, local background) is shared with
-the other centroid plugins in :mod:`crossfield.imaging.blobs`; this module does the
-sub-pixel step (``docs/centroids.md``).
+Detection (threshold, blobs, rejection, local background) and the
+CentroidSet are shared with the other centroid plugins
+(:class:`crossfield.imaging.centroids.BlobCentroids`, on the compiled blob stacks
+of :mod:`crossfield.imaging.blobs`); this module does the sub-pixel step
+(``docs/centroids.md``).
 
 A retro-reflective target images as a flat-topped, blurred ellipse. Its
 iso-intensity contour at half the plateau height (above the local
@@ -42,34 +44,25 @@ Pixels in u, v; (0, 0) is the centre of the top-left pixel.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import cv2
 import numpy as np
 
-from crossfield.plugin_api import (
-    Blob,
-    BlobDetector,
-    CentroidSet,
-    DetectorOptions,
-    RejectedBlob,
-    hookimpl,
-    sort_order,
-    sort_rejected,
-)
+from crossfield.plugin_api import Background, BlobCentroids, BlobStack, SubPixel, hookimpl
 
 #: fewer edge points than this and the fit is not trusted
 MIN_EDGE_POINTS = 12
 
 
-def edge_points(blob: Blob, edge_level: float) -> np.ndarray:
-    """Sub-pixel points (N, 2) (u, v) in ROI pixel coordinates where the blob's
-    background-subtracted intensity crosses ``edge_level`` * its peak."""
-    roi = blob.roi
+def edge_points(roi: np.ndarray, window: np.ndarray, level: float) -> np.ndarray:
+    """Sub-pixel points (N, 2) (u, v) in ROI pixel coordinates where the (h, w) image
+    ``roi`` (DN) crosses ``level`` (DN) between two 4-neighbouring pixels of the 0/1
+    ``window`` (module docstring, step 2)."""
     h, w = roi.shape
-    level = blob.background_dn + edge_level * blob.peak_dn
     # Integer images: I >= level <=> I >= ceil(level); no float copy of the ROI.
     above = roi >= (math.ceil(level) if roi.dtype.kind in "ui" else level)
-    inside = blob.window.view(bool)
+    inside = window.view(bool)
     flat = roi.ravel()  # (h * w,) pixel p = r * w + c
     parts = []
     # Pairs along rows (u direction): p = (r, c) and p + 1 = (r, c + 1).
@@ -136,80 +129,40 @@ def fit_ellipse(points: np.ndarray) -> tuple[float, float, float, float] | None:
     return uc, vc, math.sqrt(max(cov[0, 0], 0.0)), math.sqrt(max(cov[1, 1], 0.0))
 
 
-class EllipseCentroids:
+class EllipseCentroids(BlobCentroids):
     """Thresholded blobs; centre of an ellipse fitted to the sub-pixel edge points.
 
-    Options: as for "weighted" (threshold_sigma, min_area_px, max_area_px,
-    min_roundness, reject_saturated, reject_border, bit_depth, dilate_px,
-    ring_px, background_stride), plus edge_level: the edge is where the
-    background-subtracted intensity crosses edge_level * peak (0 < edge_level < 1).
+    Options: the detection options of :class:`~crossfield.imaging.centroids.BlobCentroids`
+    (threshold_sigma, min_area_px, max_area_px, min_roundness, reject_saturated,
+    reject_border, bit_depth, dilate_px, ring_px, background_stride), plus
+    edge_level: the edge is where the background-subtracted intensity crosses
+    edge_level * peak (0 < edge_level < 1). A blob whose edge cannot be fitted is
+    rejected as ``"fit_failed"``.
     """
 
     method = "ellipse"
 
-    def __init__(
-        self,
-        *,
-        threshold_sigma: float = 8.0,
-        min_area_px: int = 50,
-        max_area_px: int = 20000,
-        min_roundness: float = 0.5,
-        reject_saturated: bool = True,
-        reject_border: bool = True,
-        bit_depth: int = 12,
-        dilate_px: int = 2,
-        ring_px: int = 3,
-        background_stride: int = 8,
-        edge_level: float = 0.5,
-    ) -> None:
+    def __init__(self, *, edge_level: float = 0.5, **detector) -> None:
         if not 0.0 < edge_level < 1.0:
             raise ValueError(f"edge_level must be in (0, 1), got {edge_level}")
         self.edge_level = float(edge_level)
-        self.detector = BlobDetector(
-            DetectorOptions(
-                threshold_sigma=threshold_sigma,
-                min_area_px=min_area_px,
-                max_area_px=max_area_px,
-                min_roundness=min_roundness,
-                reject_saturated=reject_saturated,
-                reject_border=reject_border,
-                bit_depth=bit_depth,
-                dilate_px=dilate_px,
-                ring_px=ring_px,
-                stride=background_stride,
-            )
-        )
+        super().__init__(**detector)
 
-    def extract(self, image: np.ndarray, camera: str, sequence: int) -> CentroidSet:
-        """Centroids of the targets in one (H, W) integer image (DN).
-
-        Returns a CentroidSet in raster order (by v, then u), pixel units.
-        A blob whose edge cannot be fitted is rejected as ``"fit_failed"``.
-        """
-        blobs, rejected, _ = self.detector.detect(image)
-        kept: list[Blob] = []
-        rows: list[tuple[float, float, float, float]] = []
-        for blob in blobs:
-            fit = fit_ellipse(edge_points(blob, self.edge_level))
-            h, w = blob.roi.shape
-            if fit is None or not (0 <= fit[0] < w and 0 <= fit[1] < h):
-                rejected.append(RejectedBlob(blob.uv, "fit_failed"))
-                continue
-            kept.append(blob)
-            rows.append((blob.x0 + fit[0], blob.y0 + fit[1], fit[2], fit[3]))
+    def subpixel(self, stacks: Sequence[BlobStack], background: Background) -> SubPixel:
+        """Edge points and the ellipse fit of every blob, on its stack slice (the window is
+        inside the blob's ROI, so the points are those of the ROI, shifted to the slice)."""
+        rows = []
+        for st in stacks:
+            side_v, side_u = st.roi.shape[1:]
+            levels = st.background_dn + self.edge_level * st.peak_dn
+            for t in range(len(st)):
+                fit = fit_ellipse(edge_points(st.roi[t], st.window[t], float(levels[t])))
+                if fit is None or not (0 <= fit[0] < side_u and 0 <= fit[1] < side_v):
+                    rows.append((np.nan, np.nan, np.nan, np.nan))
+                else:
+                    rows.append((st.x0[t] + fit[0], st.y0[t] + fit[1], fit[2], fit[3]))
         table = np.array(rows, dtype=np.float64).reshape(-1, 4)
-        order = sort_order(table[:, :2])
-        return CentroidSet(
-            camera=camera,
-            sequence=sequence,
-            uv=table[order, :2],
-            sigma_uv=table[order, 2:],
-            area_px=np.array([kept[i].area_px for i in order], dtype=np.float64),
-            roundness=np.array([kept[i].roundness for i in order], dtype=np.float64),
-            peak=np.array([kept[i].peak_dn for i in order], dtype=np.float64),
-            rejected=sort_rejected(rejected),
-            method=self.method,
-        )
+        return SubPixel(uv=table[:, :2], sigma_uv=table[:, 2:], ok=np.isfinite(table[:, 0]))
 
 
 @hookimpl

@@ -1,8 +1,9 @@
 """Centroid plugin "modelfit": maximum-likelihood fit of a blurred elliptical disc per target.
 
 Detection (threshold, blobs, rejection, local background, the window of
-each blob) is the shared :class:`crossfield.imaging.blobs.BlobDetector` in
-its batched form (``detect_stacks``: one gather per ROI size class); the
+each blob) and the CentroidSet are the shared
+:class:`crossfield.imaging.centroids.BlobCentroids` (the batched detector,
+``detect_stacks``: one gather per ROI size class); the
 intensity-weighted centroid and second moments of each blob seed the fit.
 The sub-pixel step is :func:`crossfield.imaging.disc_model.fit_discs`: a
 compiled kernel over the targets of each stack (numba, one thread, one target
@@ -25,20 +26,20 @@ Pixels in u, v; (0, 0) is the centre of the top-left pixel.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from crossfield.plugin_api import (
     PSF_ORDERS,
-    BlobDetector,
-    CentroidSet,
-    DetectorOptions,
-    RejectedBlob,
+    Background,
+    BlobCentroids,
+    BlobStack,
+    SubPixel,
     edge_profile,
     fit_discs,
     hookimpl,
     shape_from_moments,
-    sort_order,
-    sort_rejected,
 )
 
 #: a fitted centre further than this from its seed (px) is a failed fit
@@ -50,39 +51,34 @@ INSIDE_SIGMAS = 3.7
 OUTSIDE_SIGMAS = 3.2
 
 
-class ModelFitCentroids:
+class ModelFitCentroids(BlobCentroids):
     """Blobs from the shared detector; centres from an ML blurred-disc fit.
 
-    Options: the detection options of "weighted" (threshold_sigma,
-    min_area_px, max_area_px, min_roundness, reject_saturated, reject_border,
-    bit_depth, dilate_px, ring_px, background_stride), plus
+    Options: the detection options of :class:`~crossfield.imaging.centroids.BlobCentroids`
+    (threshold_sigma, min_area_px, max_area_px, min_roundness, reject_saturated,
+    reject_border, bit_depth, dilate_px, ring_px, background_stride), plus
     gain_e_per_dn: conversion gain (e-/DN) for the photon noise;
     blur_sigma_px: the Gaussian PSF sigma (px);
     psf_order: ``"optical"`` (PSF on the scene, then pixel integration: a
       real camera) or ``"pixel"`` (pixel coverage blurred on the pixel grid:
       how the simulator and the synthetic test images are rendered);
     max_iterations: Gauss-Newton iteration limit.
+    A blob whose fit does not converge to a disc near its seed is rejected as
+    ``"fit_failed"``; the fitted edge conics go to ``CentroidSet.ellipse``
+    (with ``ellipse_cov``).
     """
 
     method = "modelfit"
+    fits_conics = True
 
     def __init__(
         self,
         *,
-        threshold_sigma: float = 8.0,
-        min_area_px: int = 50,
-        max_area_px: int = 20000,
-        min_roundness: float = 0.5,
-        reject_saturated: bool = True,
-        reject_border: bool = True,
-        bit_depth: int = 12,
-        dilate_px: int = 2,
-        ring_px: int = 3,
-        background_stride: int = 8,
         gain_e_per_dn: float = 2.86,
         blur_sigma_px: float = 0.9,
         psf_order: str = "optical",
         max_iterations: int = 1,
+        **detector,
     ) -> None:
         if not gain_e_per_dn > 0:
             raise ValueError(f"gain_e_per_dn must be > 0, got {gain_e_per_dn}")
@@ -96,72 +92,36 @@ class ModelFitCentroids:
         if psf_order not in PSF_ORDERS:
             raise ValueError(f"psf_order must be one of {', '.join(PSF_ORDERS)}, got {psf_order!r}")
         self.profile = edge_profile(self.blur_sigma_px, psf_order)
-        self.detector = BlobDetector(
-            DetectorOptions(
-                threshold_sigma=threshold_sigma,
-                min_area_px=min_area_px,
-                max_area_px=max_area_px,
-                min_roundness=min_roundness,
-                reject_saturated=reject_saturated,
-                reject_border=reject_border,
-                bit_depth=bit_depth,
-                dilate_px=dilate_px,
-                ring_px=ring_px,
-                stride=background_stride,
-            )
-        )
+        super().__init__(**detector)
 
-    def extract(self, image: np.ndarray, camera: str, sequence: int) -> CentroidSet:
-        """Centroids of the targets in one (H, W) integer image (DN).
-
-        Returns a CentroidSet in raster order (by v, then u), pixel units, with
-        the fitted edge conics (``ellipse``, ``ellipse_cov``). A blob whose fit
-        does not converge to a disc near its seed is rejected as ``"fit_failed"``.
-        """
-        stacks, rejected, background = self.detector.detect_stacks(image)
-        seeds = np.concatenate([st.uv for st in stacks]) if stacks else np.zeros((0, 2))
+    def subpixel(self, stacks: Sequence[BlobStack], background: Background) -> SubPixel:
+        """The ML disc fit of every blob, seeded by its weighted centroid and second moments."""
+        seeds = np.concatenate([st.uv for st in stacks])
         n = len(seeds)
         sigma_e = float(np.sqrt(self.blur_sigma_px**2 + 1.0 / 12.0))
-        if n:
-            moments = np.concatenate([st.moments for st in stacks])
-            start = np.zeros((n, 7))  # centre relative to the seed (the weighted centroid)
-            start[:, 2:5] = shape_from_moments(moments[:, 0], moments[:, 1], moments[:, 2], sigma_e)
-            start[:, 5] = np.concatenate([st.peak_dn for st in stacks])
-            start[:, 6] = np.concatenate([st.background_dn for st in stacks])
-            fit = fit_discs(
-                stacks, seeds, start,
-                band=(INSIDE_SIGMAS * sigma_e, OUTSIDE_SIGMAS * sigma_e),
-                profile=self.profile,
-                noise_sigma_dn=background.sigma_dn,
-                gain_e_per_dn=self.gain_e_per_dn,
-                max_iterations=self.max_iterations,
-            )
-            good = fit.ok & (np.hypot(fit.params[:, 0], fit.params[:, 1]) < MAX_SHIFT_PX)
-            fit.params[:, :2] += seeds
-        else:
-            good = np.zeros(0, bool)
-        for i in np.flatnonzero(~good):
-            rejected.append(RejectedBlob((float(seeds[i, 0]), float(seeds[i, 1])), "fit_failed"))
-        keep = np.flatnonzero(good)
-        if keep.size:
-            params, cov = fit.params[keep], fit.cov[keep]
-        else:
-            params, cov = np.zeros((0, 7)), np.zeros((0, 7, 7))
-        order = sort_order(params[:, :2])
-        params, cov = params[order], cov[order]
-        kept = keep[order]
-        area = np.concatenate([st.area_px for st in stacks]).astype(np.float64) if n else np.zeros(0)
-        roundness = np.concatenate([st.roundness for st in stacks]) if n else np.zeros(0)
-        return CentroidSet(
-            camera=camera,
-            sequence=sequence,
+        moments = np.concatenate([st.moments for st in stacks])
+        start = np.zeros((n, 7))  # centre relative to the seed (the weighted centroid)
+        start[:, 2:5] = shape_from_moments(moments[:, 0], moments[:, 1], moments[:, 2], sigma_e)
+        start[:, 5] = np.concatenate([st.peak_dn for st in stacks])
+        start[:, 6] = np.concatenate([st.background_dn for st in stacks])
+        fit = fit_discs(
+            stacks, seeds, start,
+            band=(INSIDE_SIGMAS * sigma_e, OUTSIDE_SIGMAS * sigma_e),
+            profile=self.profile,
+            noise_sigma_dn=background.sigma_dn,
+            gain_e_per_dn=self.gain_e_per_dn,
+            max_iterations=self.max_iterations,
+        )
+        good = fit.ok & (np.hypot(fit.params[:, 0], fit.params[:, 1]) < MAX_SHIFT_PX)
+        params, cov = fit.params, fit.cov
+        params[:, :2] += seeds
+        with np.errstate(invalid="ignore"):  # a failed fit's covariance may be anything; it is rejected
+            sigma_uv = np.sqrt(np.stack((cov[:, 0, 0], cov[:, 1, 1]), axis=-1))
+        return SubPixel(
             uv=params[:, :2],
-            sigma_uv=np.sqrt(np.stack((cov[:, 0, 0], cov[:, 1, 1]), axis=-1)) if len(cov) else np.zeros((0, 2)),
-            area_px=area[kept],
-            roundness=roundness[kept],
+            sigma_uv=sigma_uv,
+            ok=good,
             peak=params[:, 5],
-            rejected=sort_rejected(rejected),
-            method=self.method,
             ellipse=params[:, 2:5],
             ellipse_cov=cov[:, 2:5, 2:5],
         )

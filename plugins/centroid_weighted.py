@@ -1,8 +1,10 @@
 """Centroid plugin "weighted": thresholded blobs, intensity-weighted sub-pixel centroids.
 
-Detection (threshold, blobs, rejection, local background) is shared with
-the other centroid plugins in :mod:`crossfield.imaging.blobs`; this module does the
-sub-pixel step and its uncertainty (``docs/centroids.md``).
+Detection (threshold, blobs, rejection, local background) and the
+CentroidSet are shared with the other centroid plugins
+(:class:`crossfield.imaging.centroids.BlobCentroids`, on the batched blob stacks
+of :mod:`crossfield.imaging.blobs`); this module does the sub-pixel step and its
+uncertainty (``docs/centroids.md``).
 
 Centroid over the blob's window W (blob dilated by ``dilate_px``), with
 w_i = I_i - b the background-subtracted value of pixel i (DN) and b the
@@ -25,28 +27,22 @@ background's own photon noise, measured as IQR/1.349 of a subsample), the
 second term of var_i the photon noise of the target signal (Poisson in
 electrons, gain in e-/DN), and var_b = sigma_n^2 / N_ring the variance of
 the local background mean, whose error moves the centroid by
--sum(u_i - u_c)/S per DN. All sums come from ``cv2.moments`` of the raw
-image over the window and of the window mask, so no per-pixel Python work
-is done.
+-sum(u_i - u_c)/S per DN. All sums come from the raw moments of the image
+over the window and of the window mask: per blob from ``cv2.moments``
+(:func:`weighted_centroid`, a :class:`~crossfield.imaging.blobs.Blob`), and in the
+plugin from the compiled blob stacks (:func:`weighted_centroids`, the moments
+the detector's gather pass sums anyway), so no per-blob OpenCV call is made.
 Pixels in u, v; (0, 0) is the centre of the top-left pixel.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
-from crossfield.plugin_api import (
-    Background,
-    Blob,
-    BlobDetector,
-    CentroidSet,
-    DetectorOptions,
-    hookimpl,
-    sort_order,
-    sort_rejected,
-)
+from crossfield.plugin_api import Background, Blob, BlobCentroids, BlobStack, SubPixel, hookimpl
 
 
 def weighted_centroid(
@@ -83,87 +79,65 @@ def weighted_centroid(
     return blob.x0 + uc, blob.y0 + vc, math.sqrt(var_u), math.sqrt(var_v)
 
 
-class WeightedCentroids:
+def weighted_centroids(stack: BlobStack, background: Background, gain_e_per_dn: float) -> np.ndarray:
+    """:func:`weighted_centroid` of every blob of a stack, vectorised: (T, 4) rows
+    (u, v, sigma_u, sigma_v), image px, NaN where the background-subtracted sum is not > 0.
+
+    The same formulas on the stack's raw moments (slice coordinates, exact integer
+    sums, :class:`~crossfield.imaging.blobs.BlobStack`) instead of ``cv2.moments``
+    of one ROI; mu20 = m20 - (m10 / m00) m10 as OpenCV computes it.
+    """
+    M, N = stack.window_moments, stack.mask_moments
+    b = stack.background_dn
+    total = M[:, 0] - b * N[:, 0]
+    good = total > 0
+    safe = np.where(good, total, 1.0)
+    su = M[:, 1] - b * N[:, 1]
+    sv = M[:, 2] - b * N[:, 2]
+    uc, vc = su / safe, sv / safe
+    photon_u = np.maximum(M[:, 3] - b * N[:, 3] - uc * su, 0.0) / gain_e_per_dn
+    photon_v = np.maximum(M[:, 5] - b * N[:, 5] - vc * sv, 0.0) / gain_e_per_dn
+    n_window = N[:, 0]
+    du_sum = N[:, 1] - n_window * uc
+    dv_sum = N[:, 2] - n_window * vc
+    mu20 = N[:, 3] - N[:, 1] / n_window * N[:, 1]
+    mu02 = N[:, 5] - N[:, 2] / n_window * N[:, 2]
+    du2_sum = mu20 + du_sum * du_sum / n_window
+    dv2_sum = mu02 + dv_sum * dv_sum / n_window
+    noise_var = background.sigma_dn**2
+    ring = stack.ring_count
+    background_var = np.where(ring > 0, noise_var / np.maximum(ring, 1), noise_var)
+    var_u = (noise_var * du2_sum + photon_u) / safe**2 + (du_sum / safe) ** 2 * background_var
+    var_v = (noise_var * dv2_sum + photon_v) / safe**2 + (dv_sum / safe) ** 2 * background_var
+    out = np.column_stack((stack.x0 + uc, stack.y0 + vc, np.sqrt(var_u), np.sqrt(var_v)))
+    out[~good] = np.nan
+    return out
+
+
+class WeightedCentroids(BlobCentroids):
     """Thresholded blobs with intensity-weighted sub-pixel centroids.
 
-    Options (config keys; lengths in pixels, levels in DN):
-
-    threshold_sigma: blob threshold = background + threshold_sigma * noise.
-    min_area_px, max_area_px: accepted blob area (pixels above the threshold,
-      holes filled). min_roundness: accepted minor/major axis ratio.
-    reject_saturated: reject blobs with a pixel at 2**bit_depth - 1.
-    reject_border: reject blobs touching the image border.
-    bit_depth: bits per pixel of the camera (12 for the scA1600-14gm).
-    dilate_px: the centroid window is the blob dilated by this much, to
-      take in the blurred edge below the threshold.
-    ring_px: width of the ring around the window the local background is
-      taken from. background_stride: subsampling step of the global
-      background/noise estimate.
+    Options: the detection options of :class:`~crossfield.imaging.centroids.BlobCentroids`
+    (threshold_sigma, min_area_px, max_area_px, min_roundness, reject_saturated,
+    reject_border, bit_depth, dilate_px, ring_px, background_stride), plus
     gain_e_per_dn: camera conversion gain (electrons per DN, EMVA 1288 1/K),
-      for the photon noise in the uncertainty; the default is the simulator's
-      scA1600-14gm-like sensor (0.35 DN/e-).
+    for the photon noise in the uncertainty; the default is the simulator's
+    scA1600-14gm-like sensor (0.35 DN/e-).
     """
 
     method = "weighted"
 
-    def __init__(
-        self,
-        *,
-        threshold_sigma: float = 8.0,
-        min_area_px: int = 50,
-        max_area_px: int = 20000,
-        min_roundness: float = 0.5,
-        reject_saturated: bool = True,
-        reject_border: bool = True,
-        bit_depth: int = 12,
-        dilate_px: int = 2,
-        ring_px: int = 3,
-        background_stride: int = 8,
-        gain_e_per_dn: float = 2.86,
-    ) -> None:
+    def __init__(self, *, gain_e_per_dn: float = 2.86, **detector) -> None:
         if not gain_e_per_dn > 0:
             raise ValueError(f"gain_e_per_dn must be > 0, got {gain_e_per_dn}")
         self.gain_e_per_dn = float(gain_e_per_dn)
-        self.detector = BlobDetector(
-            DetectorOptions(
-                threshold_sigma=threshold_sigma,
-                min_area_px=min_area_px,
-                max_area_px=max_area_px,
-                min_roundness=min_roundness,
-                reject_saturated=reject_saturated,
-                reject_border=reject_border,
-                bit_depth=bit_depth,
-                dilate_px=dilate_px,
-                ring_px=ring_px,
-                stride=background_stride,
-            )
-        )
+        super().__init__(**detector)
 
-    def extract(self, image: np.ndarray, camera: str, sequence: int) -> CentroidSet:
-        """Centroids of the targets in one (H, W) integer image (DN).
-
-        Returns a CentroidSet in raster order (by v, then u), pixel units.
-        """
-        blobs, rejected, background = self.detector.detect(image)
-        n = len(blobs)
-        uv = np.empty((n, 2))
-        sigma = np.empty((n, 2))
-        for i, blob in enumerate(blobs):
-            u, v, su, sv = weighted_centroid(blob, background, self.gain_e_per_dn)
-            uv[i] = u, v
-            sigma[i] = su, sv
-        order = sort_order(uv)
-        return CentroidSet(
-            camera=camera,
-            sequence=sequence,
-            uv=uv[order],
-            sigma_uv=sigma[order],
-            area_px=np.array([blobs[i].area_px for i in order], dtype=np.float64),
-            roundness=np.array([blobs[i].roundness for i in order], dtype=np.float64),
-            peak=np.array([blobs[i].peak_dn for i in order], dtype=np.float64),
-            rejected=sort_rejected(rejected),
-            method=self.method,
-        )
+    def subpixel(self, stacks: Sequence[BlobStack], background: Background) -> SubPixel:
+        """The weighted centroid of every blob (all accepted: the detector has already
+        rejected the blobs without signal)."""
+        table = np.concatenate([weighted_centroids(st, background, self.gain_e_per_dn) for st in stacks])
+        return SubPixel(uv=table[:, :2], sigma_uv=table[:, 2:], ok=np.ones(len(table), bool))
 
 
 @hookimpl

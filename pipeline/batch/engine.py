@@ -136,7 +136,15 @@ def client(
     # The workers' statistical profiler (a stack sample every 10 ms) cost +40-80 % of a
     # session task's time here (pure-Python, GIL-bound work): off in the embedded cluster
     # (bench/bench_batch.py; docs/batch.md "Throughput"). The nannies hand this config on.
-    with dask.config.set({"distributed.worker.profile.enabled": False}):
+    # Dask's nanny starts each worker with MALLOC_TRIM_THRESHOLD_=65536 (to hand freed
+    # memory back to the OS); setting it disables glibc's dynamic mmap threshold, so every
+    # 4 MB image array is a fresh mmap whose pages fault in again: 2.6 -> 8.6 ms per
+    # decoded-and-thresholded image (measured), the in-worker slowdown of issue 25. Unset
+    # for the embedded cluster (None unsets a pre-spawn variable, distributed.nanny).
+    with dask.config.set({
+        "distributed.worker.profile.enabled": False,
+        "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
+    }):
         cluster = LocalCluster(
             n_workers=n,
             threads_per_worker=1,

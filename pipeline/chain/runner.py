@@ -40,6 +40,7 @@ from crossfield.config import Config
 from crossfield.errors import ConfigError, CrossfieldError, PluginError, RecordingError
 from crossfield.plan import MeasurementPlan, load_plan
 from crossfield.recording.recorder import McapRecorder, SessionRecorder
+from crossfield.recording.writer import DEFAULT_COMPRESSION
 from crossfield.report.document import build_report, with_seal
 from crossfield.report.thumbnails import ThumbnailObserver
 from crossfield.session import CameraThumbnail, FrameResult, SessionInfo, SessionSummary
@@ -281,7 +282,11 @@ def _session_observers(
     observers: list[object] = []
     if config.session.get("record", True):
         observers.append(
-            McapRecorder(mcap_path or out_dir / "session.mcap", signing_key=config.session.get("signing_key") or None)
+            McapRecorder(
+                mcap_path or out_dir / "session.mcap",
+                signing_key=config.session.get("signing_key") or None,
+                compression=config.session.get("compression", DEFAULT_COMPRESSION),
+            )
         )
     if config.session.get("rerun", True):
         from crossfield.viz.rerun_log import RerunLogger

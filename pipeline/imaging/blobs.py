@@ -122,6 +122,11 @@ class BlobStack:
     (c20, c11, c02) over the window (px^2); background_gradient: (T, 2) DN/px,
     the slope (d/du, d/dv) of the plane through the ring's pixels
     (``background_dn`` is its value at the ring's centroid).
+    window_moments, mask_moments: (T, 6) the raw moments (m00, m10, m01, m20,
+    m11, m02; slice coordinates, u = column, v = row, exact integer sums) of
+    the image over the window and of the window itself, as :class:`Blob`'s
+    ``cv2.moments`` in ROI coordinates; ring_count: (T,) the ring's pixels
+    (the local background is their mean).
     """
 
     x0: np.ndarray
@@ -136,6 +141,9 @@ class BlobStack:
     uv: np.ndarray
     moments: np.ndarray
     background_gradient: np.ndarray
+    window_moments: np.ndarray
+    mask_moments: np.ndarray
+    ring_count: np.ndarray
 
     def __len__(self) -> int:
         return len(self.x0)
@@ -395,9 +403,10 @@ class BlobDetector:
         max_value = np.empty(n)
         b, total, roundness = np.empty(n), np.empty(n), np.empty(n)
         uv, moments, gradient = np.empty((n, 2)), np.empty((n, 3)), np.empty((n, 2))
+        M, N, ring_count = np.empty((n, 6)), np.empty((n, 6)), np.empty(n, np.int64)
         _gather(
             image, xs, ys, rect, filled, dilated, background.threshold_dn, background.level_dn,
-            roi, window, max_value, b, total, uv, moments, roundness, gradient,
+            roi, window, max_value, b, total, uv, moments, roundness, gradient, M, N, ring_count,
         )
         saturated = max_value >= opts.saturation_dn
         mine = reason[rows]
@@ -424,23 +433,25 @@ class BlobDetector:
             uv=uv[ok],
             moments=moments[ok],
             background_gradient=gradient[ok],
+            window_moments=M[ok],
+            mask_moments=N[ok],
+            ring_count=ring_count[ok],
         )
 
 
 @numba.njit(cache=True, nogil=True)
 def _gather(
     image, xs, ys, rect, filled, dilated, threshold_dn, level_dn,
-    roi, window, max_value, b, total, uv, moments, roundness, gradient,
+    roi, window, max_value, b, total, uv, moments, roundness, gradient, M, N, ring_count,
 ) -> None:
     """Step 4 and the moments of :meth:`BlobDetector._stack` for the T slices at
     columns ``xs``, rows ``ys`` (T,) of ``image``, GIL released: :func:`_slice_sums`,
     then per blob the background plane (:func:`_ring_gradient`) and the moments
     (:func:`_blob_moments`). Writes roi, window (T, S, S) and max_value, b,
-    total, roundness (T,), uv (T, 2), moments (T, 3), gradient (T, 2)."""
+    total, roundness (T,), uv (T, 2), moments (T, 3), gradient (T, 2), and the
+    raw window moments M, N (T, 6) and ring_count (T,) of :func:`_slice_sums`."""
     n = len(xs)
-    ring_count = np.empty(n, np.int64)
     ring_sum = np.empty(n)
-    M, N = np.empty((n, 6)), np.empty((n, 6))
     ring_moments, ring_values = np.empty((n, 6)), np.empty((n, 3))
     _slice_sums(
         image, xs, ys, rect, filled, dilated, threshold_dn,

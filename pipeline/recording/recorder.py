@@ -24,7 +24,7 @@ from typing import Any, Self
 from crossfield.errors import RecordingError
 from crossfield.hookspecs import hookimpl
 from crossfield.recording.seal import Seal
-from crossfield.recording.writer import DEFAULT_CHUNK_SIZE, McapFileSink, SessionWriter, Sink
+from crossfield.recording.writer import DEFAULT_CHUNK_SIZE, DEFAULT_COMPRESSION, McapFileSink, SessionWriter, Sink
 from crossfield.report.document import REPORT_JSON, add_seal_to_file
 
 
@@ -144,7 +144,7 @@ class McapRecorder(SessionRecorder):
         writer_thread: bool = True,
         queue_size: int = 8,
         flush_interval_s: float = 1.0,
-        compression: str = "none",
+        compression: str = DEFAULT_COMPRESSION,
         signing_key: str | Path | None = None,
     ):
         sink = McapFileSink(

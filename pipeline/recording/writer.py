@@ -82,11 +82,15 @@ from crossfield.recording.integrity import IntegrityChain, file_sha256
 from crossfield.report.document import document_of
 from crossfield.types import CAMERAS, CameraPoints
 
-#: Chunk compression by name. "none" is the default: lz4 costs ~9 ms and zstd
-#: ~11 ms of CPU per 4 MB image (ratio 0.68 and 0.44 on simulated 12-bit
-#: images), more than a 2-core station can spare at 60 pairs/s; compression
-#: pays only where the disk, not the CPU, is the limit.
+#: Chunk compression by name (lossless; ``[session] compression``). zstd (level 3, the
+#: mcap library's) is the default since issue 27: a simulated 12-bit image shrinks to
+#: 0.43 of its size (lz4: 0.70), at ~11 ms of CPU per 4 MB image in the writer thread
+#: (lz4 ~9 ms) on an idle core of this machine: ~45 pairs/s from one writer thread,
+#: enough for the 14 Hz cameras; "lz4" or "none" where the rate matters more than the
+#: disk (bench/bench_recording.py, docs/recording.md).
 COMPRESSIONS = {"none": CompressionType.NONE, "lz4": CompressionType.LZ4, "zstd": CompressionType.ZSTD}
+#: The compression of a recording unless told otherwise.
+DEFAULT_COMPRESSION = "zstd"
 
 #: Each image (4 MB for 1626 x 1236 mono16) is larger than this, so it closes
 #: its chunk: chunks stay small (crash safety) and the writer never re-grows a
@@ -326,7 +330,7 @@ class McapFileSink:
         writer_thread: bool = True,
         queue_size: int = 8,
         flush_interval_s: float = 1.0,
-        compression: str = "none",
+        compression: str = DEFAULT_COMPRESSION,
         signing_key: str | Path | None = None,
         profile: str = "",
     ):

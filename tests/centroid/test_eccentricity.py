@@ -126,3 +126,31 @@ def test_circle_normals_and_radii_recovered(scene):
     angle = np.degrees(np.arccos(np.clip(np.sum(fit.normal * n_true, axis=1), -1, 1)))
     assert angle.max() < 0.5
     np.testing.assert_allclose(fit.radius_mm, 1.5, atol=0.02)
+
+
+def test_compiled_offsets_equal_the_numpy_formulas(scene):
+    """The compiled per-target kernels (shape, probe points, weighted mean) against the
+    formulas written with NumPy (the docstring of centre_offsets), to 1e-9 px."""
+    rng = np.random.default_rng(12)
+    C = np.column_stack([rng.uniform(-60, 60, 15), rng.uniform(-40, 40, 15), rng.uniform(300, 450, 15)])
+    n = Rotation.from_rotvec(rng.uniform(-0.8, 0.8, (15, 3))).apply(-C / np.linalg.norm(C, axis=1, keepdims=True))
+    r = rng.uniform(1.0, 5.0, 15)
+    views = views_of(scene.calibration)
+    for k in range(15):
+        shape = ecc.predicted_shape(C[k:k + 1], n[k:k + 1], r[k:k + 1])[0]
+        np.testing.assert_allclose(ecc._shape_row(*n[k], *C[k], r[k] ** 2), shape, rtol=1e-9, atol=0)
+    expected = []
+    for view in views:
+        Cv, nv = C @ view.R.T + view.t, n @ view.R.T
+        Xe = ecc.ellipse_centre_point(Cv, nv, r)
+        xe = Xe[:, :2] / Xe[:, 2:3]
+        L = np.linalg.cholesky(np.linalg.inv(ecc._sym(ecc.predicted_shape(Cv, nv, r))) / 4.0)
+        total, weight = np.zeros((15, 2)), np.zeros((15, 1))
+        for j in range(2):
+            for sign in (1.0, -1.0):
+                point = np.column_stack([xe + sign * np.sqrt(2.0) * L[:, :, j], np.ones(15)])
+                w = np.abs(np.linalg.det(ecc._lens_jacobian(view, point)))[:, None]
+                total += w * ecc.project(view, point)
+                weight += w
+        expected.append(total / weight - ecc.project(view, Cv))
+    np.testing.assert_allclose(ecc.centre_offsets(C, n, r, views), np.hstack(expected), rtol=0, atol=1e-9)

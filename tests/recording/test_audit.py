@@ -31,7 +31,8 @@ REPO = Path(__file__).resolve().parents[2]
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory):
     out = tmp_path_factory.mktemp("audit")
-    record_session(out, "orig")
+    # uncompressed: the damage tests find and edit message bytes in the file itself
+    record_session(out, "orig", session={"compression": "none"})
     return out / "orig" / "session.mcap"
 
 
@@ -639,3 +640,18 @@ def test_a_chunk_whose_record_length_is_damaged_is_named_and_reading_goes_on(rec
     assert {p.kind for p in result.problems} == {"unreadable", "removed"}
     report = audit(damaged, make_plugin_manager())
     assert not report.passed and report.complete
+
+
+def test_a_compressed_recording_audits_and_a_cut_one_is_read_to_its_last_chunk(tmp_path):
+    """The default zstd chunks: the audit passes (chain, seal, bit-exact reproduction);
+    cut in the middle, the scanner decompresses the intact chunks and stops at the cut."""
+    record_session(tmp_path, "zstd", frames=2)
+    path = tmp_path / "zstd" / "session.mcap"
+    with open_recording(path) as rec:
+        assert {c.compression for c in rec._summary.chunk_indexes} == {"zstd"}
+    assert audit(path, make_plugin_manager()).passed
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    report = audit(cut, make_plugin_manager())
+    assert report.intact and not report.complete and not report.passed
+    assert "at byte" in report.integrity.ends
