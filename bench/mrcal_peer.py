@@ -51,8 +51,9 @@ def _covariance(inputs: dict) -> tuple[np.ndarray, float]:
     m, p = int(used.sum()), J.shape[1]
     sigma2 = float(xb[used] @ xb[used]) / max(m - p, 1)
     cov_packed = sigma2 * np.linalg.pinv(Jb[used].T @ Jb[used])
-    # unpack_state scales each state element: p = s * p_packed, so cov = S cov_packed S.
-    scale = mrcal.unpack_state(np.ones(p), **inputs)
+    # unpack_state scales each state element (in place): p = s * p_packed, so cov = S cov_packed S.
+    scale = np.ones(p)
+    mrcal.unpack_state(scale, **inputs)
     return cov_packed * np.outer(scale, scale), float(np.sqrt(sigma2))
 
 
