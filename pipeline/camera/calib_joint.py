@@ -219,3 +219,28 @@ def refine_joint(
             break
     theta, poses = split(x)
     return JointSolution(theta.copy(), poses.copy(), res, J, n_dist, warp, it)
+
+
+def camera_residuals(
+    views: Sequence[ViewPoints], solution: JointSolution
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per camera ("upper", "lower"): observed points (N, 2) px and residuals (N, 2) px at the solution.
+
+    Splits ``solution.residuals`` by the row order of :func:`residuals_jacobian`.
+    """
+    out: dict[str, tuple[list, list]] = {"upper": ([], []), "lower": ([], [])}
+    row = 0
+    for v in views:
+        for cam, u in (("upper", v.pixels_upper), ("lower", v.pixels_lower)):
+            k = 2 * len(u)
+            if k:
+                out[cam][0].append(np.asarray(u, float))
+                out[cam][1].append(solution.residuals[row : row + k].reshape(-1, 2))
+            row += k
+    return {
+        cam: (
+            np.concatenate(p) if p else np.zeros((0, 2)),
+            np.concatenate(r) if r else np.zeros((0, 2)),
+        )
+        for cam, (p, r) in out.items()
+    }
