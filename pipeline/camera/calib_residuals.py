@@ -26,7 +26,8 @@ class ResidualMap:
 
     mean_px: (rows, cols, 2) mean residual (du, dv) px per bin (NaN where
     empty); count: (rows, cols) points per bin; centres_px: (rows, cols, 2)
-    bin centres (u, v) px; sigma_px: RMS of one residual coordinate over all points.
+    bin centres (u, v) px; sigma_px: RMS of one residual coordinate about its
+    bin's mean (the corner noise, without the pattern).
     """
 
     camera: str
@@ -87,5 +88,6 @@ def residual_map(
     cu = (np.arange(cols) + 0.5) * w / cols - 0.5
     cv = (np.arange(rows) + 0.5) * h / rows - 0.5
     centres = np.stack(np.meshgrid(cu, cv), axis=-1)
-    sigma = float(np.sqrt(np.mean(residuals_px**2))) if len(residuals_px) else float("nan")
+    scatter = residuals_px - mean[r, c]
+    sigma = float(np.sqrt(np.mean(scatter**2))) if len(residuals_px) else float("nan")
     return ResidualMap(camera, (int(w), int(h)), mean, count, centres, sigma)
