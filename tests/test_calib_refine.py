@@ -23,7 +23,8 @@ COMPARED = [0, 1, 2, 3, 9, 10, 11, 12, 18, 19, 20, 21, 22, 23]
 
 
 def _solve(dets, size, **kw):
-    result = solve_stereo(dets, {"upper": size, "lower": size}, BOARD, CalibrationSettings(holdout_every=0))
+    settings = CalibrationSettings(holdout_every=0, joint=False)  # step 6 run here, as a unit
+    result = solve_stereo(dets, {"upper": size, "lower": size}, BOARD, settings)
     views = {k: (dets[k]["upper"], dets[k]["lower"]) for k in result.used_stereo}
     return result, refine(views, result.params, result.calibration, BOARD.object_points(), **kw)
 

@@ -220,3 +220,17 @@ def compare(
 def split_views(views: tuple[int, ...]) -> tuple[tuple[int, ...], tuple[int, ...]]:
     """Two interleaved halves (even and odd positions): each spans the session's poses and depths."""
     return tuple(views[0::2]), tuple(views[1::2])
+
+
+def summary_line(cv: CrossValidation) -> str:
+    """One line for the terminal: the halves' largest differences and their share within 2 sigma."""
+    d = cv.as_dict()
+    w = d["within_2_sigma"]
+    return (
+        f"cross-validation ({len(cv.halves[0])} + {len(cv.halves[1])} views): projection difference max "
+        f"upper {d['projection']['upper']['max_diff_px']:.3f} px ({d['projection']['upper']['max_ratio']:.2f} sigma), "
+        f"lower {d['projection']['lower']['max_diff_px']:.3f} px ({d['projection']['lower']['max_ratio']:.2f} sigma); "
+        f"3-D at {cv.depth_mm:.0f} mm max {d['points']['max_diff_mm'] * 1000:.1f} um "
+        f"({d['points']['max_ratio']:.2f} sigma); within 2 sigma: upper {w['upper']:.0%}, lower {w['lower']:.0%}, "
+        f"points {w['points']:.0%}"
+    )
