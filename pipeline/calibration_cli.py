@@ -96,6 +96,11 @@ def add_parsers(command) -> dict:
     cal.add_argument("--save-images", metavar="DIR", help="also write the simulated or live views as image pairs")
     cal.add_argument("--no-report", action="store_true", help="do not write the report")
     cal.add_argument(
+        "--cross-validate",
+        action="store_true",
+        help="also calibrate two halves of the views and compare them against their stated uncertainty",
+    )
+    cal.add_argument(
         "--record", metavar="CAL.mcap",
         help="record the session (images, detections, result) to MCAP (--source: default <CALIB>.mcap)",
     )
@@ -158,6 +163,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from crossfield.camera.calibrate import calibrate_images
 
     board, settings = _board_and_settings(args.board, args.distortion)
+    if args.cross_validate:
+        from dataclasses import replace
+
+        settings = replace(settings, cross_validate=True)
     if not args.source:
         live_only = {"--config": args.config, "--option": args.option, "--every": args.every is not None,
                      "--trigger": args.trigger, "--pairs": args.pairs, "--view": args.view, "--rrd": args.rrd}  # fmt: skip
@@ -241,6 +250,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             f"cx {K[0, 2]:.2f} +- {std[cam + '.cx']:.2f} px, cy {K[1, 2]:.2f} +- {std[cam + '.cy']:.2f} px"
         )
     print(f"  baseline |T| = {result.baseline_mm:.4f} +- {result.baseline_std_mm:.4f} mm")
+    if result.cross_validation is not None:
+        from crossfield.camera.calib_crossval import summary_line
+
+        print(f"  {summary_line(result.cross_validation)}")
     for k, (rms, mx) in sorted(result.holdout_epipolar_px.items()):
         print(f"  held-out {result.view_names[k]}: epipolar error RMS {rms:.3f} px, max {mx:.3f} px")
     if not args.no_report:

@@ -244,3 +244,27 @@ def camera_residuals(
         )
         for cam, (p, r) in out.items()
     }
+
+
+def without_outlier_corners(
+    views: Sequence[ViewPoints], solution: JointSolution, k_sigma: float = 3.0
+) -> tuple[list[ViewPoints], int]:
+    """The views without the corners whose residual is an outlier, and how many were dropped.
+
+    A corner is an outlier when |r|^2 > k^2 2 sigma^2 (its 2-D residual), sigma^2 the mean
+    squared residual coordinate over all corners: a k-sigma rule in the manner of mrcal's
+    outlier rejection (for Gaussian corners, k = 3 drops exp(-9) = 1.2e-4 of them).
+    """
+    r2 = solution.residuals.reshape(-1, 2)
+    sigma2 = float(np.mean(r2**2))
+    bad = np.sum(r2**2, axis=1) > k_sigma**2 * 2 * sigma2
+    out, row, dropped = [], 0, 0
+    for v in views:
+        keep = []
+        for X, u in ((v.object_upper, v.pixels_upper), (v.object_lower, v.pixels_lower)):
+            b = bad[row : row + len(X)]
+            row += len(X)
+            dropped += int(b.sum())
+            keep.append((np.asarray(X)[~b], np.asarray(u)[~b]))
+        out.append(ViewPoints(keep[0][0], keep[0][1], keep[1][0], keep[1][1]))
+    return out, dropped

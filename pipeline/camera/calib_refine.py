@@ -5,7 +5,8 @@ After OpenCV's stereo solution (``calibrate.solve_stereo`` steps 2-5):
 1. :func:`crossfield.camera.calib_joint.refine_joint` over every corner each
    camera saw in the stereo views (not only the common ones), with the
    board's bow (mrcal's ``calobject_warp``) when ``settings.estimate_warp``
-   and at least ``WARP_MIN_VIEWS`` views;
+   and at least ``WARP_MIN_VIEWS`` views; corners beyond 3 sigma are dropped
+   and the problem solved again (``calib_joint.without_outlier_corners``);
 2. the Jacobian covariance sigma^2 (J^T J)^-1 (Hartley & Zisserman 5.2.3),
    the board poses marginalised;
 3. the jackknife over views (:mod:`crossfield.camera.calib_jackknife`) when
@@ -23,7 +24,13 @@ import numpy as np
 from crossfield.camera.board_detect import BoardDetection
 from crossfield.camera.calib_covariance import covariance_from_jacobian
 from crossfield.camera.calib_jackknife import combined_covariance, jackknife
-from crossfield.camera.calib_joint import JointSolution, ViewPoints, camera_residuals, refine_joint
+from crossfield.camera.calib_joint import (
+    JointSolution,
+    ViewPoints,
+    camera_residuals,
+    refine_joint,
+    without_outlier_corners,
+)
 from crossfield.camera.calib_residuals import ResidualMap, residual_map
 from crossfield.types import CAMERAS, CameraIntrinsics, StereoCalibration
 
@@ -78,6 +85,7 @@ def refine(
     *,
     estimate_warp: bool = True,
     jackknife_views: bool = True,
+    reject_corners: bool = True,
 ) -> Refinement:
     """Steps 1-4 of the module docstring.
 
@@ -98,6 +106,14 @@ def refine(
     poses0 = initial_poses(views, K1, params0[4:n])
     warp = estimate_warp and len(views) >= WARP_MIN_VIEWS
     sol = refine_joint(views, params0, poses0, n_dist, warp=warp, grid=grid)
+    if reject_corners:
+        # as mrcal: drop the corners beyond 3 sigma and solve again, until none are (5 rounds at most).
+        for _ in range(5):
+            views, dropped = without_outlier_corners(views, sol, 3.0)
+            if not dropped:
+                break
+            sol = refine_joint(views, sol.theta[: sol.n_camera_params], sol.poses, n_dist, warp=warp,
+                               grid=grid, warp_start=sol.warp_mm)
     n_cam = sol.n_camera_params
     n_block = n_cam + (2 if warp else 0)
     cov_full, sigma = covariance_from_jacobian(sol.residuals, sol.jacobian)
