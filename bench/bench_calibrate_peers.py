@@ -12,8 +12,9 @@ Peers (issue 28):
   ``mrcal.optimize`` through its Python API in a subprocess under Debian's
   ``/usr/bin/python3`` (``bench/mrcal_peer.py``; ``apt-get install -y
   python3-mrcal mrcal``), seeded with the OpenCV script's solution, fed every
-  corner of every view; its outlier rejection and regularisation on, as
-  ``mrcal-calibrate-cameras`` runs it; stated std from its Jacobian.
+  corner of every view; its outlier rejection, regularisation and board
+  warp (``calobject_warp``) on, as ``mrcal-calibrate-cameras`` runs it;
+  stated std from its Jacobian.
 
 Every tool gets the same corners: crossfield's detector on the simulator's
 rendered board views (``crossfield.simulator.board_views``, a new pose
@@ -270,7 +271,7 @@ def run_mrcal(problems: list[dict], size, lensmodel: str) -> list[dict]:
         out = Path(tmp) / "results.json"
         here = Path(__file__).resolve().parent
         proc = subprocess.run(
-            [MRCAL_PYTHON, str(here / "mrcal_peer.py"), str(Path(tmp) / "problems.npz"), str(out)],
+            [MRCAL_PYTHON, str(here / "mrcal_peer.py"), str(Path(tmp) / "problems.npz"), str(out), "--warp"],
             capture_output=True,
             text=True,
         )

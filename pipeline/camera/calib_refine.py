@@ -85,7 +85,7 @@ def refine(
     *,
     estimate_warp: bool = True,
     jackknife_views: bool = True,
-    reject_corners: bool = True,
+    reject_corners: bool = False,
 ) -> Refinement:
     """Steps 1-4 of the module docstring.
 
