@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.installed
 SUDO   := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 # Debian packages the tests need: Mesa's lavapipe Vulkan driver, so the real
 # Rerun viewer renders headless (screenshots, ViewerClient) with no GPU; chromium for
-# the headless screenshot of report.html (tests/test_report_html_pictures.py).
+# the headless screenshot of report.html (tests/report/test_report_html_pictures.py).
 APT_PACKAGES := mesa-vulkan-drivers libvulkan1 chromium
 
 .PHONY: demo test bench install apt-packages clean

@@ -20,7 +20,7 @@ configuration below processes the *same* images and CMM probes:
 * ``default``: crossfield's built-in defaults (:data:`crossfield.config.DEFAULT_PLUGINS`,
   default options): today the same stages as ``+ml``.
 * ``+session``: and the joint session pose (all frames, static station,
-  :mod:`crossfield.session_registration`) with the frames' mean camera points.
+  :mod:`crossfield.chain.session_pose`) with the frames' mean camera points.
 
 Figures: centroid RMS / CRB (the CRB from the Fisher information of the
 simulator's own rendering: its exact translation derivatives),
@@ -48,10 +48,10 @@ from crossfield.imaging.blobs import estimate_background  # noqa: E402
 from crossfield.camera.stereo_model import project_pair, stereo_geometry  # noqa: E402
 from crossfield.config import DEFAULT_PLUGINS  # noqa: E402
 from crossfield.covariance import skew  # noqa: E402
-from crossfield.registry import implementations, make_plugin_manager  # noqa: E402
+from crossfield.chain.registry import implementations, make_plugin_manager  # noqa: E402
 from crossfield.rigid import kabsch  # noqa: E402
-from crossfield.runner import register_frame  # noqa: E402
-from crossfield.session_registration import SessionPoseAccumulator  # noqa: E402
+from crossfield.chain.runner import register_frame  # noqa: E402
+from crossfield.chain.session_pose import SessionPoseAccumulator  # noqa: E402
 from crossfield.simulator.scenarios import build_scene  # noqa: E402
 from crossfield.types import CAMERAS, ProbedPoint, ReferenceData, StereoCentroids  # noqa: E402
 

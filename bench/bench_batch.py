@@ -36,8 +36,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from crossfield.batch import engine  # noqa: E402
 from crossfield.batch.tasks import noop, run_task, warm_up  # noqa: E402
 from crossfield.config import parse_config  # noqa: E402
-from crossfield.registry import make_plugin_manager  # noqa: E402
-from crossfield.runner import run_session  # noqa: E402
+from crossfield.chain.registry import make_plugin_manager  # noqa: E402
+from crossfield.chain.runner import run_session  # noqa: E402
 
 
 def record(root: Path, n: int, frames: int) -> list[str]:

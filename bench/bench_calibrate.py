@@ -20,7 +20,7 @@ import time
 
 import cv2
 import numpy as np
-from crossfield.camera.calibrate import CalibrationSettings, detect_views, solve_stereo
+from crossfield.calibration.solve import CalibrationSettings, detect_views, solve_stereo
 from crossfield.simulator.board_views import render_calibration_views
 
 

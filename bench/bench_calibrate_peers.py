@@ -47,8 +47,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from crossfield.camera.board_detect import BoardDetection
-from crossfield.camera.calibrate import CalibrationSettings, CalibrationError, detect_views, solve_stereo
+from crossfield.calibration.detect import BoardDetection
+from crossfield.calibration.solve import CalibrationSettings, CalibrationError, detect_views, solve_stereo
 from crossfield.simulator.board_views import (
     ViewMismatch,
     render_calibration_views,

@@ -48,7 +48,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from synthetic_targets import distractors, random_targets, render
 
-from crossfield.registry import implementations, make_plugin_manager
+from crossfield.chain.registry import implementations, make_plugin_manager
 from crossfield.imaging.blobs import estimate_background
 
 

@@ -45,8 +45,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from crossfield.config import DEFAULT_PLUGINS, parse_config  # noqa: E402
-from crossfield.registry import make_plugin_manager  # noqa: E402
-from crossfield.runner import run_session  # noqa: E402
+from crossfield.chain.registry import make_plugin_manager  # noqa: E402
+from crossfield.chain.runner import run_session  # noqa: E402
 from crossfield.simulator import scenarios  # noqa: E402
 
 #: Stage tables of the ``--plugins`` choices (the session config's stage sections).

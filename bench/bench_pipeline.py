@@ -11,7 +11,7 @@ Measures, in one run on this machine:
 * the pipeline with lossless MCAP recording (pairs/s, target >= 60);
 * peak RSS growth between a short and a 4x longer session (must not grow with
   length: the session aggregates frame by frame and keeps at most
-  ``crossfield.aggregate.FRAME_ROWS_KEPT`` per-frame rows, see docs/report.md).
+  ``crossfield.chain.aggregate.FRAME_ROWS_KEPT`` per-frame rows, see docs/report.md).
 
 Every figure is also given as a ratio to the baseline timed in the same run.
 """
@@ -32,8 +32,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from crossfield.config import parse_config  # noqa: E402
 from crossfield.hookspecs import hookimpl  # noqa: E402
-from crossfield.registry import make_plugin_manager  # noqa: E402
-from crossfield.runner import run_session  # noqa: E402
+from crossfield.chain.registry import make_plugin_manager  # noqa: E402
+from crossfield.chain.runner import run_session  # noqa: E402
 from crossfield.simulator.scenarios import build_scene  # noqa: E402
 from crossfield.types import StereoFrame  # noqa: E402
 

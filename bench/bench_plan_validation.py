@@ -39,8 +39,8 @@ from crossfield.config import parse_config  # noqa: E402
 from crossfield.planning.routes import camera_model, predict  # noqa: E402
 from crossfield.planning.station import PLANNED_STAGES, station_from_scenario  # noqa: E402
 from crossfield.plugins.acquire_simulator import SimulatorSource  # noqa: E402
-from crossfield.registry import make_plugin_manager  # noqa: E402
-from crossfield.runner import run_session  # noqa: E402
+from crossfield.chain.registry import make_plugin_manager  # noqa: E402
+from crossfield.chain.runner import run_session  # noqa: E402
 from crossfield.types import StereoFrame  # noqa: E402
 
 #: The romer-serial reference plugin's default stated sigma (mm per coordinate).
@@ -112,7 +112,7 @@ def recorded_stats(path: Path, label: str) -> dict[str, dict]:
 
 def efficiency(frames: int = 40) -> None:
     """RMS scatter of the weighted centroid over rendered frames / its CRB (per axis, per target)."""
-    from crossfield.registry import implementations
+    from crossfield.chain.registry import implementations
     from crossfield.simulator.scenarios import build_scene
 
     scene = build_scene("station")

@@ -33,7 +33,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from crossfield.recording.recorder import McapRecorder
-from crossfield.registry import make_plugin_manager
+from crossfield.chain.registry import make_plugin_manager
 from crossfield.types import StereoFrame
 
 HEIGHT, WIDTH = 1236, 1626

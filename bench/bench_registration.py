@@ -37,9 +37,9 @@ from scipy.spatial.transform import Rotation
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from crossfield import rigid  # noqa: E402
-from crossfield.correspondence import match_control_points  # noqa: E402
+from crossfield.chain.correspondence import match_control_points  # noqa: E402
 from crossfield.geometry import fit_cylinder_axis, fit_line, perpendicular_basis  # noqa: E402
-from crossfield.registry import implementations, make_plugin_manager  # noqa: E402
+from crossfield.chain.registry import implementations, make_plugin_manager  # noqa: E402
 
 IDS = [f"C{k + 1}" for k in range(8)]
 

@@ -33,9 +33,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from crossfield.config import parse_config  # noqa: E402
 from crossfield.recording.reader import open_recording  # noqa: E402
-from crossfield.registry import make_plugin_manager  # noqa: E402
+from crossfield.chain.registry import make_plugin_manager  # noqa: E402
 from crossfield.replay import RecordingSource, load_recorded_session, replay_session  # noqa: E402
-from crossfield.runner import run_session  # noqa: E402
+from crossfield.chain.runner import run_session  # noqa: E402
 
 
 def timed(fn, repeat: int) -> float:

@@ -29,7 +29,7 @@ from pathlib import Path
 
 from crossfield.api import run
 from crossfield.plugins.report_html import HtmlReport
-from crossfield.registry import get_implementation, make_plugin_manager
+from crossfield.chain.registry import get_implementation, make_plugin_manager
 from crossfield.report.thumbnails import downsample
 
 

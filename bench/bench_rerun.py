@@ -27,10 +27,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from crossfield.config import parse_config
 from crossfield.recording.reader import open_recording
-from crossfield.registry import make_plugin_manager
+from crossfield.chain.registry import make_plugin_manager
 from crossfield.viz.rerun_log import RerunLogger
 from crossfield.viz.rerun_mcap import _events, session_info
-from crossfield.runner import run_session
+from crossfield.chain.runner import run_session
 
 
 class _AllImages:

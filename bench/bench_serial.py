@@ -47,8 +47,8 @@ import crossfield.simulator.arm as arm_module  # noqa: E402
 from crossfield.cmm.protocol import SerialTransport  # noqa: E402
 from crossfield.config import parse_config  # noqa: E402
 from crossfield.plan import parse_plan  # noqa: E402
-from crossfield.registry import make_plugin_manager  # noqa: E402
-from crossfield.runner import run_session  # noqa: E402
+from crossfield.chain.registry import make_plugin_manager  # noqa: E402
+from crossfield.chain.runner import run_session  # noqa: E402
 from crossfield.simulator.arm import SimulatedArm, probes_from_points  # noqa: E402
 from crossfield.plugins.reference_romer_serial import RomerSerialReference  # noqa: E402
 

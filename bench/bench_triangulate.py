@@ -3,7 +3,7 @@
 Run: ``.venv/bin/python bench/bench_triangulate.py [--runs N] [--points N] [--noise PX]``
 
 Frames: ``--points`` targets at z = 350..450 mm seen by the synthetic
-scA1600-like rig of ``tests/test_triangulate.py`` (fx ~ 3636 px, 50 mm vertical
+scA1600-like rig of ``tests/triangulate/test_triangulate.py`` (fx ~ 3636 px, 50 mm vertical
 baseline, mild distortion), centroids with ``--noise`` px Gaussian noise and
 the lower set shuffled.
 

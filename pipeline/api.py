@@ -24,9 +24,9 @@ from typing import Any
 
 import pluggy
 
+from crossfield.chain.registry import make_plugin_manager
 from crossfield.config import Config, session_config
 from crossfield.recording.reader import Recording, open_recording
-from crossfield.registry import make_plugin_manager
 from crossfield.session import SessionSummary
 
 __all__ = ["run", "run_config", "open_recording", "Recording", "SessionSummary"]
@@ -136,7 +136,7 @@ def run(
     folder. Bad input raises :class:`crossfield.errors.CrossfieldError`
     (a :class:`~crossfield.errors.ConfigError` names the key).
     """
-    from crossfield.runner import run_session
+    from crossfield.chain.runner import run_session
 
     resolved = run_config(
         config,

@@ -31,11 +31,11 @@ from typing import Any
 
 import numpy as np
 
+from crossfield import rigid
+from crossfield.chain.registry import STAGES
 from crossfield.recording import layout as L
 from crossfield.recording.facts import require_session
-from crossfield import rigid
 from crossfield.recording.reader import Recording, open_recording
-from crossfield.registry import STAGES
 from crossfield.types import CAMERAS
 
 #: Per-characteristic values compared (report.json keys).

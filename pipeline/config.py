@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
 from crossfield.errors import ConfigError
-from crossfield.stages import STAGES
+from crossfield.types import STAGES
 
 DEFAULT_PLUGINS: dict[str, str] = {
     "acquire": "simulator",
@@ -51,6 +51,7 @@ SESSION_DEFAULTS: dict[str, Any] = {
     "rerun_image_every": 5,  # session.rrd: images of every n-th pair (0 = none); docs/visualisation.md
     "match_tolerance_mm": 0.5,  # rigid-distance agreement for control-point matching
     "signing_key": "",  # Ed25519 station key (PEM) that signs the recording's seal; docs/replay-and-audit.md
+    "monte_carlo": 0,  # GUM-S1 Monte Carlo check of the budget at the session end: draws (0 = off); docs/uncertainty.md
 }
 
 
@@ -59,6 +60,7 @@ _SESSION_CHECKS: dict[str, Callable[[Any], str | None]] = {
     "match_tolerance_mm": lambda v: None if math.isfinite(v) and v > 0 else "a finite number of mm > 0",
     "rerun_image_every": lambda v: None if v >= 0 else "an integer >= 0 (0: no images)",
     "output_dir": lambda v: None if v.strip() else "a folder (not empty)",
+    "monte_carlo": lambda v: None if v == 0 or v >= 2 else "0 (off) or a number of draws >= 2",
 }
 
 
@@ -96,6 +98,12 @@ def parse_config(data: Mapping[str, Any], source: str = "<config>") -> Config:
     given = data.get("session", {})
     if not isinstance(given, Mapping):
         raise ConfigError(f"{source}: [session] must be a table")
+    report = data.get("report")
+    if isinstance(report, Mapping) and "monte_carlo" in report:
+        # Before 0.2 the Monte Carlo check was the report stage's option (recordings
+        # keep their config): it is the session's now, run at the session end.
+        data = {**data, "report": {k: v for k, v in report.items() if k != "monte_carlo"}}
+        given = {"monte_carlo": report["monte_carlo"], **given}
     for key, value in given.items():
         if key not in SESSION_DEFAULTS:
             raise ConfigError(

@@ -8,7 +8,7 @@ the simulator's ground truth when there is one, and the recorded config
 read. Frames are fed in the order they were recorded, with their recorded
 capture times; serial bytes with their recorded read times; the session
 start time is the recorded one. The chain is the live one
-(:func:`crossfield.runner.run_pipeline`), so with the recorded plugins every
+(:func:`crossfield.chain.runner.run_pipeline`), so with the recorded plugins every
 stage output, and every number of the report, is the same float as
 recorded, and the replayed session's own recording holds the same
 messages. With swapped plugins or options the replay is a new session
@@ -30,13 +30,13 @@ from typing import Any
 
 import pluggy
 
+from crossfield.chain.runner import run_session, safe_session_name
 from crossfield.config import Config, with_overrides
 from crossfield.errors import ConfigError, RecordingError
 from crossfield.recording import layout as L
-from crossfield.recording.codec import decode_image, decode_link_event, ground_truth_from_doc  # noqa: F401 - public here too
+from crossfield.recording.codec import decode_image, decode_link_event, ground_truth_from_doc, utc_text  # noqa: F401 - public here too
 from crossfield.recording.facts import SessionFacts, load_session_facts, require_session  # noqa: F401
-from crossfield.recording.integrity import file_sha256, utc
-from crossfield.runner import run_session, safe_session_name
+from crossfield.recording.integrity import file_sha256
 from crossfield.session import SessionSummary
 from crossfield.stages import STAGES, SerialChunk
 from crossfield.types import CAMERAS, StereoFrame
@@ -102,7 +102,7 @@ class RecordingSource:
         notes = []
         if not rec.complete:
             ends = (
-                f"the last complete stereo pair is sequence {last[0]} at {utc(last[1])}"
+                f"the last complete stereo pair is sequence {last[0]} at {utc_text(last[1])}"
                 if last
                 else "no complete stereo pair was recorded"
             )
@@ -167,7 +167,7 @@ def _default_output(recorded: RecordedSession) -> tuple[Path, str]:
     """(base folder, session id) for a replay written next to the recorded session.
 
     The recorded session id is data: it names the replay's folder only if it
-    is a plain folder name (:func:`crossfield.runner.safe_session_name`);
+    is a plain folder name (:func:`crossfield.chain.runner.safe_session_name`);
     otherwise (``../..``, an absolute path, ...) the recording's own folder
     or file name does."""
     path = recorded.path.resolve()
@@ -272,7 +272,7 @@ def replay_session(
         "session_id": recorded.session_id,
         "complete": recorded.complete,
         "changed": changed,
-        "replayed_at_utc": utc(time.time_ns()),
+        "replayed_at_utc": utc_text(time.time_ns()),
     }
     return run_session(
         config,

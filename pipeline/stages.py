@@ -3,7 +3,7 @@
 :data:`STAGES` names the stages in data-flow order; :data:`STAGE_PROTOCOLS`
 maps each to the structural protocol its implementations satisfy. A
 registry hook offers ``factory(**options) -> implementation``;
-:meth:`crossfield.registry.Implementation.create` checks the object it makes
+:meth:`crossfield.chain.registry.Implementation.create` checks the object it makes
 against the stage's protocol (:func:`check_implementation`), so a plugin
 that lacks a method fails when it is chosen, with an error naming it.
 
@@ -21,7 +21,7 @@ can all import it without a circle.
 from __future__ import annotations
 
 import inspect
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,6 +32,7 @@ import numpy as np
 from crossfield.errors import PluginError
 from crossfield.plan import MeasurementPlan
 from crossfield.types import (
+    STAGES,
     CameraPoints,
     CentroidSet,
     GroundTruth,
@@ -50,10 +51,13 @@ if TYPE_CHECKING:  # pragma: no cover
 __all__ = [
     "STAGES",
     "STAGE_PROTOCOLS",
+    "AcceptsCovariance",
     "Acquisition",
     "BytesSink",
     "CentroidExtractor",
+    "DecodesLinkEvents",
     "LinkEvent",
+    "ListsReportFiles",
     "LogCallback",
     "Measurer",
     "RecordedAcquisition",
@@ -65,19 +69,10 @@ __all__ = [
     "ServesSimulatedArm",
     "Triangulator",
     "check_implementation",
+    "implements",
     "protocol_members",
 ]
 
-#: The stages, in data-flow order (the config's tables, the registry hooks).
-STAGES: tuple[str, ...] = (
-    "acquire",
-    "centroid",
-    "triangulate",
-    "reference",
-    "register",
-    "measure",
-    "report",
-)
 
 
 @dataclass(frozen=True)
@@ -206,6 +201,69 @@ STAGE_PROTOCOLS: Mapping[str, type] = {
     "measure": Measurer,
     "report": Reporter,
 }
+
+
+# ---- optional capabilities (checked by type: :func:`implements`) ----------
+
+
+@runtime_checkable
+class AcceptsCovariance(Protocol):
+    """A register implementation that takes each camera point's full covariance and
+    the CMM sigmas (``ml``), given to it when ``accepts_covariance`` is true
+    (:func:`crossfield.chain.weights.fit_registration`)."""
+
+    accepts_covariance: bool
+
+    def fit(
+        self,
+        camera_xyz: np.ndarray,
+        global_xyz: np.ndarray,
+        weights: np.ndarray | None = None,
+        *,
+        camera_cov: np.ndarray | None = None,
+        control_sigma: np.ndarray | None = None,
+    ) -> RigidFit:
+        """As :meth:`Registrar.fit`; camera_cov (N, 3, 3) mm^2, control_sigma (N,) mm."""
+
+
+@runtime_checkable
+class DecodesLinkEvents(Protocol):
+    """A reference implementation whose line can drop and come back: its
+    :meth:`decode` takes the recorded :class:`LinkEvent` s, so that a replay splits
+    the lines as the live read did."""
+
+    def decode(
+        self, raw: bytes, plan: MeasurementPlan, link_events: Sequence[tuple[int, LinkEvent]] = ()
+    ) -> ReferenceData:
+        """Decode ``raw`` with ``link_events``: (offset in raw, event) pairs in order."""
+
+
+@runtime_checkable
+class ListsReportFiles(Protocol):
+    """A reporter that says which files it will write, so that the recording (closed
+    before they exist) lists them."""
+
+    def report_files(self, out_dir: Path) -> list[Path]:
+        """The files :meth:`Reporter.write` will write into ``out_dir``."""
+
+
+def implements(obj: Any, protocol: type) -> bool:
+    """True if ``obj`` has every member of ``protocol`` and each of its methods can be
+    called with every parameter the protocol's method names (by keyword)."""
+    if not isinstance(obj, protocol):
+        return False
+    methods, _ = protocol_members(protocol)
+    for name, spec in methods.items():
+        try:
+            have = inspect.signature(getattr(obj, name))
+        except (TypeError, ValueError):
+            continue
+        params = list(inspect.signature(spec).parameters.values())[1:]
+        try:
+            have.bind(**{p.name: object() for p in params if p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)})
+        except TypeError:
+            return False
+    return True
 
 
 # ---- optional side channels (checked with isinstance) -------------------

@@ -24,6 +24,7 @@ import numpy as np
 
 __all__ = [
     "CAMERAS",
+    "STAGES",
     "CameraIntrinsics",
     "BudgetTerm",
     "CameraPoints",
@@ -46,6 +47,17 @@ __all__ = [
 ]
 
 CAMERAS: tuple[str, str] = ("upper", "lower")
+
+#: The stages, in data-flow order (the config's tables, the registry hooks, :mod:`crossfield.stages`).
+STAGES: tuple[str, ...] = (
+    "acquire",
+    "centroid",
+    "triangulate",
+    "reference",
+    "register",
+    "measure",
+    "report",
+)
 
 
 def frozen_array(values, dtype=np.float64, shape: tuple[int | None, ...] | None = None) -> np.ndarray:

@@ -40,13 +40,23 @@ from typing import Any, Iterator, Mapping
 
 import numpy as np
 
-from crossfield.camera.calibration_io import read_stereo_calibration
-from crossfield.errors import ConfigError, PluginError
-from crossfield.hookspecs import Register, hookimpl
-from crossfield.stages import Acquisition
-from crossfield.types import CAMERAS, StereoCalibration, StereoFrame
-
-from crossfield.camera.pairing import ArrivalPairer, BlockCounter, GrabbedFrame, IncidentLog, LogCallable, pair_skew_ns
+from crossfield.plugin_api import (
+    CAMERAS,
+    Acquisition,
+    ArrivalPairer,
+    BlockCounter,
+    ConfigError,
+    GrabbedFrame,
+    IncidentLog,
+    LogCallable,
+    PluginError,
+    Register,
+    StereoCalibration,
+    StereoFrame,
+    hookimpl,
+    pair_skew_ns,
+    read_stereo_calibration,
+)
 
 #: Pixel formats the source accepts -> significant bits. pylon delivers them
 #: unpacked, one pixel per uint8/uint16 word, LSB-aligned.

@@ -31,12 +31,17 @@ from typing import Any
 import cv2
 import numpy as np
 
-from crossfield.camera.pair_files import pattern_regex
-from crossfield.camera.calibration_io import read_stereo_calibration
-from crossfield.errors import ConfigError
-from crossfield.hookspecs import Register, hookimpl
-from crossfield.stages import Acquisition
-from crossfield.types import CAMERAS, StereoCalibration, StereoFrame
+from crossfield.plugin_api import (
+    CAMERAS,
+    Acquisition,
+    ConfigError,
+    Register,
+    StereoCalibration,
+    StereoFrame,
+    hookimpl,
+    pattern_regex,
+    read_stereo_calibration,
+)
 
 DEFAULT_CALIBRATION_FILES: tuple[tuple[str, ...], ...] = (
     ("calibration.yml",),

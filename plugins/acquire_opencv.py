@@ -41,13 +41,18 @@ from typing import Any, Iterator
 import cv2
 import numpy as np
 
-from crossfield.camera.calibration_io import read_stereo_calibration
-from crossfield.errors import ConfigError
-from crossfield.hookspecs import Register, hookimpl
-from crossfield.stages import Acquisition
-from crossfield.types import CAMERAS, StereoCalibration, StereoFrame
-
-from crossfield.camera.pairing import IncidentLog, LogCallable
+from crossfield.plugin_api import (
+    CAMERAS,
+    Acquisition,
+    ConfigError,
+    IncidentLog,
+    LogCallable,
+    Register,
+    StereoCalibration,
+    StereoFrame,
+    hookimpl,
+    read_stereo_calibration,
+)
 
 #: Names accepted by the ``backend`` option -> OpenCV's VideoCapture API preference.
 BACKENDS: dict[str, int] = {

@@ -15,10 +15,16 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from crossfield.hookspecs import Register, hookimpl
-from crossfield.stages import Acquisition
-from crossfield.simulator.scenarios import SCENARIOS, build_scene
-from crossfield.types import StereoFrame
+from crossfield.plugin_api import (
+    SCENARIOS,
+    Acquisition,
+    Register,
+    SimulatedArm,
+    StereoFrame,
+    build_scene,
+    hookimpl,
+    read_stereo_calibration,
+)
 
 
 class SimulatorSource:
@@ -59,7 +65,6 @@ class SimulatorSource:
         self.calibration = self.scene.calibration
         self.calibration_file = calibration
         if calibration:
-            from crossfield.camera.calibration_io import read_stereo_calibration
 
             self.calibration = read_stereo_calibration(
                 calibration, image_sizes=(self.calibration.upper.image_size, self.calibration.lower.image_size)
@@ -83,7 +88,6 @@ class SimulatorSource:
     @contextlib.contextmanager
     def serve_arm(self) -> Iterator[str]:
         """Run the simulated ROMER arm on a pseudo-terminal; yields its tty path."""
-        from crossfield.simulator.arm import SimulatedArm
 
         with SimulatedArm(self.arm_probes()).serve_pty() as port:
             yield port

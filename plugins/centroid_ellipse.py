@@ -46,10 +46,16 @@ import math
 import cv2
 import numpy as np
 
-from crossfield.hookspecs import hookimpl
-from crossfield.types import CentroidSet, RejectedBlob
-
-from crossfield.imaging.blobs import Blob, BlobDetector, DetectorOptions, sort_order, sort_rejected
+from crossfield.plugin_api import (
+    Blob,
+    BlobDetector,
+    CentroidSet,
+    DetectorOptions,
+    RejectedBlob,
+    hookimpl,
+    sort_order,
+    sort_rejected,
+)
 
 #: fewer edge points than this and the fit is not trusted
 MIN_EDGE_POINTS = 12

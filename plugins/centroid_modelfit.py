@@ -27,10 +27,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from crossfield.hookspecs import hookimpl
-from crossfield.imaging.blobs import BlobDetector, DetectorOptions, sort_order, sort_rejected
-from crossfield.imaging.disc_model import PSF_ORDERS, edge_profile, fit_discs, shape_from_moments
-from crossfield.types import CentroidSet, RejectedBlob
+from crossfield.plugin_api import (
+    PSF_ORDERS,
+    BlobDetector,
+    CentroidSet,
+    DetectorOptions,
+    RejectedBlob,
+    edge_profile,
+    fit_discs,
+    hookimpl,
+    shape_from_moments,
+    sort_order,
+    sort_rejected,
+)
 
 #: a fitted centre further than this from its seed (px) is a failed fit
 MAX_SHIFT_PX = 1.5

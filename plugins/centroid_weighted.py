@@ -37,10 +37,16 @@ import math
 
 import numpy as np
 
-from crossfield.hookspecs import hookimpl
-from crossfield.types import CentroidSet
-
-from crossfield.imaging.blobs import Background, Blob, BlobDetector, DetectorOptions, sort_order, sort_rejected
+from crossfield.plugin_api import (
+    Background,
+    Blob,
+    BlobDetector,
+    CentroidSet,
+    DetectorOptions,
+    hookimpl,
+    sort_order,
+    sort_rejected,
+)
 
 
 def weighted_centroid(

@@ -49,24 +49,29 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from crossfield.covariance import camera_covariance, registration_jacobian
-from crossfield.errors import MeasurementError
-from crossfield.geometry import AxisFit, fit_reference_element, point_line_distance
-from crossfield.hookspecs import hookimpl
-from crossfield.plan import CharacteristicSpec, MeasurementPlan
-from crossfield.uncertainty.budget import combined, merge
-from crossfield.uncertainty.calibration import DEFAULT_SCALE_U
-from crossfield.uncertainty.eccentricity import eccentricity_sigma_mm, off_axis_rad
-from crossfield.types import (
+from crossfield.plugin_api import (
+    DEFAULT_SCALE_U,
+    AxisFit,
     CameraPoints,
     CharacteristicResult,
+    CharacteristicSpec,
     GroundTruth,
     Measurement,
+    MeasurementError,
+    MeasurementPlan,
     ReferenceData,
     Registration,
     RegistrationConsistency,
+    camera_covariance,
+    combined,
+    eccentricity_sigma_mm,
+    fit_reference_element,
+    hookimpl,
+    merge,
+    off_axis_rad,
+    point_line_distance,
+    registration_jacobian,
 )
-
 
 #: Budget sources of a point's own covariance and of the registration covariance.
 _POINT_SOURCES = ("camera", "eccentricity", "reference_cmm")

@@ -15,17 +15,16 @@ probing order (``C1``, ``R1``, ``L3.4``...).
 
 from __future__ import annotations
 
-from crossfield.errors import ReferenceImportError
-from crossfield.hookspecs import hookimpl
-from crossfield.plan import MeasurementPlan
-from crossfield.types import ReferenceData
-
-from crossfield.cmm.plausible import DEFAULT_VOLUME_MM
-from crossfield.cmm.point_files import (
+from crossfield.plugin_api import (
+    DEFAULT_VOLUME_MM,
     FilePoint,
+    MeasurementPlan,
     PointFileReference,
+    ReferenceData,
+    ReferenceImportError,
     by_name,
     finite,
+    hookimpl,
     in_volume,
     parse_float,
     quoted,

@@ -37,21 +37,20 @@ order, and a point count that differs from the plan's is reported.
 
 from __future__ import annotations
 
-from crossfield.errors import ReferenceImportError
-from crossfield.hookspecs import hookimpl
-from crossfield.plan import MeasurementPlan
-from crossfield.types import ReferenceData
-
-from crossfield.cmm.plausible import DEFAULT_VOLUME_MM
-from crossfield.cmm.point_files import (
+from crossfield.plugin_api import (
+    DEFAULT_VOLUME_MM,
     LENGTH_UNITS,
     FilePoint,
+    MeasurementPlan,
     PointFileReference,
+    ReferenceData,
+    ReferenceImportError,
     approach_direction,
     by_name,
     by_probing_order,
     check_units,
     finite,
+    hookimpl,
     in_volume,
     parse_float,
     quoted,

@@ -48,24 +48,31 @@ from typing import Any
 
 import numpy as np
 
-from crossfield.cmm.formats import FORMATS, UNITS, LineFormat
-from crossfield.errors import ReferenceImportError
-from crossfield.hookspecs import Register, hookimpl
-from crossfield.plan import MeasurementPlan
-from crossfield.cmm.protocol import (
+from crossfield.plugin_api import (
+    DEFAULT_VOLUME_MM,
+    FORMATS,
+    READ_BYTES,
+    UNITS,
+    BytesSink,
     Decoder,
     LineDecoder,
-    READ_BYTES,
+    LineFormat,
+    LinkEvent,
     LinkLost,
+    MeasurementPlan,
+    ProbedPoint,
     ProbeRecord,
+    ReferenceData,
+    ReferenceImportError,
+    ReferenceSource,
+    Register,
     Rejection,
     SerialTransport,
     Transport,
+    check_volume,
+    control_problems,
+    hookimpl,
 )
-from crossfield.cmm.controls import control_problems
-from crossfield.cmm.plausible import DEFAULT_VOLUME_MM, check_volume
-from crossfield.stages import BytesSink, LinkEvent, ReferenceSource
-from crossfield.types import ProbedPoint, ReferenceData
 
 
 def _label_list(labels: list[str], indices: list[int], first_seq: int | None) -> str:

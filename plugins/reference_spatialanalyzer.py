@@ -37,20 +37,19 @@ from __future__ import annotations
 
 import re
 
-from crossfield.errors import ReferenceImportError
-from crossfield.hookspecs import hookimpl
-from crossfield.plan import MeasurementPlan
-from crossfield.types import ReferenceData
-
-from crossfield.cmm.plausible import DEFAULT_VOLUME_MM
-from crossfield.cmm.point_files import (
+from crossfield.plugin_api import (
+    DEFAULT_VOLUME_MM,
     LENGTH_UNITS,
     FilePoint,
+    MeasurementPlan,
     PointFileReference,
+    ReferenceData,
+    ReferenceImportError,
     by_name,
     by_probing_order,
     check_units,
     finite,
+    hookimpl,
     in_volume,
     quoted,
     resolve_units,

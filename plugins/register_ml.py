@@ -29,11 +29,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from crossfield.covariance import skew
-from crossfield.errors import RegistrationError
-from crossfield.hookspecs import hookimpl
-from crossfield.rigid import REFLECTION_RATIO, check_ratio, check_reflection, kabsch, point_set_size, residual_rms, validate_pairs
-from crossfield.types import RigidFit
+from crossfield.plugin_api import (
+    REFLECTION_RATIO,
+    RegistrationError,
+    RigidFit,
+    check_ratio,
+    check_reflection,
+    hookimpl,
+    kabsch,
+    point_set_size,
+    residual_rms,
+    skew,
+    validate_pairs,
+)
 
 #: Gauss-Newton stops when the step is below this (rad and mm).
 STEP_TOLERANCE = 1e-13

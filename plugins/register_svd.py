@@ -31,9 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from crossfield.hookspecs import hookimpl
-from crossfield.rigid import REFLECTION_RATIO, check_ratio, rigid_fit
-from crossfield.types import RigidFit
+from crossfield.plugin_api import REFLECTION_RATIO, RigidFit, check_ratio, hookimpl, rigid_fit
 
 
 class SvdRegistrar:

@@ -29,18 +29,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from crossfield.hookspecs import hookimpl
-from crossfield.rigid import (
+from crossfield.plugin_api import (
     REFLECTION_RATIO,
+    RigidFit,
     check_ratio,
     check_reflection,
+    hookimpl,
     kabsch,
     point_set_size,
     residual_rms,
     validate_pairs,
     weighted_rms,
 )
-from crossfield.types import RigidFit
 
 
 class UmeyamaRegistrar:

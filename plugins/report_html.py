@@ -19,10 +19,20 @@ from typing import Any, Iterable, Mapping, Sequence
 
 from markupsafe import Markup
 
-from crossfield.hookspecs import hookimpl
-from crossfield.session import SessionSummary
-
-from crossfield.report import document as doc
+from crossfield.plugin_api import (
+    KIND_CONTROL,
+    KIND_TARGET,
+    REPORT_JSON,
+    TEMPLATE_DIR,
+    SessionSummary,
+    deviation_chart,
+    document_of,
+    dumps,
+    hookimpl,
+    residual_chart,
+    thumbnail_chart,
+    trend_chart,
+)
 
 KIND_LABELS = {
     "point_point": "point to point",
@@ -33,7 +43,7 @@ KIND_LABELS = {
 DASH = "\u2014"
 
 #: crossfield's own report templates (Jinja2) and style sheet.
-TEMPLATE_DIR = doc.TEMPLATE_DIR
+TEMPLATE_DIR = TEMPLATE_DIR
 
 
 # --------------------------------------------------------------------------
@@ -500,12 +510,11 @@ def _job_html(report: Mapping[str, Any]) -> str:
 
 def report_figures(report: Mapping[str, Any], positions: Mapping[str, Any] | None = None) -> dict[str, str]:
     """The report's inline SVG pictures (:mod:`crossfield.report.figures`)."""
-    from crossfield.report import figures
 
     return {
-        "deviations": figures.deviation_chart(report),
-        "residuals": figures.residual_chart(report, positions or {}),
-        "trends": figures.trend_chart(report),
+        "deviations": deviation_chart(report),
+        "residuals": residual_chart(report, positions or {}),
+        "trends": trend_chart(report),
     }
 
 
@@ -520,10 +529,8 @@ _PAIR_TEXT = {
 
 def camera_figures(thumbnails: Sequence[Any]) -> list[dict[str, Any]]:
     """The "Cameras" section: per :class:`~crossfield.report.thumbnails.CameraThumbnail`
-    (``summary.thumbnails``) its ``camera``, ``svg`` (:func:`crossfield.report.figures.thumbnail_chart`)
+    (``summary.thumbnails``) its ``camera``, ``svg`` (:func:`crossfield.report.thumbnail_chart`)
     and ``caption`` (plain text)."""
-    from crossfield.report import figures
-    from crossfield.report.thumbnails import KIND_CONTROL, KIND_TARGET
 
     out = []
     for t in thumbnails:
@@ -535,7 +542,7 @@ def camera_figures(thumbnails: Sequence[Any]) -> list[dict[str, Any]]:
             f"{n_control} control point{'s' if n_control != 1 else ''} (blue) and "
             f"{n_target} measured target{'s' if n_target != 1 else ''} (orange) labelled"
         )
-        out.append({"camera": t.camera, "svg": figures.thumbnail_chart(t), "caption": caption})
+        out.append({"camera": t.camera, "svg": thumbnail_chart(t), "caption": caption})
     return out
 
 
@@ -551,8 +558,7 @@ def _printable(text: Any) -> str:
 
 def summary_text(summary: SessionSummary, decimals: int = 4) -> str:
     """A few lines for the terminal: frames, registration, Table 3, RMS error, verdict."""
-    report = doc.build_report(summary)
-    return render_text(report, decimals)
+    return render_text(document_of(summary), decimals)
 
 
 def render_text(report: Mapping[str, Any], decimals: int = 4) -> str:
@@ -615,53 +621,29 @@ def render_text(report: Mapping[str, Any], decimals: int = 4) -> str:
 
 
 class JsonReport:
-    """report.json only: every number unrounded, for audits and scripts."""
+    """report.json only: every number unrounded, for audits and scripts. It renders the
+    session's report document (``summary.report``, built once at the session end)."""
 
-    def __init__(self, *, decimals: int = 4, monte_carlo: int = 0):
+    def __init__(self, *, decimals: int = 4):
         if isinstance(decimals, bool) or not isinstance(decimals, int) or not 0 <= decimals <= 12:
             raise ValueError(f"option 'decimals' must be an integer 0..12, got {decimals!r}")
-        if isinstance(monte_carlo, bool) or not isinstance(monte_carlo, int) or monte_carlo < 0 or monte_carlo == 1:
-            raise ValueError(f"option 'monte_carlo' must be 0 (off) or a number of draws >= 2, got {monte_carlo!r}")
         self.decimals = decimals
-        self.monte_carlo = monte_carlo
-
-    def document(self, summary: SessionSummary) -> dict[str, Any]:
-        """report.json's content, with the Monte Carlo check when ``monte_carlo`` > 0."""
-        report = doc.build_report(summary)
-        if self.monte_carlo:
-            from crossfield.uncertainty.montecarlo import session_monte_carlo
-
-            results = session_monte_carlo(summary, self.monte_carlo)
-            report["monte_carlo"] = doc.monte_carlo_section(results, self.monte_carlo)
-        return report
-
-    def _write_json(self, report: Mapping[str, Any], out_dir: Path) -> Path:
-        path = out_dir / "report.json"
-        _write_atomic(path, doc.dumps(report))
-        self._last = report
-        return path
 
     def report_files(self, out_dir: Path) -> list[Path]:
         """The files :meth:`write` writes into ``out_dir`` (the recording lists
         them: it is closed before they are written)."""
-        return [Path(out_dir) / "report.json"]
+        return [Path(out_dir) / REPORT_JSON]
 
     def write(self, summary: SessionSummary, out_dir: Path) -> list[Path]:
         """Write report.json into ``out_dir`` (created if missing)."""
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
-        return [self._write_json(self.document(summary), out_dir)]
+        path = out_dir / REPORT_JSON
+        _write_atomic(path, dumps(document_of(summary)))
+        return [path]
 
     def summary_text(self, summary: SessionSummary) -> str:
-        report = getattr(self, "_last", None)
-        if report is None or report["session"]["id"] != summary.info.session_id:
-            report = doc.build_report(summary)
-            written = Path(summary.info.out_dir) / "report.json"
-            if self.monte_carlo and written.is_file():  # the writer's document holds the Monte Carlo check
-                on_disk = json.loads(written.read_text(encoding="utf-8"))
-                if on_disk.get("session", {}).get("id") == summary.info.session_id and "monte_carlo" in on_disk:
-                    report["monte_carlo"] = on_disk["monte_carlo"]
-        return render_text(report, self.decimals)
+        return render_text(document_of(summary), self.decimals)
 
 
 class HtmlReport(JsonReport):
@@ -676,8 +658,8 @@ class HtmlReport(JsonReport):
     figures: draw the pictures (matplotlib; default true), the camera thumbnails included.
     """
 
-    def __init__(self, *, decimals: int = 4, templates: str = "", figures: bool = True, monte_carlo: int = 0):
-        super().__init__(decimals=decimals, monte_carlo=monte_carlo)
+    def __init__(self, *, decimals: int = 4, templates: str = "", figures: bool = True):
+        super().__init__(decimals=decimals)
         if not isinstance(templates, str):
             raise ValueError(f"option 'templates' must be a folder path (string), got {templates!r}")
         if templates and not Path(templates).is_dir():
@@ -692,12 +674,9 @@ class HtmlReport(JsonReport):
 
     def write(self, summary: SessionSummary, out_dir: Path) -> list[Path]:
         """Write report.json and report.html into ``out_dir`` (created if missing)."""
-        out_dir = Path(out_dir)
-        out_dir.mkdir(parents=True, exist_ok=True)
-        report = self.document(summary)
-        self._last = report
-        json_path = self._write_json(report, out_dir)
-        html_path = out_dir / "report.html"
+        (json_path,) = super().write(summary, out_dir)
+        report = document_of(summary)
+        html_path = Path(out_dir) / "report.html"
         positions = {p.label: tuple(float(v) for v in p.xyz) for p in summary.reference.points}
         figures = report_figures(report, positions) if self.figures else None
         cameras = camera_figures(summary.thumbnails) if self.figures else []

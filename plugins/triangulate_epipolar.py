@@ -39,15 +39,22 @@ import math
 
 import numpy as np
 
-from crossfield.camera.stereo_model import (
+from crossfield.plugin_api import (
+    CameraPoints,
+    CentroidSet,
+    StereoCalibration,
+    StereoCentroids,
     StereoGeometry,
+    View,
+    centre_offsets,
+    fit_circles,
+    hookimpl,
     linear_triangulation,
+    offset_covariance,
     refine_points,
     stereo_geometry,
     undistort,
 )
-from crossfield.hookspecs import hookimpl
-from crossfield.types import CameraPoints, CentroidSet, StereoCalibration, StereoCentroids
 
 
 def _sigmas(centroids: CentroidSet, default_px: float) -> np.ndarray:
@@ -241,11 +248,10 @@ class EpipolarTriangulator:
         Returns X, residual, J, information as :meth:`_refine` does, and the (K, 4, 4) px^2
         covariance of the offsets taken off [u_upper, v_upper, u_lower, v_lower].
         """
-        from crossfield.imaging import eccentricity
 
         views = (
-            eccentricity.View(geometry.upper.K, geometry.upper.dist, geometry.upper.R, geometry.upper.t),
-            eccentricity.View(geometry.lower.K, geometry.lower.dist, geometry.lower.R, geometry.lower.t),
+            View(geometry.upper.K, geometry.upper.dist, geometry.upper.R, geometry.upper.t),
+            View(geometry.lower.K, geometry.lower.dist, geometry.lower.R, geometry.lower.t),
         )
         ellipses = (upper.ellipse[ai], lower.ellipse[aj])
         covs = (
@@ -253,16 +259,16 @@ class EpipolarTriangulator:
             lower.ellipse_cov[aj] if lower.ellipse_cov is not None else None,
         )
         try:
-            circles = eccentricity.fit_circles(X, views, ellipses, covs)
+            circles = fit_circles(X, views, ellipses, covs)
         except np.linalg.LinAlgError:  # degenerate conics (not from a disc fit): leave the points as they are
             return (*self._refine(X, uv_obs, weights, geometry), None)
         result = (X,)
         for _ in range(2):  # the offsets depend (weakly) on the point: one update suffices
-            offsets = eccentricity.centre_offsets(result[0], circles.normal, circles.radius_mm, views)
+            offsets = centre_offsets(result[0], circles.normal, circles.radius_mm, views)
             bad = ~np.isfinite(offsets).all(axis=1)
             offsets[bad] = 0.0  # a circle that could not be fitted: no correction for that target
             result = self._refine(X, uv_obs - offsets, weights, geometry)
-        offset_cov = eccentricity.offset_covariance(result[0], circles, views)
+        offset_cov = offset_covariance(result[0], circles, views)
         offset_cov[bad | ~np.isfinite(offset_cov).all(axis=(1, 2))] = 0.0
         return (*result, offset_cov)
 

@@ -20,7 +20,7 @@ from collections.abc import Callable
 
 import cv2
 import numpy as np
-from crossfield.camera.board_detect import BoardDetection
+from crossfield.calibration.detect import BoardDetection
 from crossfield.simulator.board_views import board_height_mm, default_board, station_board_poses
 from crossfield.simulator.scenarios import station_calibration
 from crossfield.types import CAMERAS

@@ -15,8 +15,8 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import Writer
 
 from crossfield.config import parse_config
-from crossfield.registry import make_plugin_manager
-from crossfield.runner import run_session
+from crossfield.chain.registry import make_plugin_manager
+from crossfield.chain.runner import run_session
 from crossfield.session import SessionSummary
 
 #: report.json keys that name the run, not its results (compared separately).

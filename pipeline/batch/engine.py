@@ -23,6 +23,7 @@ import sys
 import threading
 import uuid
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from crossfield.errors import ConfigError
@@ -30,7 +31,7 @@ from crossfield.errors import ConfigError
 if TYPE_CHECKING:
     from dask.distributed import Client
 
-__all__ = ["add_engine_flags", "client", "dashboard_text", "run_each", "task_error"]
+__all__ = ["Engine", "add_engine_flags", "client", "engine_from_args", "dashboard_text", "run_each", "task_error"]
 
 logger = logging.getLogger(__name__)
 
@@ -40,20 +41,51 @@ DEFAULT_MEMORY_LIMIT = "auto"
 
 
 def add_engine_flags(parser: argparse.ArgumentParser) -> None:
-    """``--scheduler``, ``--workers`` and ``--memory-limit`` on ``parser`` (batch, Monte Carlo, sweeps)."""
+    """``--scheduler``, ``--workers`` and ``--memory-limit`` on ``parser``: the one set of
+    engine flags of every command that can run on Dask (batch, the Monte Carlo check of
+    ``run``, the planner's sweeps), read back by :func:`engine_from_args`.
+
+    ``--scheduler local`` (or ``--workers N`` alone) is an embedded ``LocalCluster``;
+    ``--scheduler tcp://HOST:PORT`` an existing cluster. The same words mean the same
+    thing in every command; a command whose work needs Dask (batch) uses the embedded
+    cluster when neither flag is given."""
     parser.add_argument(
-        "--scheduler", metavar="tcp://HOST:PORT",
-        help="an existing Dask scheduler (default: an embedded LocalCluster on this machine)",
+        "--scheduler", metavar="local|tcp://HOST:PORT",
+        help="where the Dask work runs: 'local' (an embedded LocalCluster on this machine) or an existing "
+        "scheduler's address",
     )
     parser.add_argument(
         "--workers", type=int, metavar="N",
         help="embedded cluster: N worker processes (default: one per core); "
-        "with --scheduler: wait until N workers are connected",
+        "with a scheduler address: wait until N workers are connected",
     )
     parser.add_argument(
         "--memory-limit", default=DEFAULT_MEMORY_LIMIT, metavar="BYTES",
         help="embedded cluster: memory limit per worker, e.g. 2GiB (default: auto, the memory shared out)",
     )
+
+
+@dataclass(frozen=True)
+class Engine:
+    """Where Dask work runs, as the engine flags gave it.
+
+    scheduler: ``tcp://HOST:PORT`` of a running scheduler, or None for an embedded
+    ``LocalCluster``; workers: the embedded cluster's processes (or the workers to wait
+    for); memory_limit: per embedded worker."""
+
+    scheduler: str | None = None
+    workers: int | None = None
+    memory_limit: str | int | None = DEFAULT_MEMORY_LIMIT
+
+
+def engine_from_args(args: argparse.Namespace) -> Engine | None:
+    """The :class:`Engine` of :func:`add_engine_flags`' flags, or None when neither
+    ``--scheduler`` nor ``--workers`` was given (``local`` = the embedded cluster)."""
+    scheduler, workers = getattr(args, "scheduler", None), getattr(args, "workers", None)
+    if scheduler is None and workers is None:
+        return None
+    memory_limit = getattr(args, "memory_limit", DEFAULT_MEMORY_LIMIT)
+    return Engine(None if scheduler in (None, "local") else scheduler, workers, memory_limit)
 
 
 @contextlib.contextmanager
@@ -77,6 +109,8 @@ def client(
 
     if workers is not None and workers < 1:
         raise ConfigError(f"--workers {workers}: at least 1 worker")
+    if scheduler == "local":  # the engine flags' word for the embedded cluster
+        scheduler = None
     if scheduler:
         try:
             c = Client(scheduler, timeout=timeout_s)

@@ -33,7 +33,7 @@ from typing import Any
 from crossfield.batch.inputs import SessionInput
 from crossfield.batch.plot import shift_histogram_svg
 from crossfield.batch.tasks import VERDICTS
-from crossfield.recording.integrity import utc
+from crossfield.recording.codec import utc_text
 
 __all__ = [
     "REPORT_FORMAT", "JSON_NAME", "HTML_NAME", "BatchReport", "shift_distribution", "sort_key", "write_atomic"
@@ -147,8 +147,8 @@ class BatchReport:
             "format": REPORT_FORMAT,
             "kind": self.kind,
             "complete": self.complete,
-            "started_utc": utc(self.started_ns),
-            "updated_utc": utc(time.time_ns()),
+            "started_utc": utc_text(self.started_ns),
+            "updated_utc": utc_text(time.time_ns()),
             "inputs": len(self.inputs),
             "finished": len(sessions),
             "counts": counts,

@@ -10,12 +10,12 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from crossfield.batch import engine
+from crossfield.batch.engine import Engine, client, dashboard_text, run_each
 from crossfield.batch.inputs import expand_inputs
 from crossfield.batch.report import JSON_NAME, BatchReport
 from crossfield.batch.tasks import KINDS, run_task
+from crossfield.chain.runner import new_session_dir
 from crossfield.errors import ConfigError
-from crossfield.runner import new_session_dir
 
 __all__ = ["default_output", "remove_attempts", "run_batch"]
 
@@ -58,9 +58,7 @@ def run_batch(
     out_dir: str | Path | None = None,
     plugins: Mapping[str, str | None] | None = None,
     options: Sequence[str] = (),
-    scheduler: str | None = None,
-    workers: int | None = None,
-    memory_limit: str | int | None = engine.DEFAULT_MEMORY_LIMIT,
+    engine: Engine = Engine(),
     dashboard_address: str = ":8787",
     progress: bool = True,
     echo: Callable[[str], None] = lambda text: None,
@@ -68,8 +66,9 @@ def run_batch(
     """Run ``kind`` (audit, replay, compare) over the sessions named by ``paths``.
 
     Unreadable inputs are ERROR entries at once (not submitted); the others are one
-    Dask task each (:func:`crossfield.batch.tasks.run_task`) on the cluster of
-    :func:`crossfield.batch.engine.client`. The report in ``out_dir`` (default
+    Dask task each (:func:`crossfield.batch.tasks.run_task`) on the cluster ``engine``
+    names (:func:`crossfield.batch.engine.client`; default an embedded LocalCluster).
+    The report in ``out_dir`` (default
     :func:`default_output`) is rewritten as each session finishes; on an interruption
     (KeyboardInterrupt) it is written marked incomplete and the interruption re-raised.
     ``echo``: one line of information (the cluster and dashboard, where the report is).
@@ -93,16 +92,16 @@ def run_batch(
     finished = False
     try:
         if todo:
-            with engine.client(
-                scheduler, workers, memory_limit=memory_limit, dashboard_address=dashboard_address
+            with client(
+                engine.scheduler, engine.workers, memory_limit=engine.memory_limit, dashboard_address=dashboard_address
             ) as c:
-                echo(engine.dashboard_text(c))
+                echo(dashboard_text(c))
 
                 def on_result(k: int, entry: Any, error: str | None) -> None:
                     i = todo[k]
                     report.add(i, entry if error is None else {"verdict": "ERROR", "reason": error})
 
-                engine.run_each(
+                run_each(
                     c,
                     run_task,
                     [(kind, i, inputs[i].path, str(out), plugins, list(options)) for i in todo],

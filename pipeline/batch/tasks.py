@@ -54,7 +54,7 @@ VERDICTS = ("PASS", "FAIL", "INCOMPLETE", "ERROR")
 KINDS = ("audit", "replay", "compare")
 #: The file each task folder holds its entry in (written last, before the rename).
 ENTRY_FILE = "entry.json"
-#: Integrity findings that mean "cut short", not "altered" (as :class:`crossfield.audit.AuditReport`).
+#: Integrity findings that mean "cut short", not "altered" (as :class:`crossfield.audit.report.AuditReport`).
 TRUNCATION = {"truncated", "uncovered"}
 #: Findings named in a reason (the rest are counted; all are in the task's audit.json).
 REASON_ITEMS = 3
@@ -63,7 +63,7 @@ REASON_ITEMS = 3
 @functools.lru_cache(maxsize=1)
 def _plugin_manager() -> Any:
     """One plugin manager per worker process: built-in plugins and installed ones (entry points)."""
-    from crossfield.registry import make_plugin_manager
+    from crossfield.chain.registry import make_plugin_manager
 
     return make_plugin_manager(entry_points=True)
 

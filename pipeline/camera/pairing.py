@@ -16,7 +16,7 @@ one:
   frame answers.
 
 Nothing here imports a camera SDK, so the logic is tested with synthetic
-frame events (``tests/test_basler.py``).
+frame events (``tests/acquire/test_basler.py``).
 """
 
 from __future__ import annotations

@@ -27,6 +27,7 @@ import itertools
 from collections.abc import Sequence
 
 import numpy as np
+
 from crossfield.plan import MeasurementPlan
 from crossfield.rigid import COLLINEAR_RATIO
 from crossfield.types import ProbedPoint

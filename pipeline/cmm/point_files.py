@@ -24,11 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
-from crossfield.errors import ReferenceImportError
-from crossfield.plan import MeasurementPlan
 from crossfield.cmm.controls import control_problems
 from crossfield.cmm.plausible import DEFAULT_VOLUME_MM, check_volume, coordinate_problem
 from crossfield.cmm.protocol import show
+from crossfield.errors import ReferenceImportError
+from crossfield.plan import MeasurementPlan
 from crossfield.stages import BytesSink
 from crossfield.types import ProbedPoint, ReferenceData
 

@@ -44,6 +44,7 @@ from dataclasses import dataclass
 from typing import Protocol, Sequence
 
 from crossfield.cmm.plausible import DEFAULT_VOLUME_MM, check_volume, coordinate_problem, size_problem
+
 __all__ = [
     "MAX_LINE_BYTES",
     "NOISE",

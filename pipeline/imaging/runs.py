@@ -4,7 +4,7 @@ One job: from an (H, W) integer image and a threshold, the blobs of
 :mod:`crossfield.imaging.blobs` step 3: the 8-connected components of the
 pixels strictly above the threshold, each with its holes filled (what
 ``cv2.findContours(RETR_EXTERNAL)`` and a filled ``cv2.drawContours`` of each
-outer contour give; ``tests/test_blob_runs.py`` holds them to it). A blob
+outer contour give; ``tests/centroid/test_blob_runs.py`` holds them to it). A blob
 lying inside another's hole is part of that blob, as it is no outer contour.
 
 A blob is a list of runs: (row, first column, end column) with the end

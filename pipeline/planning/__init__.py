@@ -5,5 +5,5 @@
 * :mod:`crossfield.planning.routes`: the analytic and the Monte Carlo prediction;
 * :mod:`crossfield.planning.sweeps`: the layout sweeps (the paper's Fig. 3) and the recommendation;
 * :mod:`crossfield.planning.report`: plan.html (inline SVG plots) and plan.json;
-* :mod:`crossfield.planning.cli`: ``crossfield plan`` and ``crossfield crb``.
+* :mod:`crossfield.cli.planning`: ``crossfield plan`` and ``crossfield crb``.
 """

@@ -96,14 +96,14 @@ def antithetic_pair(clean: np.ndarray, sensor: SensorModel, rng: np.random.Gener
 
 @lru_cache(maxsize=1)
 def _plugin_manager():
-    from crossfield.registry import make_plugin_manager
+    from crossfield.chain.registry import make_plugin_manager
 
     return make_plugin_manager()
 
 
 def centroid_implementation(name: str):
     """The registered ``centroid`` implementation ``name`` (a PluginError listing the names if none)."""
-    from crossfield.registry import get_implementation
+    from crossfield.chain.registry import get_implementation
 
     return get_implementation(_plugin_manager(), "centroid", name)
 

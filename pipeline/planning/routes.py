@@ -44,18 +44,25 @@ from typing import Any
 
 import numpy as np
 
+from crossfield.chain.weights import registration_weights
 from crossfield.geometry import fit_cylinder_axis, fit_line, point_line_distance
 from crossfield.imaging.eccentricity import centre_offsets, stereo_views
+from crossfield.planning.image_bias import rendered_bias
+from crossfield.planning.station import Characteristic, ReferenceLine, Station
 from crossfield.precision.chain import centroid_sigmas, image_radius_px
 from crossfield.precision.registration import (
-    fitzpatrick_covariance, fitzpatrick_tre, point_jacobian, registration_covariance,
+    fitzpatrick_covariance,
+    fitzpatrick_tre,
+    point_jacobian,
+    registration_covariance,
 )
 from crossfield.precision.stereo import (
-    camera_point_covariance, linearised_triangulation, project_stereo, triangulate_batch,
+    camera_point_covariance,
+    linearised_triangulation,
+    project_stereo,
+    triangulate_batch,
 )
 from crossfield.rigid import kabsch
-from crossfield.planning.station import Characteristic, ReferenceLine, Station
-from crossfield.planning.image_bias import rendered_bias
 from crossfield.simulator.render import SensorModel
 
 
@@ -92,7 +99,8 @@ def runner_weights(station: Station, model: CameraModel) -> np.ndarray:
     (``Station.weight_cmm_sigma_mm``; unset: the arm's ``cmm_sigma_mm``)."""
     T = len(station.target_ids)
     stated = station.cmm_sigma_mm if station.weight_cmm_sigma_mm is None else station.weight_cmm_sigma_mm
-    return 1.0 / np.maximum(np.trace(model.cov[T:], axis1=1, axis2=2) / 3 + stated**2, 1e-12)
+    C = len(model.cov) - T
+    return registration_weights(np.trace(model.cov[T:], axis1=1, axis2=2) / 3, np.full(C, stated))
 
 
 def centroid_bias(station: Station, uv: np.ndarray, noise: str = "antithetic") -> np.ndarray:

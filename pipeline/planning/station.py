@@ -274,7 +274,12 @@ def station_from_scenario(
     if bias_model not in BIAS_MODELS:
         raise ValueError(f"bias_model must be one of {', '.join(BIAS_MODELS)}, got {bias_model!r}")
     from crossfield.simulator.scenarios import (
-        BASELINE_MM, FOCAL_LENGTH_MM, PIXEL_PITCH_MM, SCENARIOS, TARGET_RADIUS_MM, build_scene,
+        BASELINE_MM,
+        FOCAL_LENGTH_MM,
+        PIXEL_PITCH_MM,
+        SCENARIOS,
+        TARGET_RADIUS_MM,
+        build_scene,
     )
     from crossfield.simulator.scene import probe_ring_basis
 

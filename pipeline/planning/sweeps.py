@@ -13,7 +13,12 @@ from typing import Any, Callable, Sequence
 
 from crossfield.planning.routes import predict
 from crossfield.planning.station import (
-    Station, with_baseline, with_cmm_sigma, with_control_spread, with_controls, with_focal_length,
+    Station,
+    with_baseline,
+    with_cmm_sigma,
+    with_control_spread,
+    with_controls,
+    with_focal_length,
     with_working_distance,
 )
 

@@ -32,7 +32,6 @@ import numpy as np
 
 from crossfield.covariance import registration_jacobian
 
-
 #: d(point error)/d(xi) (..., 3, 6) of points (..., 3) mm: the one kernel of crossfield.covariance.
 point_jacobian = registration_jacobian
 

@@ -92,7 +92,7 @@ class LinearTriangulation:
     The error of the linear form is second order in ``d`` (~ z (d / disparity)^2): for the
     paper's rig (16 mm lenses, 50 mm baseline, 400 mm, disparity ~450 px) with ``d`` of 0.05 px RMS
     it is below 1e-3 of the first-order term and 5e-4 mm at most, at 0.005 px 100x less
-    (``tests/test_plan_fast.py`` bounds it against the full kernel).
+    (``tests/planning/test_plan_fast.py`` bounds it against the full kernel).
     """
 
     uv0: np.ndarray

@@ -3,7 +3,7 @@
 Every topic, JSON schema name, metadata record name, channel metadata key
 and attachment name of ``session.mcap`` (``docs/recording.md``) is defined
 here and imported everywhere else; no other module of ``crossfield`` or
-``crossfield.plugins`` spells a topic (``tests/test_recording.py`` walks
+``crossfield.plugins`` spells a topic (``tests/recording/test_recording.py`` walks
 the sources and fails on one).
 
 Units of the recorded data: the JSON messages carry mm, rad and px; the
@@ -69,7 +69,7 @@ TOPIC_VERIFICATION_IMAGE = "/verification/{camera}/image"
 TOPIC_VERIFICATION_POSITION = "/verification/position"
 #: The verification result (JSON, ``VerificationResult.to_dict``).
 TOPIC_VERIFICATION_RESULT = "/verification/result"
-VERIFICATION_METADATA = "crossfield.verification"
+VERIFICATION_METADATA = "crossfield.verification.procedure"
 VERIFICATION_PROFILE = "crossfield-verification"
 
 

@@ -18,8 +18,6 @@ messages (:mod:`crossfield.recording.codec`) and gives them to a sink
 from __future__ import annotations
 
 import atexit
-import json
-import os
 from pathlib import Path
 from typing import Any, Self
 
@@ -27,6 +25,7 @@ from crossfield.errors import RecordingError
 from crossfield.hookspecs import hookimpl
 from crossfield.recording.seal import Seal
 from crossfield.recording.writer import DEFAULT_CHUNK_SIZE, McapFileSink, SessionWriter, Sink
+from crossfield.report.document import REPORT_JSON, add_seal_to_file
 
 
 class SessionRecorder:
@@ -192,7 +191,7 @@ class McapRecorder(SessionRecorder):
         sealed = self.end_session(summary)
         for path in summary.report_files:
             if Path(path).name == REPORT_JSON:
-                add_seal_to_report(Path(path), sealed)
+                add_seal_to_file(Path(path), sealed)
 
 
 def check_closed(path: Path, sealed: Seal | None) -> Seal:
@@ -206,24 +205,3 @@ def check_closed(path: Path, sealed: Seal | None) -> Seal:
         if not rec.complete:
             raise RecordingError(f"{path}: the recording does not read back complete: {rec.damage}")
     return sealed
-
-
-#: The report file that carries the seal.
-REPORT_JSON = "report.json"
-
-
-def add_seal_to_report(path: Path, sealed: Seal) -> None:
-    """Add ``integrity`` (the seal) to the report.json at ``path``, written atomically."""
-    from crossfield.report.document import dumps
-
-    try:
-        report = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:
-        raise RecordingError(f"{path}: cannot add the recording's seal: {exc}") from None
-    report["integrity"] = sealed.to_json()
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        tmp.write_text(dumps(report), encoding="utf-8")
-        os.replace(tmp, path)
-    except OSError as exc:
-        raise RecordingError(f"{path}: cannot add the recording's seal: {exc.strerror}") from None

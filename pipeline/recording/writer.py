@@ -45,9 +45,9 @@ from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from mcap.writer import CompressionType, Writer
 
+from crossfield.chain.provenance import crossfield_version, machine_info
 from crossfield.covariance import global_sigma
 from crossfield.errors import RecordingError
-from crossfield.provenance import crossfield_version, machine_info
 from crossfield.jsonable import plain, real, reals
 from crossfield.recording import layout as L
 from crossfield.recording import seal
@@ -76,6 +76,7 @@ from crossfield.recording.codec import (
     utc_text,
 )
 from crossfield.recording.integrity import IntegrityChain, file_sha256
+from crossfield.report.document import document_of
 from crossfield.types import CAMERAS, CameraPoints
 
 #: Chunk compression by name. "none" is the default: lz4 costs ~9 ms and zstd
@@ -443,7 +444,7 @@ class McapFileSink:
 def write_provenance(sink: Sink) -> None:
     """The ``crossfield.packages`` (installed versions now) and ``crossfield.machine``
     records, for a recording that is not a session (calibration, verification)."""
-    from crossfield.provenance import package_versions
+    from crossfield.chain.provenance import package_versions
 
     sink.metadata(L.META_PACKAGES, {str(k): str(v) for k, v in package_versions().items()})
     sink.metadata(L.META_MACHINE, metadata_record(machine_info()))
@@ -731,9 +732,7 @@ class SessionWriter:
             return
         t = self._now()
         try:
-            from crossfield.report.document import build_report
-
-            report = build_report(summary)
+            report = document_of(summary)
         except Exception as exc:  # noqa: BLE001 - the recording must still be finished
             self._message(
                 protobuf_channel(L.TOPIC_LOG, Log), t, log_message("error", f"recorder: no /report: {exc}", t)

@@ -17,12 +17,14 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import os
 from importlib import resources
 from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
 
+from crossfield.errors import RecordingError
 from crossfield.jsonable import matrix, plain, real, vector
 from crossfield.rigid import rotation_angle
 from crossfield.session import FrameResult, SessionSummary
@@ -32,8 +34,11 @@ __all__ = [
     "REGISTRATION_AGGREGATE",
     "REGISTRATION_AGGREGATE_TEXT",
     "REPORT_FORMAT",
+    "REPORT_JSON",
     "TEMPLATE_DIR",
+    "add_seal_to_file",
     "build_report",
+    "document_of",
     "dumps",
     "frames_note",
     "load_schema",
@@ -41,7 +46,11 @@ __all__ = [
     "problems",
     "utc_time",
     "validate",
+    "with_seal",
 ]
+
+#: The report file that carries the recording's seal.
+REPORT_JSON = "report.json"
 
 #: The report page's Jinja2 templates and style sheet (``docs/report.md``, "Templates").
 TEMPLATE_DIR = Path(__file__).resolve().parent / "templates"
@@ -397,7 +406,38 @@ def build_report(summary: SessionSummary) -> dict[str, Any]:
         "incomplete": summary.incomplete is not None,
         "incomplete_reason": summary.incomplete,
         "problems": problems(summary),
+        **(
+            {"monte_carlo": monte_carlo_section(summary.monte_carlo, int(info.config.session.get("monte_carlo", 0)))}
+            if summary.monte_carlo is not None
+            else {}
+        ),
     }
+
+
+def document_of(summary: SessionSummary) -> dict[str, Any]:
+    """The summary's report document: the one built at its session end
+    (``summary.report``), or, for a summary made outside the runner, built now."""
+    return dict(summary.report) if summary.report is not None else build_report(summary)
+
+
+def with_seal(report: Mapping[str, Any], sealed: Any) -> dict[str, Any]:
+    """``report`` with ``integrity``: the recording's seal (a :class:`crossfield.recording.seal.Seal`)."""
+    return {**report, "integrity": sealed.to_json()}
+
+
+def add_seal_to_file(path: Path, sealed: Any) -> None:
+    """Add ``integrity`` (the seal) to the report.json at ``path``, written atomically
+    (for a recording ended outside the runner, whose report.json was written first)."""
+    try:
+        report = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise RecordingError(f"{path}: cannot add the recording's seal: {exc}") from None
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        tmp.write_text(dumps(with_seal(report, sealed)), encoding="utf-8")
+        os.replace(tmp, path)
+    except OSError as exc:
+        raise RecordingError(f"{path}: cannot add the recording's seal: {exc.strerror}") from None
 
 
 def monte_carlo_section(results, n_draws: int, tolerance: float = 0.10) -> dict[str, Any]:

@@ -2,7 +2,7 @@
 
 The report stage gets the :class:`~crossfield.session.SessionSummary`, never an
 image. This observer, registered by the runner for every session (live run,
-replay, audit: :func:`crossfield.runner.run_session`), keeps for each camera
+replay, audit: :func:`crossfield.chain.runner.run_session`), keeps for each camera
 ONE downsampled 8-bit copy of the image of the session's first *measured*
 stereo pair (else the first registered one, else the first with centroids,
 else the first pair: a session whose centroid stage failed still shows why),
@@ -28,17 +28,13 @@ coordinate ``u`` is at thumbnail coordinate ``(u - (f - 1) / 2) / f``.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from crossfield.hookspecs import hookimpl
-from crossfield.types import CAMERAS, CentroidSet, StereoFrame, frozen_array
-
-if TYPE_CHECKING:  # pragma: no cover
-    from crossfield.session import FrameResult
+from crossfield.session import CameraThumbnail, FrameResult
+from crossfield.types import CAMERAS, CentroidSet, StereoFrame
 
 __all__ = [
     "KIND_CONTROL",
@@ -67,44 +63,6 @@ KIND_TARGET = "target"
 
 #: How far a pair got (``CameraThumbnail.status``): the first pair of the highest rank is kept.
 STATUS_RANK = {"image": 1, "centroids": 2, "registered": 3, "measured": 4}
-
-
-@dataclass(frozen=True, eq=False)
-class CameraThumbnail:
-    """One camera's picture for the report.
-
-    camera: ``"upper"`` or ``"lower"``. sequence: the stereo pair it shows.
-    image: (h, w) uint8, read-only: block means of ``factor`` x ``factor``
-    image pixels, DN scaled by ``255 / (2**bit_depth - 1)``.
-    factor: the integer reduction (1 = full size). full_size: (height, width)
-    of the camera image (px). uv: (N, 2) every centroid of that image, image
-    pixels (OpenCV convention). labels: (N,) its target id, "" when the
-    pipeline did not identify it. kinds: (N,) :data:`KIND_CONTROL`,
-    :data:`KIND_TARGET` or "". status: how far the pair got
-    (:data:`STATUS_RANK`: ``"measured"``, ``"registered"``, ``"centroids"``, or
-    ``"image"`` when its centroid stage failed: no centroids). Compared by identity
-    (``eq=False``: it holds arrays).
-    """
-
-    camera: str
-    sequence: int
-    image: np.ndarray = field(repr=False)
-    factor: int
-    full_size: tuple[int, int]
-    uv: np.ndarray
-    labels: tuple[str, ...]
-    kinds: tuple[str, ...]
-    status: str
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "image", frozen_array(self.image, np.uint8, shape=(None, None)))
-        object.__setattr__(self, "uv", frozen_array(self.uv, shape=(None, 2)))
-        if not len(self.labels) == len(self.kinds) == len(self.uv):
-            raise ValueError("uv, labels and kinds differ in length")
-
-    def thumbnail_uv(self) -> np.ndarray:
-        """(N, 2) the centroids in thumbnail pixels: ``(uv - (f - 1) / 2) / f``."""
-        return (self.uv - (self.factor - 1) / 2.0) / self.factor
 
 
 def downsample(image: np.ndarray, bit_depth: int, max_width: int = MAX_WIDTH_PX) -> tuple[np.ndarray, int]:

@@ -34,12 +34,13 @@ from functools import lru_cache
 
 import cv2
 import numpy as np
-from crossfield.camera.boards import Board
+from scipy.spatial.transform import Rotation
+
+from crossfield.calibration.boards import Board
 from crossfield.simulator.optics import project
 from crossfield.simulator.render import SensorModel, add_noise, background_image
 from crossfield.simulator.scenarios import SCENARIOS, VIEW_CENTRE, station_calibration
 from crossfield.types import CAMERAS, CameraIntrinsics, StereoCalibration
-from scipy.spatial.transform import Rotation
 
 #: Reflectance of the surroundings and of the black print, in 1/255 of the white paper's.
 BACKGROUND_LEVEL = 20

@@ -17,8 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import ndtr
 
-from crossfield.types import CameraIntrinsics
 from crossfield.simulator.optics import project
+from crossfield.types import CameraIntrinsics
 
 
 @dataclass(frozen=True)

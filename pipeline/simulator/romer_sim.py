@@ -37,11 +37,12 @@ def _index_value(text: str, kind=float) -> tuple[int, float]:
         raise argparse.ArgumentTypeError(f"expected INDEX:VALUE, got {text!r}") from None
 
 
-def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="crossfield romer-sim",
-        description="Simulated ROMER arm: CFP / PC-DMIS lines on a pty, or an I++ DME server on TCP.",
-    )
+#: ``crossfield romer-sim --help``'s description.
+DESCRIPTION = "Simulated ROMER arm: CFP / PC-DMIS lines on a pty, or an I++ DME server on TCP."
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The simulator's options on ``parser`` (the ``romer-sim`` subcommand's)."""
     source = parser.add_mutually_exclusive_group()
     source.add_argument("--scenario", help="station scenario whose arm probes are sent (e.g. table3)")
     source.add_argument("--csv", type=Path, help="file of id,x,y,z (mm) to probe")
@@ -67,7 +68,6 @@ def _parser() -> argparse.ArgumentParser:
                         help="ippdme: close the connection after probe INDEX")
     parser.add_argument("--exit-when-done", action="store_true",
                         help="exit once every probe is sent and the reader has disconnected")
-    return parser
 
 
 def _probes(args: argparse.Namespace, rng: np.random.Generator) -> list[ArmProbe]:
@@ -106,8 +106,14 @@ def _probes(args: argparse.Namespace, rng: np.random.Generator) -> list[ArmProbe
 
 
 def main_romer_sim(argv: Sequence[str] | None = None) -> int:
-    """Run the simulator; returns the process exit code."""
-    args = _parser().parse_args(argv)
+    """Run the simulator with command-line arguments ``argv``; returns the process exit code."""
+    parser = argparse.ArgumentParser(prog="crossfield romer-sim", description=DESCRIPTION)
+    add_arguments(parser)
+    return serve(parser.parse_args(argv))
+
+
+def serve(args: argparse.Namespace) -> int:
+    """Run the simulator with the options of :func:`add_arguments`; returns the exit code."""
     rng = np.random.default_rng(args.seed)
     try:
         probes = _probes(args, rng)

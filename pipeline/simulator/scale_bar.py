@@ -15,6 +15,7 @@ import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
+
 from crossfield.simulator.optics import project
 from crossfield.simulator.scenarios import TARGET_RADIUS_MM, VIEW_CENTRE, build_scene
 from crossfield.simulator.scene import Scene, Target

@@ -24,9 +24,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from crossfield.plan import parse_plan
-from crossfield.types import CameraIntrinsics, Line3D, StereoCalibration
 from crossfield.simulator.optics import project
 from crossfield.simulator.scene import Cylinder, Scene, Target
+from crossfield.types import CameraIntrinsics, Line3D, StereoCalibration
 
 __all__ = [
     "BASELINE_MM",

@@ -16,8 +16,8 @@ from typing import Mapping
 import numpy as np
 
 from crossfield.plan import MeasurementPlan
-from crossfield.types import CAMERAS, GroundTruth, Line3D, StereoCalibration, StereoFrame
 from crossfield.simulator.render import DiscImage, SensorModel, add_noise, compose_clean_image, render_disc
+from crossfield.types import CAMERAS, GroundTruth, Line3D, StereoCalibration, StereoFrame
 
 
 @dataclass(frozen=True)

@@ -48,7 +48,7 @@ def _read_std(path: Path) -> dict[str, np.ndarray]:
     try:
         if not fs.isOpened():
             return found
-        # ``std_T`` etc. as ``crossfield calibrate`` writes them (crossfield.camera.calib_file);
+        # ``std_T`` etc. as ``crossfield calibrate`` writes them (crossfield.calibration.file);
         # ``T_std`` etc. accepted as well
         for key, names in (("T_std", ("std_T", "T_std")), ("M1_std", ("std_M1", "M1_std")),
                            ("M2_std", ("std_M2", "M2_std")), ("T", ("T",)), ("M1", ("M1",)), ("M2", ("M2",))):

@@ -23,7 +23,7 @@ implementation (its ``measure``) give, corrected to 20 degC. One draw
 
 The frames are the session's first measured ones, kept with their camera points
 (``SessionAggregate.monte_carlo_frames``, at most
-:data:`crossfield.aggregate.MONTE_CARLO_FRAMES_KEPT`); when the session measured
+:data:`crossfield.chain.aggregate.MONTE_CARLO_FRAMES_KEPT`); when the session measured
 n > K of them, each kept frame's camera noise is drawn with ``sigma sqrt(K / n)``,
 so that the mean of the K frames carries the camera variance of a mean of n
 (exact for the linear part of the model). Correspondences are held as in each frame.
@@ -61,10 +61,12 @@ from typing import Any
 
 import numpy as np
 
+from crossfield.batch.engine import Engine, client
 from crossfield.errors import CrossfieldError
 from crossfield.plan import MeasurementPlan
-from crossfield.uncertainty.eccentricity import eccentricity_sigma_mm, off_axis_rad
+from crossfield.session import MonteCarloResult
 from crossfield.types import CameraPoints, Correspondence, ReferenceData, Registration
+from crossfield.uncertainty.eccentricity import eccentricity_sigma_mm, off_axis_rad
 from crossfield.uncertainty.temperature import LENGTH_KINDS, Temperature, correction
 
 __all__ = [
@@ -82,24 +84,6 @@ __all__ = [
 
 #: Draws per chunk (one Dask task each); fixed, so the sample does not depend on the workers.
 CHUNK_DRAWS = 25
-
-
-@dataclass(frozen=True)
-class MonteCarloResult:
-    """Per characteristic (mm): u_mc_mm, interval_mm (low, high) about the sample mean,
-    U_mc_mm (its half-width, coverage probability ``coverage``), U_linear_mm,
-    agreement (``U_mc / U_linear - 1``) and agreement_u (its numerical standard
-    uncertainty from the number of draws)."""
-
-    name: str
-    n_draws: int
-    u_mc_mm: float
-    interval_mm: tuple[float, float]
-    U_mc_mm: float
-    U_linear_mm: float | None
-    agreement: float | None
-    coverage: float = 0.9545
-    agreement_u: float | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -215,14 +199,14 @@ def problem_from_summary(summary: Any) -> MonteCarloProblem | None:
 @functools.lru_cache(maxsize=1)
 def _plugin_manager() -> Any:
     """The installed plugins (one plugin manager per process: a worker builds it once)."""
-    from crossfield.registry import make_plugin_manager
+    from crossfield.chain.registry import make_plugin_manager
 
     return make_plugin_manager(entry_points=True)
 
 
 def _implementations(problem: MonteCarloProblem) -> tuple[Any, Any]:
     """Fresh register and measure implementations from the installed plugins."""
-    from crossfield.registry import get_implementation
+    from crossfield.chain.registry import get_implementation
 
     pm = _plugin_manager()
     return tuple(  # type: ignore[return-value]
@@ -400,29 +384,18 @@ def monte_carlo(
 # Where: in this process, or on Dask (crossfield run --scheduler / --workers)
 # --------------------------------------------------------------------------
 
-
-@dataclass(frozen=True)
-class _Engine:
-    scheduler: str | None
-    workers: int | None
-    memory_limit: str | int | None
-
-
-_ENGINE: contextvars.ContextVar[_Engine | None] = contextvars.ContextVar(
+_ENGINE: contextvars.ContextVar[Engine | None] = contextvars.ContextVar(
     "crossfield_monte_carlo_engine", default=None
 )
 
 
 @contextlib.contextmanager
-def on_dask(
-    scheduler: str | None = None, workers: int | None = None, memory_limit: str | int | None = "auto"
-) -> Iterator[None]:
-    """Within the block, :func:`session_monte_carlo` runs its chunks on Dask: the
-    scheduler at ``scheduler`` (``tcp://HOST:PORT``), or an embedded ``LocalCluster``
-    of ``workers`` processes (:func:`crossfield.batch.engine.client`), started only
-    when a Monte Carlo check runs. Where it runs is not a session fact: the sample is
-    the same."""
-    token = _ENGINE.set(_Engine(scheduler, workers, memory_limit))
+def on_dask(engine: Engine | None = None) -> Iterator[None]:
+    """Within the block, :func:`session_monte_carlo` runs its chunks on Dask where
+    ``engine`` says (:class:`crossfield.batch.engine.Engine`: a scheduler's address,
+    or an embedded ``LocalCluster`` started only when a Monte Carlo check runs).
+    Where it runs is not a session fact: the sample is the same."""
+    token = _ENGINE.set(engine or Engine())
     try:
         yield
     finally:
@@ -435,8 +408,6 @@ def session_monte_carlo(summary: Any, n_draws: int, seed: int = 0) -> list[Monte
     engine = _ENGINE.get()
     if engine is None:
         return monte_carlo(summary, n_draws, seed)
-    from crossfield.batch.engine import client
-
     where = dict(memory_limit=engine.memory_limit, dashboard_address=":0")
     with client(engine.scheduler, engine.workers, **where) as c:
         return monte_carlo(summary, n_draws, seed, client=c)

@@ -63,12 +63,12 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
-from crossfield.viz import blueprint as bp
 from crossfield.config import SESSION_DEFAULTS
 from crossfield.errors import ConfigError, RecordingError
 from crossfield.geometry import AxisFit, element_probes, fit_reference_element
 from crossfield.hookspecs import hookimpl
 from crossfield.types import CAMERAS, CameraIntrinsics, StereoCalibration
+from crossfield.viz import blueprint as bp
 
 APPLICATION_ID = "crossfield"
 

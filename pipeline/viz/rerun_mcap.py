@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
-from crossfield.aggregate import SessionAccumulator
+from crossfield.chain.aggregate import SessionAccumulator, session_summary
 from crossfield.errors import RecordingError
 from crossfield.recording import codec
 from crossfield.recording import layout as L
@@ -195,8 +195,9 @@ def log_recording(mcap_path: str | Path, logger: RerunLogger) -> SessionSummary:
     incomplete = result.get("incomplete")
     if not recording.complete or not result:
         incomplete = f"the recording ends early ({recording.damage or 'no session result recorded'})"
-    summary = SessionSummary.of_session(
-        info, reference, accumulator, incomplete, (Path(p) for p in result.get("report_files", ()))
+    summary = session_summary(
+        info, reference, accumulator, incomplete=incomplete,
+        report_files=(Path(p) for p in result.get("report_files", ())),
     )
     logger.on_session_end(summary=summary)
     return summary

@@ -2,20 +2,26 @@
 
 Registers the centroid implementation ``squared`` through the ``crossfield``
 entry-point group (see pyproject.toml). Only crossfield's public API is
-used (docs/plugins.md, "The public API"): ``crossfield.hookspecs.hookimpl``,
-the blob detector ``crossfield.imaging.blobs`` (threshold, blobs,
-rejection tests, local background: the same detection as the built-in
-centroid plugins) and the data class ``crossfield.types.CentroidSet``. The
-plugin only does its own sub-pixel step.
+used (docs/plugins.md, "The public API"), through ``crossfield.plugin_api``:
+``hookimpl``, the blob detector (threshold, blobs, rejection tests, local
+background: the same detection as the built-in centroid plugins) and the data
+class ``CentroidSet``. The plugin only does its own sub-pixel step.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from crossfield.hookspecs import hookimpl
-from crossfield.imaging.blobs import Background, Blob, BlobDetector, DetectorOptions, sort_order, sort_rejected
-from crossfield.types import CentroidSet
+from crossfield.plugin_api import (
+    Background,
+    Blob,
+    BlobDetector,
+    CentroidSet,
+    DetectorOptions,
+    hookimpl,
+    sort_order,
+    sort_rejected,
+)
 
 
 def squared_centroid(blob: Blob, background: Background) -> tuple[float, float, float, float]:

@@ -1,0 +1,524 @@
+"""Session aggregates computed while the session runs, in memory that does not grow with its length.
+
+A measuring station runs for hours at 14 stereo pairs/s, so a session cannot
+keep every frame's results until its report. :class:`SessionAccumulator` takes
+each frame's result as soon as it is done and keeps only:
+
+* running statistics (count, mean, sum of squared deviations) per
+  characteristic, of the registration (rotation matrix, translation, scale,
+  fit RMS) and of each control point's residual;
+* the first ``rows_kept`` frame results, slim (no centroids, no camera
+  points), for the report's per-frame table;
+* the first ``errors_kept`` failed frames' errors, and counts (frames
+  processed, failed, targets not found).
+
+Every frame's full results go to the observers as they are made (the MCAP
+recording holds them all: topics /frames, /registration, /measurement).
+
+Numerics: means and variances use Welford's update (Welford 1962; Knuth,
+TAOCP vol. 2, 4.2.2, eqs. (15)-(16)): for the k-th value x,
+``delta = x - mean; mean += delta / k; m2 += delta * (x - mean)``, which does
+not suffer the cancellation of ``sum(x^2) - n mean^2``, on data shifted by
+their first value (see :class:`RunningStats`). Every update is a
+fixed sequence of IEEE float64 operations in frame order, so feeding the same
+frame results again (a replay) reproduces every float bit for bit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from crossfield.plan import CharacteristicSpec, MeasurementPlan
+from crossfield.rigid import chord_to_angle, project_to_rotation, rotation_angle
+from crossfield.session import (
+    CameraThumbnail,
+    CharacteristicSummary,
+    ControlResidual,
+    FrameError,
+    FrameResult,
+    RegistrationAggregate,
+    SessionAggregate,
+    SessionInfo,
+    SessionSummary,
+)
+from crossfield.types import (
+    BudgetTerm,
+    CharacteristicResult,
+    ReferenceData,
+    Registration,
+    RegistrationConsistency,
+)
+from crossfield.uncertainty import budget as _budget
+from crossfield.uncertainty.calibration import DEFAULT_SCALE_U, calibration_uncertainty
+from crossfield.uncertainty.consistency import ConsistencyRun
+from crossfield.uncertainty.decision import decide
+from crossfield.uncertainty.temperature import LENGTH_KINDS, correction
+
+#: Per-frame result rows a session keeps for its report: the first ones (about
+#: 14 s of a 14 pairs/s station). Later frames count in every aggregate; their
+#: rows are only in the recording.
+FRAME_ROWS_KEPT = 200
+
+#: Failed frames whose error message a session keeps (the first ones); the
+#: others are counted.
+FRAME_ERRORS_KEPT = 100
+
+#: Measured frames whose camera points a session keeps for the Monte Carlo check
+#: (:mod:`crossfield.uncertainty.montecarlo`): the first ones, a few kB each.
+MONTE_CARLO_FRAMES_KEPT = 20
+
+
+# --------------------------------------------------------------------------
+# Running statistics
+# --------------------------------------------------------------------------
+
+
+class RunningStats:
+    """Welford's running count, mean and sum of squared deviations ``m2``, on shifted data.
+
+    The first value is kept as a shift ``k`` and Welford's update runs on
+    ``x - k`` (Chan, Golub & LeVeque 1983, 'Algorithms for computing the
+    sample variance', sec. 3): the data then have a mean near 0, so the
+    rounding error of the variance no longer grows with mean / std (a
+    translation of -300 mm with a 0.02 mm spread would otherwise lose four
+    digits). ``x - k`` is exact for values within a factor 2 of each other
+    (Sterbenz), the usual case for repeated measurements.
+
+    ``shape`` () keeps Python floats (fast, the same IEEE operations); any
+    other shape keeps float64 arrays, updated element by element.
+    """
+
+    __slots__ = ("_mean", "_scalar", "_shift", "m2", "n")
+
+    def __init__(self, shape: tuple[int, ...] = ()) -> None:
+        self._scalar = shape == ()
+        self.n = 0
+        zero: float | np.ndarray = 0.0 if self._scalar else np.zeros(shape)
+        self._shift = self._mean = self.m2 = zero
+
+    def add(self, x: float | np.ndarray) -> None:
+        x = float(x) if self._scalar else np.asarray(x, dtype=np.float64)
+        if self.n == 0:
+            self._shift = x
+        self.n += 1
+        y = x - self._shift
+        delta = y - self._mean
+        self._mean = self._mean + delta / self.n
+        self.m2 = self.m2 + delta * (y - self._mean)
+
+    @property
+    def mean(self) -> float | np.ndarray:
+        """The mean of the values added (0 before the first)."""
+        return self._shift + self._mean
+
+    def variance(self) -> float | np.ndarray:
+        """Sample variance (ddof = 1); 0 for fewer than two values."""
+        if self.n > 1:
+            return self.m2 / (self.n - 1)
+        return 0.0 if self._scalar else np.zeros_like(self.m2)
+
+
+# --------------------------------------------------------------------------
+# The aggregates (frozen)
+# --------------------------------------------------------------------------
+
+
+# --------------------------------------------------------------------------
+# The accumulator
+# --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _SessionContext:
+    """What the session-level uncertainty evaluation of every characteristic shares."""
+
+    plan: MeasurementPlan
+    cmm_inflation: float
+    calibration_ratio: float  # session calibration u / the per-frame one
+
+
+class _CharacteristicRun:
+    """Running values of one characteristic (finite per-frame values only)."""
+
+    __slots__ = ("actual_mm", "budget", "elements", "uncertainty", "values")
+
+    def __init__(self) -> None:
+        self.values = RunningStats()
+        self.uncertainty = RunningStats()
+        self.budget: dict[str, tuple[RunningStats, RunningStats, str]] = {}
+        self.elements: tuple[str, ...] = ()
+        self.actual_mm: float | None = None
+
+    def add(self, c: CharacteristicResult) -> None:
+        if self.values.n == 0:  # the first frame that measured it names its elements and truth
+            self.elements, self.actual_mm = tuple(c.elements), c.actual_mm
+        self.values.add(c.measured_mm)
+        if c.uncertainty_mm is not None:
+            self.uncertainty.add(c.uncertainty_mm)
+        for t in c.budget:
+            run = self.budget.get(t.source)
+            if run is None:
+                run = self.budget[t.source] = (RunningStats(), RunningStats(), t.unit)
+            run[0].add(t.u)
+            run[1].add(t.u_mm * t.u_mm)
+
+    def _budget(self, spec: CharacteristicSpec, mean: float, std: float, ctx: _SessionContext):
+        """The session budget (see :class:`CharacteristicSummary`) and the temperature correction."""
+        n = self.values.n
+        terms: list[BudgetTerm] = []
+        for source in _budget.SOURCES:
+            if source not in self.budget:
+                continue
+            u_run, var_run, unit = self.budget[source]
+            t = _budget.term(source, u_run.mean, unit, math.sqrt(max(var_run.mean, 0.0)))
+            if source in ("control_cmm", "reference_cmm"):
+                t = _budget.scaled(t, ctx.cmm_inflation)
+            elif source == "calibration":
+                t = _budget.scaled(t, ctx.calibration_ratio)
+            terms.append(t)
+        if terms:
+            # The camera term is the centroid noise of one frame, drawn anew in every
+            # frame: its part of the mean of n frames is u / sqrt(n) (GUM 4.2.3). The
+            # other sources are one error shared by every frame: not divided.
+            terms = [_budget.scaled(t, 1.0 / math.sqrt(n)) if t.source == "camera" else t for t in terms]
+            random_part = next((t.u_mm for t in terms if t.source == "camera"), 0.0)
+        elif self.uncertainty.n:  # a measurer without a budget: its u as one term, not divided
+            terms.append(_budget.term("camera", 0.0, "mm", self.uncertainty.mean))
+            random_part = terms[0].u_mm
+        else:
+            random_part = 0.0
+        type_a = std / math.sqrt(n) if n > 1 else 0.0
+        # The scatter over the frames shows only the per-frame (camera) part: where
+        # s^2 / n exceeds it, the excess is a term of its own, so that the random
+        # part of u_c^2 is max(s^2 / n, u_camera^2 / n) (GUM 4.2.3, 4.3).
+        excess = math.sqrt(max(0.0, type_a**2 - random_part**2))
+        terms.append(_budget.term("repeatability", type_a, "mm", excess))
+        temp = ctx.plan.temperature
+        dL, u_temp = correction(mean, temp) if spec.kind in LENGTH_KINDS else (0.0, 0.0)
+        terms.append(_budget.term("temperature", u_temp / abs(mean) if mean else 0.0, "1", u_temp))
+        terms.sort(key=lambda t: _budget.SOURCES.index(t.source))
+        return tuple(terms), dL
+
+    def summary(self, spec: CharacteristicSpec, ctx: _SessionContext) -> CharacteristicSummary:
+        n = self.values.n
+        rule = ctx.plan.uncertainty.decision_rule
+        k = ctx.plan.uncertainty.coverage_factor
+        if n == 0:
+            elements = (spec.a,) + ((spec.b,) if spec.b else ())
+            return CharacteristicSummary(
+                spec.name,
+                spec.kind,
+                elements,
+                0,
+                math.nan,
+                math.nan,
+                None,
+                spec.nominal_mm,
+                spec.tolerance_mm,
+                math.nan,
+                False,
+                coverage_factor=k,
+                decision="not_proven",
+                decision_rule=rule,
+                upper_tol_mm=spec.upper_tol_mm,
+                lower_tol_mm=spec.lower_tol_mm,
+            )
+        raw = self.values.mean
+        std = math.sqrt(self.values.variance()) if n > 1 else 0.0
+        budget, dL = self._budget(spec, raw, std, ctx)
+        mean = raw + dL
+        u_c = _budget.combined(budget)
+        U = _budget.expanded(u_c, k)
+        deviation = mean - spec.nominal_mm
+        verdict = decide(deviation, spec.lower_tol_mm, spec.upper_tol_mm, U, rule)
+        actual = self.actual_mm
+        return CharacteristicSummary(
+            name=spec.name,
+            kind=spec.kind,
+            elements=self.elements,
+            n=n,
+            measured_mm=mean,
+            std_mm=std,
+            uncertainty_mm=u_c,
+            nominal_mm=spec.nominal_mm,
+            tolerance_mm=spec.tolerance_mm,
+            deviation_mm=deviation,
+            passed=verdict.accepted,
+            actual_mm=actual,
+            error_mm=None if actual is None else mean - actual,
+            expanded_uncertainty_mm=U,
+            coverage_factor=k,
+            budget=budget,
+            decision=verdict.verdict,
+            decision_rule=rule,
+            upper_tol_mm=spec.upper_tol_mm,
+            lower_tol_mm=spec.lower_tol_mm,
+            measured_raw_mm=raw,
+            temperature_correction_mm=dL,
+        )
+
+
+class _ControlRun:
+    """Running residual statistics of one control point."""
+
+    __slots__ = ("max_norm", "norm_sq", "residual")
+
+    def __init__(self) -> None:
+        self.residual = RunningStats((3,))
+        self.norm_sq = RunningStats()
+        self.max_norm = -math.inf
+
+    def add(self, residual: np.ndarray) -> None:
+        x, y, z = (float(v) for v in residual)
+        norm_sq = x * x + y * y + z * z
+        self.residual.add(residual)
+        self.norm_sq.add(norm_sq)
+        self.max_norm = max(self.max_norm, math.sqrt(norm_sq))
+
+    def summary(self, control_id: str, expected_rms_mm: float | None = None) -> ControlResidual:
+        return ControlResidual(
+            control_id, self.residual.n, self.residual.mean, math.sqrt(self.norm_sq.mean), self.max_norm,
+            expected_rms_mm,
+        )
+
+
+class _RegistrationRun:
+    """Running statistics of the per-frame registrations."""
+
+    def __init__(self) -> None:
+        self.R = RunningStats((3, 3))
+        self.t = RunningStats((3,))
+        self.scale = RunningStats()
+        self.rms = RunningStats()
+        self.rms_sq = RunningStats()
+        self.rms_max = -math.inf
+        self.controls: dict[str, _ControlRun] = {}
+        self.expected_sq: dict[str, RunningStats] = {}
+        self.pose_camera = RunningStats((6, 6))
+        self.pose_cmm = RunningStats((6, 6))
+
+    def add_consistency(self, c: RegistrationConsistency) -> None:
+        """The stated sigmas' view of one frame's registration (from its measurement)."""
+        for control_id, expected in c.expected_residual_mm.items():
+            self.expected_sq.setdefault(control_id, RunningStats()).add(expected * expected)
+        if c.pose_cov_camera is not None and c.pose_cov_cmm is not None:
+            self.pose_camera.add(c.pose_cov_camera)
+            self.pose_cmm.add(c.pose_cov_cmm)
+
+    def add(self, registration: Registration) -> None:
+        fit = registration.fit
+        self.R.add(fit.R)
+        self.t.add(fit.t)
+        self.scale.add(fit.scale)
+        rms = float(fit.rms_mm)
+        self.rms.add(rms)
+        self.rms_sq.add(rms * rms)
+        self.rms_max = max(self.rms_max, rms)
+        for control_id, residual in zip(registration.correspondence.control_ids, fit.residuals):
+            run = self.controls.get(control_id)
+            if run is None:
+                run = self.controls[control_id] = _ControlRun()
+            run.add(residual)
+
+    def summary(self, kept: Iterable[Registration], cmm_inflation: float = 1.0) -> RegistrationAggregate | None:
+        n = self.R.n
+        if n == 0:
+            return None
+        M = self.R.mean  # (3, 3) arithmetic mean of the rotation matrices
+        R_mean = project_to_rotation(M)
+        # sum_f ||R_f - R_mean||^2 = sum_f ||R_f - M||^2 + n ||M - R_mean||^2, the
+        # first term being the Welford m2 summed over the nine entries (sum_f (R_f - M) = 0).
+        chord_sq = float(np.sum(self.R.m2)) + n * float(np.sum((M - R_mean) ** 2))
+        spread = [rotation_angle(R_mean, r.fit.R) for r in kept]
+        return RegistrationAggregate(
+            n_frames=n,
+            R_global_camera=R_mean,
+            t_global_camera_mm=self.t.mean,
+            t_std_mm=np.sqrt(self.t.variance()),
+            scale=self.scale.mean,
+            rms_mm=math.sqrt(self.rms_sq.mean),
+            rms_mean_mm=self.rms.mean,
+            rms_max_mm=self.rms_max,
+            rotation_rms_rad=chord_to_angle(math.sqrt(max(chord_sq, 0.0) / n)),
+            rotation_spread_rad=max(spread) if spread else None,
+            controls=tuple(
+                run.summary(cid, self._expected(cid, cmm_inflation)) for cid, run in self.controls.items()
+            ),
+            pose_covariance=None
+            if self.pose_camera.n == 0
+            else self.pose_camera.mean + cmm_inflation**2 * self.pose_cmm.mean,
+        )
+
+    def _expected(self, control_id: str, cmm_inflation: float) -> float | None:
+        run = self.expected_sq.get(control_id)
+        # The CMM part of the expectation is not kept apart per control: the
+        # stated (uninflated) expectation is reported, the one the test compares with.
+        return None if run is None or run.n == 0 else math.sqrt(run.mean)
+
+
+class SessionAccumulator:
+    """Aggregates a session's frame results one by one; memory bounded by
+    ``rows_kept`` rows and ``errors_kept`` messages, whatever the session length.
+
+    ``add(result)`` after every frame (in frame order), then :meth:`result`
+    for the :class:`SessionAggregate`; :attr:`rows` are the kept slim results.
+    """
+
+    def __init__(
+        self,
+        plan: MeasurementPlan,
+        *,
+        rows_kept: int = FRAME_ROWS_KEPT,
+        errors_kept: int = FRAME_ERRORS_KEPT,
+        calibration_source: str = "",
+    ) -> None:
+        if rows_kept < 0 or errors_kept < 0:
+            raise ValueError(f"rows_kept and errors_kept must be >= 0, got {rows_kept}, {errors_kept}")
+        self.plan = plan
+        self.rows_kept = rows_kept
+        self.errors_kept = errors_kept
+        self.frames_processed = 0
+        self.frames_failed = 0
+        self._rows: list[FrameResult] = []
+        self._errors: list[FrameError] = []
+        self._missing: dict[str, int] = {}
+        self._characteristics = {spec.name: _CharacteristicRun() for spec in plan.characteristics}
+        self._registration = _RegistrationRun()
+        self._consistency = ConsistencyRun()
+        self._mc_frames: list[FrameResult] = []
+        self._frames_measured = 0
+        stated = plan.uncertainty.calibration_scale_u
+        self._calibration = calibration_uncertainty(
+            calibration_source, DEFAULT_SCALE_U if stated is None else stated
+        )
+
+    @property
+    def rows(self) -> tuple[FrameResult, ...]:
+        """The first ``rows_kept`` frame results, slim (:meth:`FrameResult.slim`)."""
+        return tuple(self._rows)
+
+    def add(self, result: FrameResult) -> None:
+        """Count one frame's result (keeps no reference to it beyond the first rows)."""
+        self.frames_processed += 1
+        if len(self._rows) < self.rows_kept:
+            self._rows.append(result.slim())
+        if result.error:
+            self.frames_failed += 1
+            if len(self._errors) < self.errors_kept:
+                self._errors.append(
+                    FrameError(int(result.sequence), int(result.timestamp_ns), str(result.error))
+                )
+        if result.registration is not None:
+            self._registration.add(result.registration)
+            if result.points is not None and result.measurement is not None:
+                self._frames_measured += 1
+                if len(self._mc_frames) < MONTE_CARLO_FRAMES_KEPT:
+                    self._mc_frames.append(dataclasses.replace(result, centroids=None))
+        measurement = result.measurement
+        if measurement is None:
+            return
+        if measurement.consistency is not None:
+            self._consistency.add(measurement.consistency)
+            self._registration.add_consistency(measurement.consistency)
+        for target in dict.fromkeys(measurement.missing_targets):
+            self._missing[target] = self._missing.get(target, 0) + 1
+        for c in measurement.characteristics:
+            run = self._characteristics.get(c.name)
+            if run is not None and math.isfinite(c.measured_mm):
+                run.add(c)
+
+    def result(self) -> SessionAggregate:
+        """The aggregates of every frame added so far."""
+        kept = [f.registration for f in self._rows if f.registration is not None]
+        check = self._consistency.result(self.plan.uncertainty.consistency_alpha)
+        inflation = 1.0 if check is None else check.cmm_inflation
+        stated = self.plan.uncertainty.calibration_scale_u
+        per_frame = DEFAULT_SCALE_U if stated is None else stated  # what the measurer used
+        ratio = self._calibration.scale_u / per_frame if per_frame > 0 else 1.0
+        ctx = _SessionContext(self.plan, inflation, ratio)
+        return SessionAggregate(
+            frames_processed=self.frames_processed,
+            frames_failed=self.frames_failed,
+            frame_errors=tuple(self._errors),
+            characteristics=tuple(
+                self._characteristics[s.name].summary(s, ctx) for s in self.plan.characteristics
+            ),
+            registration=self._registration.summary(kept, inflation),
+            missing_targets=tuple(self._missing.items()),
+            consistency=check,
+            calibration_scale_u=self._calibration.scale_u,
+            calibration_uncertainty_source=self._calibration.source,
+            monte_carlo_frames=tuple(self._mc_frames),
+            frames_measured=self._frames_measured,
+        )
+
+
+def aggregate_frames(frames: Iterable[FrameResult], plan: MeasurementPlan) -> SessionAggregate:
+    """The :class:`SessionAggregate` of ``frames`` (every frame given, none left out:
+    all rows and errors are kept)."""
+    frames = tuple(frames)
+    accumulator = SessionAccumulator(plan, rows_kept=len(frames), errors_kept=len(frames))
+    for frame in frames:
+        accumulator.add(frame)
+    return accumulator.result()
+
+
+def session_summary(
+    info: SessionInfo,
+    reference: ReferenceData,
+    accumulator: SessionAccumulator,
+    *,
+    incomplete: str | None = None,
+    report_files: Iterable[Path] = (),
+    thumbnails: Iterable[CameraThumbnail] = (),
+    characteristics: Iterable[CharacteristicSummary] | None = None,
+) -> SessionSummary:
+    """The summary of a session whose frames went through ``accumulator``: the one
+    place a session's summary is made (the runner's session end, the viewer's reading
+    of a recording, the Python API). ``characteristics``: instead of the aggregate's
+    (a test or a report that states its own)."""
+    aggregate = accumulator.result()
+    return SessionSummary(
+        info=info,
+        reference=reference,
+        frames=accumulator.rows,
+        characteristics=aggregate.characteristics if characteristics is None else tuple(characteristics),
+        report_files=tuple(report_files),
+        incomplete=incomplete,
+        aggregate=aggregate,
+        thumbnails=tuple(thumbnails),
+    )
+
+
+def summary_of_frames(
+    info: SessionInfo,
+    reference: ReferenceData,
+    frames: Iterable[FrameResult],
+    **kwargs: object,
+) -> SessionSummary:
+    """:func:`session_summary` of a session whose every frame is in ``frames`` (every
+    frame's row kept)."""
+    frames = tuple(frames)
+    accumulator = SessionAccumulator(info.plan, rows_kept=len(frames))
+    for frame in frames:
+        accumulator.add(frame)
+    return session_summary(info, reference, accumulator, **kwargs)  # type: ignore[arg-type]
+
+
+def summarise(frames: Iterable[FrameResult], plan: MeasurementPlan) -> tuple[CharacteristicSummary, ...]:
+    """Aggregate per-frame characteristics in plan order (:class:`SessionAccumulator`).
+
+    Only finite per-frame values count (a frame whose target was not found
+    may report NaN); a characteristic no frame measured gets n = 0, NaN
+    values and passed = False. See docs/report.md for the formulas.
+    """
+    accumulator = SessionAccumulator(plan, rows_kept=0, errors_kept=0)
+    for frame in frames:
+        accumulator.add(frame)
+    return accumulator.result().characteristics

@@ -1,0 +1,70 @@
+"""The ``crossfield`` command line (``docs/user-guide.md``).
+
+Every command is one :class:`~crossfield.cli.common.Command` in the ``COMMANDS``
+tuple of one module of this package, each module filling it the same way:
+
+* :mod:`crossfield.cli.session`: run, replay, compare, audit, keygen, view, export, plugins;
+* :mod:`crossfield.cli.batch`: batch (audit, replay, compare over an archive, on Dask);
+* :mod:`crossfield.cli.calibration`: calibrate, verify;
+* :mod:`crossfield.cli.planning`: plan, crb;
+* :mod:`crossfield.cli.simulator`: romer-sim.
+
+:data:`COMMANDS` is their union (name -> command), in that order; :func:`main` parses
+the arguments, runs the command with the ``crossfield`` loggers on stderr, and turns
+a :class:`~crossfield.errors.CrossfieldError` into one line and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+from crossfield import __version__
+from crossfield.cli import batch, calibration, planning, session, simulator
+from crossfield.cli.common import Command, log_level, logging_to_stderr, stdout_gone, verbosity_flags
+from crossfield.errors import CrossfieldError
+
+__all__ = ["COMMANDS", "Command", "build_parser", "main"]
+
+#: Every ``crossfield`` command by name, from the modules' ``COMMANDS`` tables.
+COMMANDS: dict[str, Command] = {
+    command.name: command
+    for module in (session, batch, calibration, planning, simulator)
+    for command in module.COMMANDS
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser: one subcommand per entry of :data:`COMMANDS`, each with -v / -q."""
+    parser = argparse.ArgumentParser(
+        prog="crossfield",
+        description="Local stereo vision registered to out-of-view CMM references (metrology pipeline).",
+    )
+    parser.add_argument("--version", action="version", version=f"crossfield {__version__}")
+    verbosity = verbosity_flags()
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for command in COMMANDS.values():
+        p = sub.add_parser(
+            command.name, parents=[verbosity], help=command.help, description=command.description or None
+        )
+        command.add_arguments(p)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run one ``crossfield`` command; returns its exit status (2: an error, 130: interrupted)."""
+    args = build_parser().parse_args(list(sys.argv[1:] if argv is None else argv))
+    try:
+        with logging_to_stderr(log_level(args.verbose, args.quiet)):
+            status = COMMANDS[args.command].run(args)
+            sys.stdout.flush()  # here, so that a closed pipe is caught below
+            return status
+    except BrokenPipeError:
+        return stdout_gone()
+    except CrossfieldError as exc:
+        print(f"crossfield: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("crossfield: interrupted", file=sys.stderr)
+        return 130
