@@ -47,15 +47,16 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+
 from crossfield.calibration.detect import BoardDetection
-from crossfield.calibration.solve import CalibrationSettings, CalibrationError, detect_views, solve_stereo
+from crossfield.calibration.solve import CalibrationError, CalibrationSettings, detect_views, solve_stereo
 from crossfield.simulator.board_views import (
     ViewMismatch,
+    default_board,
     render_calibration_views,
     station_calibration,
     true_image_points,
 )
-from crossfield.simulator.board_views import default_board
 from crossfield.types import CAMERAS
 
 MRCAL_PYTHON = "/usr/bin/python3"
@@ -96,7 +97,9 @@ def session_detections(
                 for cam in CAMERAS:
                     ids = z[f"{k}_{cam}_ids"]
                     view[cam] = (
-                        BoardDetection(ids, z[f"{k}_{cam}_uv"], board.object_points()[ids]) if len(ids) else None
+                        BoardDetection(ids, z[f"{k}_{cam}_uv"], board.object_points()[ids])
+                        if len(ids)
+                        else None
                     )
                 dets.append(view)
             return dets, float(z["corner_rms_px"]), size, json.loads(str(z["truth"]))
@@ -194,8 +197,13 @@ def opencv_script(dets, size, flags: int) -> dict:
         "solve_s": elapsed,
         "rvecs": [np.ravel(r) for r in rvecs],
         "tvecs": [np.ravel(t) for t in tvecs],
-        "stereo_views": [k for k, d in enumerate(dets) if d["upper"] is not None and d["lower"] is not None
-                         and len(np.intersect1d(d["upper"].ids, d["lower"].ids)) >= 8],
+        "stereo_views": [
+            k
+            for k, d in enumerate(dets)
+            if d["upper"] is not None
+            and d["lower"] is not None
+            and len(np.intersect1d(d["upper"].ids, d["lower"].ids)) >= 8
+        ],
         "rms_px": float(rms),
     }
 
@@ -225,7 +233,6 @@ def mrcal_problem(dets, ocv: dict, n_dist: int) -> dict[str, np.ndarray]:
     """The mrcal problem: every corner of the OpenCV script's stereo views, seeded by its solution."""
     board = default_board()
     cols, rows = board.pattern_size
-    sq = board.square_mm
     first = board.object_points()[0]
     obs, idx = [], []
     for i, k in enumerate(ocv["stereo_views"]):
@@ -274,6 +281,7 @@ def run_mrcal(problems: list[dict], size, lensmodel: str) -> list[dict]:
             [MRCAL_PYTHON, str(here / "mrcal_peer.py"), str(Path(tmp) / "problems.npz"), str(out), "--warp"],
             capture_output=True,
             text=True,
+            check=False,
         )
         if proc.returncode != 0:
             raise SystemExit(f"mrcal peer failed: {proc.stderr.strip().splitlines()[-1:]}")
@@ -335,8 +343,10 @@ def errors(sol: dict, truth: dict) -> dict:
 def table(rows: list[dict], pairs: list[int]) -> str:
     """The markdown table of medians over the seeds."""
     out = [
-        "| pairs | tool | f rel. error | c error px | rotation error \" | T error mm "
-        "| within 2 stated std | solve s | views dropped |",
+        (
+            '| pairs | tool | f rel. error | c error px | rotation error " | T error mm '
+            "| within 2 stated std | solve s | views dropped |"
+        ),
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for n in pairs:
@@ -344,7 +354,7 @@ def table(rows: list[dict], pairs: list[int]) -> str:
             sel = [r for r in rows if r["pairs"] == n and r["tool"] == tool]
             if not sel:
                 continue
-            med = lambda key: float(np.median([r[key] for r in sel]))  # noqa: E731
+            med = lambda key, sel=sel: float(np.median([r[key] for r in sel]))
             z = np.array([v for r in sel for v in r["z"]], float)
             z = z[np.isfinite(z)]
             cover = f"{np.mean(z < 2) * 100:.0f} % of {len(z)}" if len(z) else "n/a"
@@ -370,7 +380,9 @@ def verdict(rows: list[dict], pairs: list[int]) -> list[str]:
             }
             best = min(med["opencv"], med["mrcal"])
             ratio = med["crossfield"] / best
-            lines.append(f"{n} pairs {key}: crossfield / better peer = {ratio:.2f} ({'ok' if ratio <= 1.1 else 'WORSE'})")
+            lines.append(
+                f"{n} pairs {key}: crossfield / better peer = {ratio:.2f} ({'ok' if ratio <= 1.1 else 'WORSE'})"
+            )
     return lines
 
 
@@ -386,7 +398,9 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     n_max = max(args.pairs)
     flags, n_dist, lensmodel = (
-        (0, 5, "LENSMODEL_OPENCV5") if args.distortion == "plumb_bob" else (cv2.CALIB_RATIONAL_MODEL, 8, "LENSMODEL_OPENCV8")
+        (0, 5, "LENSMODEL_OPENCV5")
+        if args.distortion == "plumb_bob"
+        else (cv2.CALIB_RATIONAL_MODEL, 8, "LENSMODEL_OPENCV8")
     )
     rows, problems, pending = [], [], []
     corner = []
@@ -400,16 +414,28 @@ def main(argv: list[str] | None = None) -> int:
             dets = dets_all[:n]
             try:
                 cf = crossfield_solve(dets, size, args.distortion)
-                rows.append({"seed": seed, "pairs": n, "tool": "crossfield", "dropped": cf["dropped"], **errors(cf, truth)})
+                rows.append(
+                    {
+                        "seed": seed,
+                        "pairs": n,
+                        "tool": "crossfield",
+                        "dropped": cf["dropped"],
+                        **errors(cf, truth),
+                    }
+                )
             except CalibrationError as exc:
                 print(f"seed {seed} pairs {n}: crossfield failed: {exc}", file=sys.stderr)
             ocv = opencv_script(dets, size, flags)
             rows.append({"seed": seed, "pairs": n, "tool": "opencv", **errors(ocv, truth)})
             problems.append(mrcal_problem(dets, ocv, n_dist))
             pending.append((seed, n, truth))
-        print(f"seed {seed}: corner RMS {corner_rms:.4f} px ({time.perf_counter() - t0:.1f} s)", file=sys.stderr)
+        print(
+            f"seed {seed}: corner RMS {corner_rms:.4f} px ({time.perf_counter() - t0:.1f} s)", file=sys.stderr
+        )
     for (seed, n, truth), sol in zip(pending, run_mrcal(problems, size, lensmodel)):
-        rows.append({"seed": seed, "pairs": n, "tool": "mrcal", "masked": sol["masked"], **errors(sol, truth)})
+        rows.append(
+            {"seed": seed, "pairs": n, "tool": "mrcal", "masked": sol["masked"], **errors(sol, truth)}
+        )
     print(
         f"{args.seeds} seeds, {'ViewMismatch' if args.mismatch else 'model'} renderer, {args.distortion}; "
         f"corner RMS error vs truth (detections all tools share): median {np.median(corner):.4f} px"

@@ -59,7 +59,7 @@ def _covariance(inputs: dict) -> tuple[np.ndarray, float]:
 
 def solve(data: np.lib.npyio.NpzFile, i: int, warp: bool) -> dict:
     """One stereo problem: mrcal.optimize as mrcal-calibrate-cameras runs it (core first, then all)."""
-    get = lambda key: np.ascontiguousarray(data[f"p{i}_{key}"])  # noqa: E731
+    get = lambda key: np.ascontiguousarray(data[f"p{i}_{key}"])
     inputs = dict(
         intrinsics=get("intrinsics").astype(float),
         extrinsics_rt_fromref=get("extrinsics").astype(float),
@@ -90,9 +90,7 @@ def solve(data: np.lib.npyio.NpzFile, i: int, warp: bool) -> dict:
     cov, sigma = _covariance(inputs)
     std = np.sqrt(np.maximum(np.diag(cov), 0.0))
     ni = inputs["intrinsics"].shape[1]
-    std_intr = [
-        std[(s := mrcal.state_index_intrinsics(c, **inputs)) : s + ni].tolist() for c in range(2)
-    ]
+    std_intr = [std[(s := mrcal.state_index_intrinsics(c, **inputs)) : s + ni].tolist() for c in range(2)]
     s = mrcal.state_index_extrinsics(0, **inputs)
     outliers = int(np.sum(inputs["observations_board"][..., 2] <= 0))
     return {

@@ -20,6 +20,7 @@ from collections.abc import Callable
 
 import cv2
 import numpy as np
+
 from crossfield.calibration.detect import BoardDetection
 from crossfield.simulator.board_views import board_height_mm, default_board, station_board_poses
 from crossfield.simulator.scenarios import station_calibration
@@ -42,7 +43,9 @@ def synthetic_detections(
     board = default_board()
     truth = station_calibration()
     rng = np.random.default_rng([seed, 28])
-    poses = station_board_poses(n_views, board, layout_seed=1000 + seed if layout_seed is None else layout_seed)
+    poses = station_board_poses(
+        n_views, board, layout_seed=1000 + seed if layout_seed is None else layout_seed
+    )
     obj = board.object_points()
     ids = np.arange(len(obj))
     w, h = truth.upper.image_size
@@ -60,8 +63,9 @@ def synthetic_detections(
             D = np.zeros(12)
             D[:5] = np.asarray(intr.dist_coeffs)[:5]
             D[8:12] = thin_prism
-            uv, _ = cv2.projectPoints(Xc.reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
-                                      np.asarray(intr.camera_matrix), D)
+            uv, _ = cv2.projectPoints(
+                Xc.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), np.asarray(intr.camera_matrix), D
+            )
             uv = uv.reshape(-1, 2)
             if field is not None:
                 uv = uv + field(uv)

@@ -15,7 +15,7 @@ J_B Sigma_B J_B^T, the Jacobians by central differences):
 * 3-D point: a grid of points at the working distance in the upper frame,
   projected into both cameras with A and triangulated with B, difference mm.
 
-Parameters: the camera + rig vector of ``calib_covariance.camera_param_names``
+Parameters: the camera + rig vector of ``covariance.camera_param_names``
 (fx fy cx cy D per camera, rotation vector rad, T mm).
 """
 
@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
 from crossfield.types import CameraIntrinsics, StereoCalibration
 
 _CRIT = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-14)
@@ -63,13 +64,18 @@ def _unproject(cam: CameraIntrinsics, uv: np.ndarray, depth_mm: float) -> np.nda
 
 def _project(cam: CameraIntrinsics, X: np.ndarray) -> np.ndarray:
     uv, _ = cv2.projectPoints(
-        X.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), np.asarray(cam.camera_matrix), np.asarray(cam.dist_coeffs)
+        X.reshape(-1, 1, 3),
+        np.zeros(3),
+        np.zeros(3),
+        np.asarray(cam.camera_matrix),
+        np.asarray(cam.dist_coeffs),
     )
     return uv.reshape(-1, 2)
 
 
-def projection_difference(a: StereoCalibration, b: StereoCalibration, camera: str, grid_px: np.ndarray,
-                          depth_mm: float) -> np.ndarray:
+def projection_difference(
+    a: StereoCalibration, b: StereoCalibration, camera: str, grid_px: np.ndarray, depth_mm: float
+) -> np.ndarray:
     """(N, 2) px: pixels cast out with ``a`` to ``depth_mm`` and projected with ``b``, minus the pixels."""
     if camera == "upper":
         X = _unproject(a.upper, grid_px, depth_mm)
@@ -83,12 +89,22 @@ def projection_difference(a: StereoCalibration, b: StereoCalibration, camera: st
 
 def triangulate(calibration: StereoCalibration, uv_upper: np.ndarray, uv_lower: np.ndarray) -> np.ndarray:
     """(N, 3) upper-frame points (mm) from pixel pairs: DLT (Hartley & Zisserman 12.2) on undistorted points."""
-    x1 = cv2.undistortPoints(uv_upper.reshape(-1, 1, 2), np.asarray(calibration.upper.camera_matrix),
-                             np.asarray(calibration.upper.dist_coeffs), criteria=_CRIT).reshape(-1, 2)
-    x2 = cv2.undistortPoints(uv_lower.reshape(-1, 1, 2), np.asarray(calibration.lower.camera_matrix),
-                             np.asarray(calibration.lower.dist_coeffs), criteria=_CRIT).reshape(-1, 2)
+    x1 = cv2.undistortPoints(
+        uv_upper.reshape(-1, 1, 2),
+        np.asarray(calibration.upper.camera_matrix),
+        np.asarray(calibration.upper.dist_coeffs),
+        criteria=_CRIT,
+    ).reshape(-1, 2)
+    x2 = cv2.undistortPoints(
+        uv_lower.reshape(-1, 1, 2),
+        np.asarray(calibration.lower.camera_matrix),
+        np.asarray(calibration.lower.dist_coeffs),
+        criteria=_CRIT,
+    ).reshape(-1, 2)
     P1 = np.hstack([np.eye(3), np.zeros((3, 1))])
-    P2 = np.hstack([np.asarray(calibration.R_lower_upper), np.asarray(calibration.t_lower_upper).reshape(3, 1)])
+    P2 = np.hstack(
+        [np.asarray(calibration.R_lower_upper), np.asarray(calibration.t_lower_upper).reshape(3, 1)]
+    )
     Xh = cv2.triangulatePoints(P1, P2, x1.T.astype(np.float64), x2.T.astype(np.float64))
     return (Xh[:3] / Xh[3]).T
 
@@ -197,10 +213,14 @@ def compare(
     grids, diffs, sigmas = {}, {}, {}
     for cam in ("upper", "lower"):
         w, h = a.camera(cam).image_size
-        gu, gv = np.meshgrid(np.linspace(margin, 1 - margin, grid[0]) * (w - 1),
-                             np.linspace(margin, 1 - margin, grid[1]) * (h - 1))
+        gu, gv = np.meshgrid(
+            np.linspace(margin, 1 - margin, grid[0]) * (w - 1),
+            np.linspace(margin, 1 - margin, grid[1]) * (h - 1),
+        )
         g = np.column_stack([gu.ravel(), gv.ravel()])
-        f = lambda x, y, cam=cam, g=g: projection_difference(calibration_of(x, a), calibration_of(y, b), cam, g, depth_mm)  # noqa: E731
+        f = lambda x, y, cam=cam, g=g: projection_difference(
+            calibration_of(x, a), calibration_of(y, b), cam, g, depth_mm
+        )
         d = f(ta, tb)
         C = _difference_covariance(f, ta, cov_a, tb, cov_b)
         u = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
@@ -209,12 +229,10 @@ def compare(
     w, h = a.upper.image_size
     gu, gv = np.meshgrid(np.linspace(0.15, 0.85, 5) * (w - 1), np.linspace(0.15, 0.85, 5) * (h - 1))
     P = _unproject(a.upper, np.column_stack([gu.ravel(), gv.ravel()]), depth_mm)
-    fp = lambda x, y: point_difference(calibration_of(x, a), calibration_of(y, b), P)  # noqa: E731
+    fp = lambda x, y: point_difference(calibration_of(x, a), calibration_of(y, b), P)
     dX = fp(ta, tb)
     CX = _difference_covariance(fp, ta, cov_a, tb, cov_b)
-    return CrossValidation(
-        halves, depth_mm, grids, diffs, sigmas, P, dX, np.sqrt(np.einsum("nii->ni", CX))
-    )
+    return CrossValidation(halves, depth_mm, grids, diffs, sigmas, P, dX, np.sqrt(np.einsum("nii->ni", CX)))
 
 
 def split_views(views: tuple[int, ...]) -> tuple[tuple[int, ...], tuple[int, ...]]:

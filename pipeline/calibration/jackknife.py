@@ -22,6 +22,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+
 from crossfield.calibration.joint import JointSolution, ViewPoints, refine_joint
 
 

@@ -11,7 +11,7 @@ of **every** detected corner of each camera, as mrcal does
 over the parameters, in this order:
 
 * upper camera fx fy cx cy (px) and its distortion (OpenCV order), the
-  lower camera's the same (``calib_covariance.camera_param_names``);
+  lower camera's the same (``covariance.camera_param_names``);
 * the rig: rotation vector r (rad), T (mm): ``p_lower = R(r) p_upper + T``;
 * the board's bow (wx, wy) mm when ``warp`` is on: the board point
   (x, y, 0) is at (x, y, wx (1 - xn^2) + wy (1 - yn^2)), xn, yn in [-1, 1]
@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
 from crossfield.calibration.covariance import project_with_jacobians
 
 #: Parameters of the rig block (after both cameras' intrinsics).
@@ -190,7 +191,7 @@ def refine_joint(
     x = np.concatenate([theta, np.asarray(poses0, float).ravel()])
     n_cam = len(theta)
     lam = 1e-3
-    split = lambda x: (x[:n_cam], x[n_cam:].reshape(-1, 6))  # noqa: E731
+    split = lambda x: (x[:n_cam], x[n_cam:].reshape(-1, 6))
     res, J = residuals_jacobian(views, *split(x), n_dist, warp, grid)
     cost = float(res @ res)
     it = 0

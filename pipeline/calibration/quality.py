@@ -16,6 +16,7 @@ import io
 from typing import Any
 
 import numpy as np
+
 from crossfield.types import CAMERAS
 
 
@@ -69,14 +70,23 @@ def residual_figures(result) -> dict[str, str]:
         fig, ax = plt.subplots(figsize=(6, 6 * h / w))
         longest = np.nanmax(np.linalg.norm(m.mean_px[ok], axis=1)) if ok.any() else 1.0
         scale = longest / (w / 20) if longest > 0 else 1.0
-        ax.quiver(m.centres_px[ok][:, 0], m.centres_px[ok][:, 1], m.mean_px[ok][:, 0], m.mean_px[ok][:, 1],
-                  angles="xy", scale_units="xy", scale=scale, color="tab:purple")
+        ax.quiver(
+            m.centres_px[ok][:, 0],
+            m.centres_px[ok][:, 1],
+            m.mean_px[ok][:, 0],
+            m.mean_px[ok][:, 1],
+            angles="xy",
+            scale_units="xy",
+            scale=scale,
+            color="tab:purple",
+        )
         ax.set_xlim(0, w)
         ax.set_ylim(h, 0)
         ax.set_aspect("equal")
         ax.set_title(
             f"{cam}: mean residual per bin, longest {longest:.3f} px; amplitude {m.amplitude_px:.3f} px "
-            f"(noise alone {m.noise_amplitude_px:.3f} px)", fontsize=8,
+            f"(noise alone {m.noise_amplitude_px:.3f} px)",
+            fontsize=8,
         )
         out[cam] = _png(fig)
         plt.close(fig)
@@ -97,12 +107,25 @@ def cross_validation_figure(cv) -> str:
         longest = float(np.max(np.linalg.norm(d, axis=1)))
         w = g[:, 0].max() - g[:, 0].min()
         scale = longest / (w / 12) if longest > 0 else 1.0
-        q = ax.quiver(g[:, 0], g[:, 1], d[:, 0], d[:, 1], ratio, angles="xy", scale_units="xy", scale=scale,
-                      cmap="RdYlGn_r", clim=(0, 3))
+        q = ax.quiver(
+            g[:, 0],
+            g[:, 1],
+            d[:, 0],
+            d[:, 1],
+            ratio,
+            angles="xy",
+            scale_units="xy",
+            scale=scale,
+            cmap="RdYlGn_r",
+            clim=(0, 3),
+        )
         ax.invert_yaxis()
         ax.set_aspect("equal")
-        ax.set_title(f"{cam}: half A vs half B at {cv.depth_mm:.0f} mm, longest {longest:.3f} px, "
-                     f"max {ratio.max():.2f} sigma", fontsize=8)
+        ax.set_title(
+            f"{cam}: half A vs half B at {cv.depth_mm:.0f} mm, longest {longest:.3f} px, "
+            f"max {ratio.max():.2f} sigma",
+            fontsize=8,
+        )
         fig.colorbar(q, ax=ax, label="|difference| / predicted sigma")
     out = _png(fig)
     plt.close(fig)
@@ -116,17 +139,25 @@ def quality_html(result, data: dict[str, Any]) -> str:
     parts = ["<h2>Residual maps</h2>"]
     if result.residual_maps:
         figs = residual_figures(result)
-        parts.append("".join(f'<figure><img src="data:image/png;base64,{figs[c]}" alt="residuals {c}"></figure>'
-                             for c in figs))
-        parts.append("<p>A good calibration's map is noise (amplitude near the 'noise alone' figure); a "
-                     "pattern (a swirl, arrows pointing out at the corners) is what the model does not fit.</p>")
+        parts.append(
+            "".join(
+                f'<figure><img src="data:image/png;base64,{figs[c]}" alt="residuals {c}"></figure>'
+                for c in figs
+            )
+        )
+        parts.append(
+            "<p>A good calibration's map is noise (amplitude near the 'noise alone' figure); a "
+            "pattern (a swirl, arrows pointing out at the corners) is what the model does not fit.</p>"
+        )
     else:
         parts.append("<p>not computed (joint refinement off)</p>")
     bow = q["board_warp"]
     parts.append("<h2>Board flatness</h2>")
     if bow:
-        parts.append(f"<p>Bow wx {bow['warp_mm'][0] * 1000:.1f} um, wy {bow['warp_mm'][1] * 1000:.1f} um "
-                     f"(1 sigma {', '.join('-' if s is None else f'{s * 1000:.1f}' for s in bow['std_mm'])} um).</p>")
+        parts.append(
+            f"<p>Bow wx {bow['warp_mm'][0] * 1000:.1f} um, wy {bow['warp_mm'][1] * 1000:.1f} um "
+            f"(1 sigma {', '.join('-' if s is None else f'{s * 1000:.1f}' for s in bow['std_mm'])} um).</p>"
+        )
     else:
         parts.append("<p>not estimated (too few views, or estimate_warp = false)</p>")
     rows = "".join(
@@ -135,8 +166,10 @@ def quality_html(result, data: dict[str, Any]) -> str:
         f"<td>{'-' if p['std_jackknife'] is None else format(p['std_jackknife'], '.3g')}</td></tr>"
         for p in q["std_sources"]["parameters"]
     )
-    parts.append("<h2>Standard deviations: Jacobian and jackknife</h2><table><tr><th>name</th><th>stated</th>"
-                 f"<th>Jacobian</th><th>jackknife</th></tr>{rows}</table>")
+    parts.append(
+        "<h2>Standard deviations: Jacobian and jackknife</h2><table><tr><th>name</th><th>stated</th>"
+        f"<th>Jacobian</th><th>jackknife</th></tr>{rows}</table>"
+    )
     cv = result.cross_validation
     parts.append("<h2>Cross-validation</h2>")
     if cv is None:
@@ -144,7 +177,9 @@ def quality_html(result, data: dict[str, Any]) -> str:
     else:
         within = cv.within(2.0)
         d = q["cross_validation"]
-        parts.append(f'<figure><img src="data:image/png;base64,{cross_validation_figure(cv)}" alt="cross-validation"></figure>')
+        parts.append(
+            f'<figure><img src="data:image/png;base64,{cross_validation_figure(cv)}" alt="cross-validation"></figure>'
+        )
         parts.append(
             f"<p>Halves of {len(cv.halves[0])} and {len(cv.halves[1])} views. Within 2 predicted sigma: upper "
             f"{within['upper']:.0%}, lower {within['lower']:.0%} of the image; 3-D points at {cv.depth_mm:.0f} mm "

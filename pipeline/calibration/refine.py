@@ -5,8 +5,10 @@ After OpenCV's stereo solution (``calibrate.solve_stereo`` steps 2-5):
 1. :func:`crossfield.calibration.joint.refine_joint` over every corner each
    camera saw in the stereo views (not only the common ones), with the
    board's bow (mrcal's ``calobject_warp``) when ``settings.estimate_warp``
-   and at least ``WARP_MIN_VIEWS`` views; corners beyond 3 sigma are dropped
-   and the problem solved again (``calib_joint.without_outlier_corners``);
+   and at least ``WARP_MIN_VIEWS`` views; with ``reject_corners`` (off by
+   default: it cost rotation accuracy in bench_calibrate_peers) corners
+   beyond 3 sigma are dropped and the problem solved again
+   (``joint.without_outlier_corners``);
 2. the Jacobian covariance sigma^2 (J^T J)^-1 (Hartley & Zisserman 5.2.3),
    the board poses marginalised;
 3. the jackknife over views (:mod:`crossfield.calibration.jackknife`) when
@@ -21,8 +23,9 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from crossfield.calibration.detect import BoardDetection
+
 from crossfield.calibration.covariance import covariance_from_jacobian
+from crossfield.calibration.detect import BoardDetection
 from crossfield.calibration.jackknife import combined_covariance, jackknife
 from crossfield.calibration.joint import (
     JointSolution,
@@ -72,7 +75,7 @@ def initial_poses(views: list[ViewPoints], K: np.ndarray, D: np.ndarray) -> np.n
     """(V, 6) board poses in the upper camera (rvec, t mm) from its corners: ``cv2.solvePnP``."""
     poses = []
     for v in views:
-        ok, r, t = cv2.solvePnP(v.object_upper, v.pixels_upper, K, D, flags=cv2.SOLVEPNP_ITERATIVE)
+        _, r, t = cv2.solvePnP(v.object_upper, v.pixels_upper, K, D, flags=cv2.SOLVEPNP_ITERATIVE)
         poses.append(np.concatenate([r.ravel(), t.ravel()]))
     return np.array(poses)
 
@@ -112,8 +115,15 @@ def refine(
             views, dropped = without_outlier_corners(views, sol, 3.0)
             if not dropped:
                 break
-            sol = refine_joint(views, sol.theta[: sol.n_camera_params], sol.poses, n_dist, warp=warp,
-                               grid=grid, warp_start=sol.warp_mm)
+            sol = refine_joint(
+                views,
+                sol.theta[: sol.n_camera_params],
+                sol.poses,
+                n_dist,
+                warp=warp,
+                grid=grid,
+                warp_start=sol.warp_mm,
+            )
     n_cam = sol.n_camera_params
     n_block = n_cam + (2 if warp else 0)
     cov_full, sigma = covariance_from_jacobian(sol.residuals, sol.jacobian)
@@ -133,7 +143,8 @@ def refine(
     )
     per_cam = camera_residuals(views, sol)
     maps = {
-        cam: residual_map(cam, per_cam[cam][0], per_cam[cam][1], like.camera(cam).image_size) for cam in CAMERAS
+        cam: residual_map(cam, per_cam[cam][0], per_cam[cam][1], like.camera(cam).image_size)
+        for cam in CAMERAS
     }
     rms = {cam: float(np.sqrt(np.mean(np.sum(per_cam[cam][1] ** 2, axis=1)))) for cam in CAMERAS}
     std_j = np.sqrt(np.diag(cov_j))

@@ -44,8 +44,8 @@ from crossfield.calibration.covariance import (
     stereo_jacobian,
     triangulation_sensitivity,
 )
-from crossfield.calibration.detect import BoardDetection, BoardDetector
 from crossfield.calibration.crossval import CrossValidation
+from crossfield.calibration.detect import BoardDetection, BoardDetector
 from crossfield.calibration.refine import refine
 from crossfield.calibration.residuals import ResidualMap
 from crossfield.errors import CrossfieldError
@@ -74,7 +74,7 @@ class CalibrationSettings:
     every n-th pair (n-1, 2n-1, ...) is held out for the epipolar check (0 = none).
     joint: step 6 (the joint refinement); estimate_warp: the board's bow in
     it; jackknife: the leave-one-view-out covariance in it; cross_validate:
-    also calibrate two halves of the views and compare them (``calib_crossval``).
+    also calibrate two halves of the views and compare them (``crossfield.calibration.crossval``).
     """
 
     distortion: str = "plumb_bob"
@@ -569,7 +569,7 @@ def calibrate_images(
 
 def cross_validated(result: CalibrationResult) -> CalibrationResult:
     """``result`` with its cross-validation: the stereo views split into two interleaved halves,
-    each solved as the whole was (same settings, no hold-out), compared (``calib_crossval.compare``)."""
+    each solved as the whole was (same settings, no hold-out), compared (``crossval.compare``)."""
     from dataclasses import replace
 
     from crossfield.calibration.crossval import compare, split_views

@@ -447,7 +447,7 @@ def render_calibration_views(
     for pose in poses:
         height = None
         if any(pose.warp_mm):
-            height = lambda bx, by, w=pose.warp_mm: board_height_mm(bx, by, board, w)  # noqa: E731
+            height = lambda bx, by, w=pose.warp_mm: board_height_mm(bx, by, board, w)
         extra = {"height_mm": height, "psf_sigma_px": mismatch.psf_sigma_px}
         R_u, t_u = pose.R, pose.t
         if pose.lower_shift is not None:

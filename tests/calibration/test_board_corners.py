@@ -5,8 +5,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-from crossfield.calibration.detect import BoardDetector, to_uint8
+
 from crossfield.calibration.boards import Board
+from crossfield.calibration.detect import BoardDetector, to_uint8
 from crossfield.simulator.board_views import ViewMismatch, render_calibration_views, true_image_points
 
 
@@ -43,12 +44,17 @@ def test_chessboard_corners_match_the_truth_through_a_blurred_astigmatic_lens(mo
     found, and its corners are right, by the SB detector and by the classic fallback alone."""
     board = Board(type="chessboard", squares_x=9, squares_y=6, square_mm=15.0, marker_mm=0.0, dictionary="")
     views = render_calibration_views(
-        n_views=2, seed=2, board=board, supersample=2, layout_seed=7,
+        n_views=2,
+        seed=2,
+        board=board,
+        supersample=2,
+        layout_seed=7,
         mismatch=ViewMismatch(psf_sigma_px=(2.5, 2.0)),
     )
     image = views.images[1]["upper"]
     found, _ = cv2.findChessboardCorners(
-        to_uint8(image, views.bit_depth), board.pattern_size,
+        to_uint8(image, views.bit_depth),
+        board.pattern_size,
         flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE,
     )
     assert found

@@ -6,6 +6,7 @@ import json
 
 import cv2
 import numpy as np
+
 from crossfield.cli import main
 
 
@@ -23,7 +24,9 @@ def test_station_cross_validation_agrees_with_the_stated_uncertainty(tmp_path, c
     # the stated std are the larger of the Jacobian's and the jackknife's, in the YAML and the report
     fs = cv2.FileStorage(str(calib), cv2.FILE_STORAGE_READ)
     jac, jk = fs.getNode("std_jacobian").mat().ravel(), fs.getNode("std_jackknife").mat().ravel()
-    stated = np.concatenate([fs.getNode(k).mat().ravel() for k in ("std_M1", "std_D1", "std_M2", "std_D2", "std_R", "std_T")])
+    stated = np.concatenate(
+        [fs.getNode(k).mat().ravel() for k in ("std_M1", "std_D1", "std_M2", "std_D2", "std_R", "std_T")]
+    )
     np.testing.assert_allclose(stated, np.maximum(jac, jk), rtol=1e-6)
     assert np.all(jk > 0)
     warp = fs.getNode("calobject_warp_mm").mat().ravel()

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from calib_synthetic import synthetic_detections
+
 from crossfield.calibration.crossval import calibration_of, compare, params_of
 from crossfield.calibration.refine import refine
 from crossfield.calibration.residuals import residual_map
@@ -38,7 +39,7 @@ def test_exact_corners_give_the_true_rig_and_bow():
 
 
 def test_every_corner_of_each_camera_is_used():
-    dets, truth, size = synthetic_detections(10, 4, noise_px=0.03)
+    dets, _, size = synthetic_detections(10, 4, noise_px=0.03)
     result, ref = _solve(dets, size, jackknife_views=False)
     n_points = sum(len(dets[k][c]) for k in result.used_stereo for c in ("upper", "lower"))
     common = sum(len(np.intersect1d(dets[k]["upper"].ids, dets[k]["lower"].ids)) for k in result.used_stereo)
@@ -54,8 +55,13 @@ def test_stated_std_cover_the_truth_when_the_model_does_not_fit():
     stated, jacobian = [], []
     for seed in range(20):
         dets, truth, size = synthetic_detections(
-            12, seed, noise_px=0.03, thin_prism=(3e-4, 0.0, -2e-4, 0.0), warp_mm=(0.2, -0.1),
-            bow_per_view_mm=0.05, view_shift_px=0.02,
+            12,
+            seed,
+            noise_px=0.03,
+            thin_prism=(3e-4, 0.0, -2e-4, 0.0),
+            warp_mm=(0.2, -0.1),
+            bow_per_view_mm=0.05,
+            view_shift_px=0.02,
         )
         _, ref = _solve(dets, size)
         err = np.abs(ref.params - params_of(truth))[COMPARED]
@@ -77,7 +83,7 @@ def _waves(uv: np.ndarray, amplitude: float = 0.25, period_px: float = 540.0) ->
 
 
 def test_residual_map_shows_an_injected_distortion():
-    dets, truth, size = synthetic_detections(16, 5, noise_px=0.03, field=_waves)
+    dets, _, size = synthetic_detections(16, 5, noise_px=0.03, field=_waves)
     _, ref = _solve(dets, size, jackknife_views=False)
     for cam, measured in ref.residual_maps.items():
         pts = np.concatenate([d[cam].image_points for d in dets if d[cam] is not None])
@@ -96,8 +102,9 @@ def test_residual_map_shows_an_injected_distortion():
 
 
 def test_cross_validation_of_halves_agrees_with_the_stated_uncertainty():
-    dets, truth, size = synthetic_detections(24, 6, noise_px=0.03, thin_prism=(3e-4, 0.0, -2e-4, 0.0),
-                                             bow_per_view_mm=0.05, view_shift_px=0.02)
+    dets, _, size = synthetic_detections(
+        24, 6, noise_px=0.03, thin_prism=(3e-4, 0.0, -2e-4, 0.0), bow_per_view_mm=0.05, view_shift_px=0.02
+    )
     halves = [_solve(dets[h::2], size)[1] for h in (0, 1)]
     cv = compare(halves[0].calibration, halves[0].covariance, halves[1].calibration, halves[1].covariance)
     within = cv.within(2.0)
@@ -105,8 +112,12 @@ def test_cross_validation_of_halves_agrees_with_the_stated_uncertainty():
     # the test can fail: a half whose upper cx is 20 of its sigma off is flagged
     shifted = params_of(halves[1].calibration)
     shifted[2] += 20 * np.sqrt(halves[1].covariance[2, 2])
-    bad = compare(halves[0].calibration, halves[0].covariance,
-                  calibration_of(shifted, halves[1].calibration), halves[1].covariance)
+    bad = compare(
+        halves[0].calibration,
+        halves[0].covariance,
+        calibration_of(shifted, halves[1].calibration),
+        halves[1].covariance,
+    )
     assert bad.within(2.0)["upper"] < 0.5
 
 
