@@ -161,10 +161,6 @@ def _board_and_settings(path: str | None, distortion: str | None):
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
     board, settings = _board_and_settings(args.board, args.distortion)
-    if args.cross_validate:
-        from dataclasses import replace
-
-        settings = replace(settings, cross_validate=True)
     if not args.source:
         live_only = {"--config": args.config, "--option": args.option, "--every": args.every is not None,
                      "--trigger": args.trigger, "--pairs": args.pairs, "--view": args.view, "--rrd": args.rrd}  # fmt: skip
@@ -210,6 +206,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         pairs = read_image_pairs(args.images, args.pattern, args.bit_depth)
         images, bit_depth, names = pairs.images, pairs.bit_depth, pairs.names
         source = f"crossfield calibrate --images {args.images}"
+    if args.cross_validate:
+        settings = replace(settings, cross_validate=True)
     result = calibrate_images(images, board, bit_depth, settings, names=names, source=source)
     out = write_calibration_result(args.output, result)
     if args.record:
