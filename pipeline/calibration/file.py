@@ -13,7 +13,12 @@ under keys of its own, which those readers ignore:
   ``cov_param_names`` (a string, names separated by spaces);
 * ``rms_px_upper``, ``rms_px_lower``, ``rms_px_stereo``: RMS reprojection errors (px);
 * ``sigma_px``: the corner noise estimated from the residuals (px);
-* ``board``: the board definition (TOML text, one line per key, ``;``-joined).
+* ``board``: the board definition (TOML text, one line per key, ``;``-joined);
+* ``std_jacobian``, ``std_jackknife``: 1 x p, the two standard deviations
+  behind the ``std_*`` keys (which hold the larger), in ``cov_param_names``
+  order (the jackknife's -1 where not computed);
+* ``calobject_warp_mm``, ``calobject_warp_std_mm``: 1 x 2, the board's bow
+  (wx, wy) and its std (mm), when estimated.
 """
 
 from __future__ import annotations
@@ -48,7 +53,20 @@ def _extra(result: CalibrationResult) -> dict[str, object]:
         "rms_px_stereo": float(result.rms_stereo_px),
         "sigma_px": float(result.sigma_px),
         "board": board,
+        **_std_sources(result),
     }
+
+
+def _std_sources(result: CalibrationResult) -> dict[str, object]:
+    out: dict[str, object] = {}
+    for key in ("std_jacobian", "std_jackknife"):
+        v = getattr(result, key)
+        if v is not None:
+            out[key] = np.where(np.isfinite(v), v, -1.0).reshape(1, -1)
+    if result.warp_mm is not None and np.all(np.isfinite(result.warp_mm)):
+        out["calobject_warp_mm"] = np.asarray(result.warp_mm, float).reshape(1, 2)
+        out["calobject_warp_std_mm"] = np.asarray(result.warp_std_mm, float).reshape(1, 2)
+    return out
 
 
 def write_calibration_result(path: str | Path, result: CalibrationResult) -> Path:

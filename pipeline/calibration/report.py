@@ -22,6 +22,7 @@ import numpy as np
 from crossfield.calibration.covariance import triangulation_sensitivity
 from crossfield.calibration.coverage import COVERAGE_GRID, coverage_cells
 from crossfield.calibration.solve import CalibrationResult
+from crossfield.calibration.quality import quality_dict, quality_html
 from crossfield.types import CAMERAS
 
 
@@ -145,6 +146,7 @@ def report_dict(result: CalibrationResult) -> dict[str, Any]:
             "max_sigma_mm": sigma.max(axis=0).tolist() if len(sigma) else [],
             "length": length_uncertainty(result),
         },
+        "quality": quality_dict(result),
     }
 
 
@@ -253,6 +255,7 @@ lower {data["coverage"]["lower"]:.0%}.</p>
 <h2>Predicted 3-D uncertainty (calibration only, 1 sigma)</h2>
 <p>Points in the working volume (x, y, z): median {med} um, max {mx} um. {e(length_text)}.
 A common shift of every point (from the principal points) cancels in the registration; lengths do not.</p>
+{quality_html(result, data)}
 <h2>Parameters</h2><table><tr><th>name</th><th>value</th><th>std</th></tr>{rows}</table>
 <h2>Views</h2><table><tr><th>#</th><th>name</th><th>status</th><th>pts upper</th><th>pts lower</th>
 <th>RMS upper</th><th>RMS lower</th><th>RMS stereo</th><th>notes</th></tr>{views}</table>

@@ -16,7 +16,12 @@ Formula (4): R_c, T_c between the cameras). Steps:
    (intrinsics refined from step 3), with the same rejection of views;
 5. the covariance of the camera and rig parameters
    (:mod:`crossfield.calibration.covariance`), their standard deviations,
-   and the 3-D uncertainty they predict over the working volume.
+   and the 3-D uncertainty they predict over the working volume;
+6. (``joint``, the default) the joint bundle adjustment over every corner
+   of both cameras with the board's bow, the jackknife over views beside
+   the Jacobian's covariance (the stated std is the larger), and the
+   residual maps (:mod:`crossfield.calibration.refine`); the 3-D
+   uncertainty and the held-out check are then those of the refined rig.
 
 Distortion model: ``plumb_bob`` (k1 k2 p1 p2 k3, the default) or
 ``rational`` (k1 .. k6). Pixels: (0, 0) is the centre of the top-left pixel.
@@ -39,7 +44,10 @@ from crossfield.calibration.covariance import (
     stereo_jacobian,
     triangulation_sensitivity,
 )
+from crossfield.calibration.crossval import CrossValidation
 from crossfield.calibration.detect import BoardDetection, BoardDetector
+from crossfield.calibration.refine import refine
+from crossfield.calibration.residuals import ResidualMap
 from crossfield.errors import CrossfieldError
 from crossfield.types import CAMERAS, CameraIntrinsics, StereoCalibration
 
@@ -64,6 +72,9 @@ class CalibrationSettings:
     outlier_floor_px: a view is dropped while its RMS error (px) exceeds
     ``max(outlier_factor * median, outlier_floor_px)``. holdout_every:
     every n-th pair (n-1, 2n-1, ...) is held out for the epipolar check (0 = none).
+    joint: step 6 (the joint refinement); estimate_warp: the board's bow in
+    it; jackknife: the leave-one-view-out covariance in it; cross_validate:
+    also calibrate two halves of the views and compare them (``crossfield.calibration.crossval``).
     """
 
     distortion: str = "plumb_bob"
@@ -72,6 +83,10 @@ class CalibrationSettings:
     outlier_factor: float = 3.0
     outlier_floor_px: float = 0.15
     holdout_every: int = 8
+    joint: bool = True
+    estimate_warp: bool = True
+    jackknife: bool = True
+    cross_validate: bool = False
 
     def __post_init__(self) -> None:
         if self.distortion not in DISTORTION_MODELS:
@@ -116,7 +131,11 @@ class CalibrationResult:
     lower) RMS. holdout_epipolar_px: view -> (rms, max) distance of the lower
     points to their epipolar lines (px). uncertainty_points / uncertainty_sigma_mm:
     (N, 3) upper-frame points of the working volume and their predicted 1-sigma
-    (N, 3) x y z from the calibration alone (mm).
+    (N, 3) x y z from the calibration alone (mm). std_jacobian, std_jackknife:
+    (p,) the two standard deviations behind ``std`` (the larger; jackknife
+    NaN if not run); warp_mm, warp_std_mm: (2,) the board's bow (NaN if not
+    estimated); residual_maps: camera -> ``ResidualMap``; cross_validation:
+    a ``CrossValidation`` or None.
     """
 
     calibration: StereoCalibration
@@ -137,6 +156,12 @@ class CalibrationResult:
     uncertainty_points: np.ndarray
     uncertainty_sigma_mm: np.ndarray
     used_stereo: tuple[int, ...] = field(default=())
+    std_jacobian: np.ndarray | None = None
+    std_jackknife: np.ndarray | None = None
+    warp_mm: np.ndarray | None = None
+    warp_std_mm: np.ndarray | None = None
+    residual_maps: Mapping[str, ResidualMap] = field(default_factory=dict)
+    cross_validation: CrossValidation | None = None
 
     @property
     def std(self) -> np.ndarray:
@@ -466,6 +491,28 @@ def solve_stereo(
     params = np.concatenate(
         [K1s[[0, 1, 0, 1], [0, 1, 2, 2]], D1s, K2s[[0, 1, 0, 1], [0, 1, 2, 2]], D2s, rvec, T]
     )
+    extra: dict[str, object] = {"std_jacobian": np.sqrt(np.diag(cov))}
+    if settings.joint:
+        # Step 6: every corner of both cameras in the stereo views, the bow, the jackknife.
+        refined = refine(
+            {k: (usable["upper"][k], usable["lower"][k]) for k in keys},
+            params,
+            calibration,
+            board.object_points(),
+            estimate_warp=settings.estimate_warp,
+            jackknife_views=settings.jackknife,
+        )
+        calibration, params, cov, sigma = refined.calibration, refined.params, refined.covariance, refined.sigma_px
+        K1s, D1s = np.asarray(calibration.upper.camera_matrix), np.asarray(calibration.upper.dist_coeffs)
+        K2s, D2s = np.asarray(calibration.lower.camera_matrix), np.asarray(calibration.lower.dist_coeffs)
+        rvec, T = params[-6:-3], params[-3:]
+        extra = {
+            "std_jacobian": refined.std_jacobian,
+            "std_jackknife": refined.std_jackknife,
+            "warp_mm": refined.warp_mm,
+            "warp_std_mm": refined.warp_std_mm,
+            "residual_maps": refined.residual_maps,
+        }
     holdout = {}
     for k in held_out:
         a, b = detections[k]["upper"], detections[k]["lower"]
@@ -497,6 +544,7 @@ def solve_stereo(
         uncertainty_points=points,
         uncertainty_sigma_mm=sigma_X,
         used_stereo=tuple(keys),
+        **extra,
     )
 
 
@@ -515,7 +563,30 @@ def calibrate_images(
     detections = detect_views(images, board, bit_depth, min_points=min(settings.min_points, 6))
     check_mirrored(detections, images, board, bit_depth, settings.min_views)
     sizes = {cam: (images[0][cam].shape[1], images[0][cam].shape[0]) for cam in CAMERAS}
-    return solve_stereo(detections, sizes, board, settings, names=names, source=source)
+    result = solve_stereo(detections, sizes, board, settings, names=names, source=source)
+    return cross_validated(result) if settings.cross_validate else result
+
+
+def cross_validated(result: CalibrationResult) -> CalibrationResult:
+    """``result`` with its cross-validation: the stereo views split into two interleaved halves,
+    each solved as the whole was (same settings, no hold-out), compared (``crossval.compare``)."""
+    from dataclasses import replace
+
+    from crossfield.calibration.crossval import compare, split_views
+
+    halves = split_views(tuple(result.used_stereo))
+    sizes = {cam: result.calibration.camera(cam).image_size for cam in CAMERAS}
+    settings = replace(result.settings, holdout_every=0, cross_validate=False)
+    solved = []
+    for half in halves:
+        dets = [result.detections[k] if k in half else {c: None for c in CAMERAS} for k in range(len(result.detections))]
+        try:
+            solved.append(solve_stereo(dets, sizes, result.board, settings, names=result.view_names))
+        except CalibrationError as exc:
+            raise CalibrationError(f"cross-validation: a half of {len(half)} views cannot be solved: {exc}") from None
+    a, b = solved
+    cv = compare(a.calibration, a.covariance, b.calibration, b.covariance, halves=halves)
+    return replace(result, cross_validation=cv)
 
 
 def settings_from_dict(data: Mapping[str, object], source: str = "<calibration>") -> CalibrationSettings:
@@ -529,6 +600,11 @@ def settings_from_dict(data: Mapping[str, object], source: str = "<calibration>"
     values = {}
     for key, value in data.items():
         default = fields[key].default
+        if isinstance(default, bool):
+            if not isinstance(value, bool):
+                raise CalibrationError(f"{source}: [calibration] {key} must be true or false, got {value!r}")
+            values[key] = value
+            continue
         if isinstance(default, str) != isinstance(value, str) or isinstance(value, bool):
             raise CalibrationError(
                 f"{source}: [calibration] {key} must be a {type(default).__name__}, got {value!r}"

@@ -110,6 +110,11 @@ def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--save-images", metavar="DIR", help="also write the simulated or live views as image pairs")
     parser.add_argument("--no-report", action="store_true", help="do not write the report")
     parser.add_argument(
+        "--cross-validate",
+        action="store_true",
+        help="also calibrate two halves of the views and compare them against their stated uncertainty",
+    )
+    parser.add_argument(
         "--record", metavar="CAL.mcap",
         help="record the session (images, detections, result) to MCAP (--source: default <CALIB>.mcap)",
     )
@@ -201,6 +206,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         pairs = read_image_pairs(args.images, args.pattern, args.bit_depth)
         images, bit_depth, names = pairs.images, pairs.bit_depth, pairs.names
         source = f"crossfield calibrate --images {args.images}"
+    if args.cross_validate:
+        settings = replace(settings, cross_validate=True)
     result = calibrate_images(images, board, bit_depth, settings, names=names, source=source)
     out = write_calibration_result(args.output, result)
     if args.record:
@@ -225,6 +232,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             f"cx {K[0, 2]:.2f} +- {std[cam + '.cx']:.2f} px, cy {K[1, 2]:.2f} +- {std[cam + '.cy']:.2f} px"
         )
     print(f"  baseline |T| = {result.baseline_mm:.4f} +- {result.baseline_std_mm:.4f} mm")
+    if result.cross_validation is not None:
+        from crossfield.calibration.crossval import summary_line
+
+        print(f"  {summary_line(result.cross_validation)}")
     for k, (rms, mx) in sorted(result.holdout_epipolar_px.items()):
         print(f"  held-out {result.view_names[k]}: epipolar error RMS {rms:.3f} px, max {mx:.3f} px")
     if not args.no_report:

@@ -16,7 +16,15 @@ and to first order inside the pixel (its Jacobian by central differences),
 an error below 1e-4 px for the station's geometry.
 
 The truth comes with the views: the board pose in the upper-camera frame
-per view (``X_upper = R @ X_board + t``, mm) and the rig's calibration.
+per view (``X_upper = R @ X_board + t``, mm), the rig's calibration and
+(:func:`true_image_points`) every board point's exact pixel position.
+
+:class:`ViewMismatch` makes the views depart from the estimator's model (a
+pinhole with OpenCV's plumb_bob lens, a flat board, independent corner
+errors): thin-prism lens terms no fitted model has, an astigmatic PSF, a
+board bowed like mrcal's ``calobject_warp`` (fixed, and a random part per
+view: corner errors correlated within a view). It stands in for an
+independent renderer (issue 28) until ``render_mismatch`` lands.
 """
 
 from __future__ import annotations
@@ -157,6 +165,22 @@ def _integrate(texture: BoardTexture, tx: np.ndarray, ty: np.ndarray, n_samples:
     return acc.astype(np.float32) / np.float32(255 * n_samples)
 
 
+def board_height_mm(
+    bx: np.ndarray, by: np.ndarray, board: Board, warp_mm: tuple[float, float]
+) -> np.ndarray:
+    """Height (mm, along the board's z) of a bowed board at board-frame (bx, by) mm; any shape.
+
+    mrcal's ``calobject_warp`` form: ``z = wx (1 - xn^2) + wy (1 - yn^2)`` with
+    xn, yn in [-1, 1] across the corner grid (mrcal docs, "Board deformation"):
+    a board bowed by wx along x and wy along y, 0 at the grid's edges.
+    """
+    obj = board.object_points()
+    lo, hi = obj[:, :2].min(axis=0), obj[:, :2].max(axis=0)
+    xn = 2 * (bx - lo[0]) / (hi[0] - lo[0]) - 1
+    yn = 2 * (by - lo[1]) / (hi[1] - lo[1]) - 1
+    return warp_mm[0] * (1 - xn * xn) + warp_mm[1] * (1 - yn * yn)
+
+
 def render_board(
     texture: BoardTexture,
     R_camera_board: np.ndarray,
@@ -167,8 +191,15 @@ def render_board(
     *,
     supersample: int = 4,
     illumination_seed: int = 11,
+    height_mm=None,
+    psf_sigma_px: tuple[float, float] | None = None,
 ) -> np.ndarray:
-    """One noisy (H, W) uint16 image of the board at pose (R, t): ``X_camera = R X_board + t`` (mm)."""
+    """One noisy (H, W) uint16 image of the board at pose (R, t): ``X_camera = R X_board + t`` (mm).
+
+    height_mm: None (a flat board) or a function (bx, by) -> z (mm) of the
+    board's surface (:func:`board_height_mm`). psf_sigma_px: (sigma_u,
+    sigma_v) of an astigmatic Gaussian PSF replacing the sensor's round one.
+    """
     width, height = intrinsics.image_size
     R = np.asarray(R_camera_board, float)
     t = np.asarray(t_camera_board, float)
@@ -196,10 +227,36 @@ def render_board(
             ty = (
                 (Hinv[1, 0] * x + Hinv[1, 1] * y + Hinv[1, 2]) / den - texture.origin_mm[1]
             ) / texture.texel_mm - 0.5
+            if height_mm is not None:
+                tx, ty = _bowed_lookup(texture, R, x, y, tx, ty, height_mm)
             coverage[v0 : v1 + 1, u0 : u1 + 1] = _integrate(texture, tx, ty, int(supersample) ** 2)
     light = background_image(intrinsics.image_size, WHITE_DN, np.random.default_rng(illumination_seed))
-    clean = cv2.GaussianBlur(coverage * light, (0, 0), sensor.blur_sigma_px)
+    su, sv = (sensor.blur_sigma_px,) * 2 if psf_sigma_px is None else psf_sigma_px
+    clean = cv2.GaussianBlur(coverage * light, (0, 0), sigmaX=su, sigmaY=sv)
     return add_noise(clean, sensor, rng)
+
+
+def _bowed_lookup(texture, R, x, y, tx, ty, height_mm):
+    """Texel coordinates where the rays (x, y, 1) meet a bowed board instead of its plane.
+
+    A ray meeting the plane z_board = 0 at b meets the surface z = h(b') at
+    b' = b + h(b') d_xy / d_z, with d = R^T (x, y, 1) its direction in the
+    board frame; solved by fixed-point iteration (3 steps: the error shrinks
+    by |grad h| |d_xy / d_z| < 0.02 per step for bows under 1 mm).
+    """
+    dx = R[0, 0] * x + R[1, 0] * y + R[2, 0]
+    dy = R[0, 1] * x + R[1, 1] * y + R[2, 1]
+    dz = R[0, 2] * x + R[1, 2] * y + R[2, 2]
+    bx0 = (tx + 0.5) * texture.texel_mm + texture.origin_mm[0]
+    by0 = (ty + 0.5) * texture.texel_mm + texture.origin_mm[1]
+    bx, by = bx0, by0
+    for _ in range(3):
+        h = height_mm(bx, by)
+        bx, by = bx0 + h * dx / dz, by0 + h * dy / dz
+    return (
+        (bx - texture.origin_mm[0]) / texture.texel_mm - 0.5,
+        (by - texture.origin_mm[1]) / texture.texel_mm - 0.5,
+    )
 
 
 # ---- the station's calibration session -----------------------------------------------------------
@@ -211,12 +268,43 @@ class BoardPose:
 
     lower_shift: for an outlier view, the board's extra rigid motion
     (rotation vector rad, translation mm) between the upper and the lower
-    exposure; None for a good view.
+    exposure; None for a good view. warp_mm: the board's bow (wx, wy) in
+    this view (:func:`board_height_mm`; (0, 0) flat).
     """
 
     R: np.ndarray
     t: np.ndarray
     lower_shift: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    warp_mm: tuple[float, float] = (0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class ViewMismatch:
+    """How the rendered views depart from the estimator's model (all zero / None: they do not).
+
+    thin_prism: (s1, s2, s3, s4) thin-prism terms added to both lenses
+    (OpenCV's 12-coefficient model; neither plumb_bob nor rational fits
+    them). psf_sigma_px: (sigma_u, sigma_v) px astigmatic Gaussian PSF
+    instead of the sensor's round one. board_warp_mm: (wx, wy) fixed bow of
+    the board (:func:`board_height_mm`, mrcal's calobject_warp).
+    bow_per_view_mm: standard deviation of a random bow (wx, wy) added per
+    view (a board that flexes as it is handled): corner errors correlated
+    within a view.
+    """
+
+    thin_prism: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    psf_sigma_px: tuple[float, float] | None = None
+    board_warp_mm: tuple[float, float] = (0.0, 0.0)
+    bow_per_view_mm: float = 0.0
+
+    def lens(self, intrinsics: CameraIntrinsics) -> CameraIntrinsics:
+        """The rendered lens: ``intrinsics`` with the thin-prism terms (12 coefficients) if any."""
+        if not any(self.thin_prism):
+            return intrinsics
+        D = np.zeros(12)
+        D[: min(8, len(intrinsics.dist_coeffs))] = np.asarray(intrinsics.dist_coeffs)[:8]
+        D[8:12] = self.thin_prism
+        return CameraIntrinsics(intrinsics.camera_matrix, D, intrinsics.image_size)
 
 
 @dataclass(frozen=True)
@@ -232,6 +320,35 @@ class CalibrationViews:
     images: tuple[dict[str, np.ndarray], ...]
     bit_depth: int
     sensor: SensorModel = field(default_factory=SensorModel)
+    mismatch: ViewMismatch = field(default_factory=ViewMismatch)
+
+
+def true_image_points(views: CalibrationViews, view: int, camera: str) -> np.ndarray:
+    """(n_points, 2) exact pixel positions of every board point (by id) in one rendered image.
+
+    The board point (x, y, h(x, y)) (bow included) through the pose and the
+    rendered lens (thin-prism terms included; ``cv2.projectPoints``). A point
+    behind the camera is NaN. Mirrored views are not handled (their truth is
+    the mirror image).
+    """
+    pose = views.poses[view]
+    obj = views.board.object_points().copy()
+    obj[:, 2] = board_height_mm(obj[:, 0], obj[:, 1], views.board, pose.warp_mm)
+    X = obj @ np.asarray(pose.R).T + np.asarray(pose.t)
+    if camera == "lower":
+        R_u, t_u = np.asarray(pose.R), np.asarray(pose.t)
+        if pose.lower_shift is not None:
+            dR = Rotation.from_rotvec(pose.lower_shift[0]).as_matrix()
+            R_u, t_u = dR @ R_u, dR @ t_u + np.asarray(pose.lower_shift[1])
+        X = obj @ R_u.T + t_u
+        X = X @ np.asarray(views.calibration.R_lower_upper).T + np.asarray(views.calibration.t_lower_upper)
+    lens = views.mismatch.lens(views.calibration.camera(camera))
+    uv, _ = cv2.projectPoints(
+        X.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), np.asarray(lens.camera_matrix), np.asarray(lens.dist_coeffs)
+    )
+    uv = uv.reshape(-1, 2)
+    uv[X[:, 2] <= 0] = np.nan
+    return uv
 
 
 def default_board() -> Board:
@@ -281,6 +398,7 @@ def render_calibration_views(
     mirrored: str | None = None,
     supersample: int = 4,
     layout_seed: int = 2026,
+    mismatch: ViewMismatch | None = None,
 ) -> CalibrationViews:
     """Render a calibration session of ``scenario``'s rig (both cameras, ``n_views`` pairs).
 
@@ -288,32 +406,56 @@ def render_calibration_views(
     (0.6 mm, 1 mrad) between the upper and the lower exposure, as with
     cameras that are not triggered together. mirrored: a camera whose images
     are flipped left-right (a reversed read-out). Poses from
-    :func:`station_board_poses`.
+    :func:`station_board_poses`. mismatch: the ways the views depart from
+    the estimator's model (:class:`ViewMismatch`; the per-view bows are
+    drawn from ``seed``); ``calibration`` then holds the rendered lenses.
     """
     if scenario not in SCENARIOS:
         raise ValueError(f"unknown scenario {scenario!r}; scenarios: {', '.join(SCENARIOS)}")
     if mirrored is not None and mirrored not in CAMERAS:
         raise ValueError(f"mirrored must be one of {CAMERAS}, got {mirrored!r}")
     board = default_board() if board is None else board
-    calibration = station_calibration()
+    mismatch = ViewMismatch() if mismatch is None else mismatch
+    truth = station_calibration()
+    calibration = StereoCalibration(
+        mismatch.lens(truth.upper),
+        mismatch.lens(truth.lower),
+        truth.R_lower_upper,
+        truth.t_lower_upper,
+        source=truth.source,
+    )
     sensor = SensorModel()
     texture = board_texture(board)
     poses = station_board_poses(n_views, board, layout_seed=layout_seed)
+    bow_rng = np.random.default_rng([seed, 5])
+    warps = [
+        tuple(np.asarray(mismatch.board_warp_mm) + mismatch.bow_per_view_mm * bow_rng.standard_normal(2))
+        for _ in poses
+    ]
     poses = [
-        BoardPose(p.R, p.t, ((0.0007, -0.0005, 0.0004), (0.45, -0.3, 0.25))) if k in outlier_views else p
+        BoardPose(
+            p.R,
+            p.t,
+            ((0.0007, -0.0005, 0.0004), (0.45, -0.3, 0.25)) if k in outlier_views else None,
+            (float(warps[k][0]), float(warps[k][1])),
+        )
         for k, p in enumerate(poses)
     ]
     rng = np.random.default_rng([seed, 3])
     images = []
     R_lu, t_lu = calibration.R_lower_upper, calibration.t_lower_upper
     for pose in poses:
+        height = None
+        if any(pose.warp_mm):
+            height = lambda bx, by, w=pose.warp_mm: board_height_mm(bx, by, board, w)
+        extra = {"height_mm": height, "psf_sigma_px": mismatch.psf_sigma_px}
         R_u, t_u = pose.R, pose.t
         if pose.lower_shift is not None:
             dR = Rotation.from_rotvec(pose.lower_shift[0]).as_matrix()
             R_u, t_u = dR @ R_u, dR @ t_u + np.asarray(pose.lower_shift[1])
         view = {
             "upper": render_board(
-                texture, pose.R, pose.t, calibration.upper, sensor, rng, supersample=supersample
+                texture, pose.R, pose.t, calibration.upper, sensor, rng, supersample=supersample, **extra
             ),
             "lower": render_board(
                 texture,
@@ -324,6 +466,7 @@ def render_calibration_views(
                 rng,
                 supersample=supersample,
                 illumination_seed=12,
+                **extra,
             ),
         }
         if mirrored is not None:
@@ -331,7 +474,9 @@ def render_calibration_views(
         for image in view.values():
             image.flags.writeable = False
         images.append(view)
-    return CalibrationViews(board, calibration, tuple(poses), tuple(images), sensor.bit_depth, sensor)
+    return CalibrationViews(
+        board, calibration, tuple(poses), tuple(images), sensor.bit_depth, sensor, mismatch
+    )
 
 
 @lru_cache(maxsize=2)

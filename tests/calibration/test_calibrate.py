@@ -338,7 +338,8 @@ def test_report_json_and_html(tmp_path, station_result):
     assert data["coverage"]["upper"] > 0.7
     assert data["uncertainty_3d"]["length"]["pairs"] > 0
     text = html_path.read_text()
-    assert text.count("data:image/png;base64,") == 2 and "Held-out views" in text
+    # coverage and residual map per camera (no cross-validation plot: not asked for)
+    assert text.count("data:image/png;base64,") == 4 and "Held-out views" in text
 
 
 # ---- end to end ------------------------------------------------------------------------------------

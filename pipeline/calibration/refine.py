@@ -1,0 +1,164 @@
+"""Step 6 of the calibration: the joint bundle adjustment, the board's bow, honest standard deviations.
+
+After OpenCV's stereo solution (``calibrate.solve_stereo`` steps 2-5):
+
+1. :func:`crossfield.calibration.joint.refine_joint` over every corner each
+   camera saw in the stereo views (not only the common ones), with the
+   board's bow (mrcal's ``calobject_warp``) when ``settings.estimate_warp``
+   and at least ``WARP_MIN_VIEWS`` views; with ``reject_corners`` (off by
+   default: it cost rotation accuracy in bench_calibrate_peers) corners
+   beyond 3 sigma are dropped and the problem solved again
+   (``joint.without_outlier_corners``);
+2. the Jacobian covariance sigma^2 (J^T J)^-1 (Hartley & Zisserman 5.2.3),
+   the board poses marginalised;
+3. the jackknife over views (:mod:`crossfield.calibration.jackknife`) when
+   there are at least ``JACKKNIFE_MIN_VIEWS`` views; the stated covariance is
+   the Jacobian's with each std raised to the larger of the two;
+4. the residual maps per camera (:mod:`crossfield.calibration.residuals`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from crossfield.calibration.covariance import covariance_from_jacobian
+from crossfield.calibration.detect import BoardDetection
+from crossfield.calibration.jackknife import combined_covariance, jackknife
+from crossfield.calibration.joint import (
+    JointSolution,
+    ViewPoints,
+    camera_residuals,
+    refine_joint,
+    without_outlier_corners,
+)
+from crossfield.calibration.residuals import ResidualMap, residual_map
+from crossfield.types import CAMERAS, CameraIntrinsics, StereoCalibration
+
+WARP_MIN_VIEWS = 8
+JACKKNIFE_MIN_VIEWS = 6
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """The refined solution and its uncertainty.
+
+    calibration: the refined rig. params (p,), the camera + rig block
+    (``camera_param_names`` order); covariance (p, p): the stated one
+    (std = max(Jacobian, jackknife)); std_jacobian, std_jackknife (p,) (the
+    latter NaN without a jackknife); warp_mm (2,) and warp_std_mm (2,) (NaN
+    when not estimated); sigma_px: corner noise from the residuals;
+    rms_px: per camera over all its corners; residual_maps per camera.
+    """
+
+    calibration: StereoCalibration
+    params: np.ndarray
+    covariance: np.ndarray
+    std_jacobian: np.ndarray
+    std_jackknife: np.ndarray
+    warp_mm: np.ndarray
+    warp_std_mm: np.ndarray
+    sigma_px: float
+    rms_px: dict[str, float]
+    residual_maps: dict[str, ResidualMap]
+    solution: JointSolution
+
+
+def board_grid(object_points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) board-frame (x, y) mm of the corner grid: the bow's [-1, 1] span."""
+    return object_points[:, :2].min(axis=0), object_points[:, :2].max(axis=0)
+
+
+def initial_poses(views: list[ViewPoints], K: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """(V, 6) board poses in the upper camera (rvec, t mm) from its corners: ``cv2.solvePnP``."""
+    poses = []
+    for v in views:
+        _, r, t = cv2.solvePnP(v.object_upper, v.pixels_upper, K, D, flags=cv2.SOLVEPNP_ITERATIVE)
+        poses.append(np.concatenate([r.ravel(), t.ravel()]))
+    return np.array(poses)
+
+
+def refine(
+    stereo_views: dict[int, tuple[BoardDetection, BoardDetection]],
+    params0: np.ndarray,
+    like: StereoCalibration,
+    object_points: np.ndarray,
+    *,
+    estimate_warp: bool = True,
+    jackknife_views: bool = True,
+    reject_corners: bool = False,
+) -> Refinement:
+    """Steps 1-4 of the module docstring.
+
+    stereo_views: view -> (upper, lower) detections (all their corners);
+    params0 (p,): the stereo solution (``camera_param_names`` order); like:
+    a calibration with the image sizes; object_points (n, 3) mm: the whole
+    board's points (the bow's span).
+    """
+    n_dist = len(like.upper.dist_coeffs)
+    n = 4 + n_dist
+    keys = sorted(stereo_views)
+    views = [
+        ViewPoints(a.object_points, a.image_points, b.object_points, b.image_points)
+        for a, b in (stereo_views[k] for k in keys)
+    ]
+    grid = board_grid(object_points)
+    K1 = np.array([[params0[0], 0, params0[2]], [0, params0[1], params0[3]], [0, 0, 1.0]])
+    poses0 = initial_poses(views, K1, params0[4:n])
+    warp = estimate_warp and len(views) >= WARP_MIN_VIEWS
+    sol = refine_joint(views, params0, poses0, n_dist, warp=warp, grid=grid)
+    if reject_corners:
+        # as mrcal: drop the corners beyond 3 sigma and solve again, until none are (5 rounds at most).
+        for _ in range(5):
+            views, dropped = without_outlier_corners(views, sol, 3.0)
+            if not dropped:
+                break
+            sol = refine_joint(
+                views,
+                sol.theta[: sol.n_camera_params],
+                sol.poses,
+                n_dist,
+                warp=warp,
+                grid=grid,
+                warp_start=sol.warp_mm,
+            )
+    n_cam = sol.n_camera_params
+    n_block = n_cam + (2 if warp else 0)
+    cov_full, sigma = covariance_from_jacobian(sol.residuals, sol.jacobian)
+    cov_j = cov_full[:n_block, :n_block]
+    if jackknife_views and len(views) >= JACKKNIFE_MIN_VIEWS:
+        jk = jackknife(views, sol, grid=grid)
+        cov = combined_covariance(cov_j, jk.covariance)
+        std_jk = jk.std
+    else:
+        cov, std_jk = cov_j, np.full(n_block, np.nan)
+    cams = []
+    for i, ref in enumerate((like.upper, like.lower)):
+        K, D = sol.camera(i)
+        cams.append(CameraIntrinsics(K, D, ref.image_size))
+    calibration = StereoCalibration(
+        cams[0], cams[1], cv2.Rodrigues(sol.rvec.reshape(3, 1))[0], sol.T, source=like.source
+    )
+    per_cam = camera_residuals(views, sol)
+    maps = {
+        cam: residual_map(cam, per_cam[cam][0], per_cam[cam][1], like.camera(cam).image_size)
+        for cam in CAMERAS
+    }
+    rms = {cam: float(np.sqrt(np.mean(np.sum(per_cam[cam][1] ** 2, axis=1)))) for cam in CAMERAS}
+    std_j = np.sqrt(np.diag(cov_j))
+    warp_std = np.sqrt(np.diag(cov)[n_cam:]) if warp else np.full(2, np.nan)
+    return Refinement(
+        calibration=calibration,
+        params=sol.theta[:n_cam].copy(),
+        covariance=cov[:n_cam, :n_cam],
+        std_jacobian=std_j[:n_cam],
+        std_jackknife=std_jk[:n_cam],
+        warp_mm=sol.warp_mm if warp else np.full(2, np.nan),
+        warp_std_mm=warp_std,
+        sigma_px=sigma,
+        rms_px=rms,
+        residual_maps=maps,
+        solution=sol,
+    )
