@@ -53,7 +53,7 @@ SESSION_DEFAULTS: dict[str, Any] = {
     "match_tolerance_mm": 0.5,  # rigid-distance agreement for control-point matching
     "signing_key": "",  # Ed25519 station key (PEM) that signs the recording's seal; docs/replay-and-audit.md
     "monte_carlo": 0,  # GUM-S1 Monte Carlo check of the budget at the session end: draws (0 = off); docs/uncertainty.md
-    "compression": "zstd",  # session.mcap chunk compression: "zstd", "lz4" or "none" (lossless); docs/recording.md
+    "compression": "lz4",  # session.mcap chunk compression: "lz4", "zstd" or "none" (lossless); docs/recording.md
 }
 
 

@@ -90,7 +90,7 @@ from crossfield.types import CAMERAS, CameraPoints
 #: disk (bench/bench_recording.py, docs/recording.md).
 COMPRESSIONS = {"none": CompressionType.NONE, "lz4": CompressionType.LZ4, "zstd": CompressionType.ZSTD}
 #: The compression of a recording unless told otherwise.
-DEFAULT_COMPRESSION = "zstd"
+DEFAULT_COMPRESSION = "lz4"
 
 #: Each image (4 MB for 1626 x 1236 mono16) is larger than this, so it closes
 #: its chunk: chunks stay small (crash safety) and the writer never re-grows a

@@ -128,7 +128,7 @@ def test_real_full_filesystem_during_a_run(tmp_path: Path) -> None:
     """A real small filesystem (tmpfs, mounted when the tests run as root) that
     fills with the second stereo pair of a ``crossfield run``."""
     mnt = tmp_path / f"small-{uuid.uuid4().hex[:6]}"
-    if not _mount_tmpfs(mnt, "6m"):  # a zstd-compressed table3 pair is ~3.6 MB (uncompressed: 8 MB)
+    if not _mount_tmpfs(mnt, "8m"):  # an lz4-compressed table3 pair is ~5.5 MB (uncompressed: 8 MB)
         pytest.skip("mounting a small tmpfs needs root (the ENOSPC file test above covers the same path)")
     try:
         run = crossfield(
