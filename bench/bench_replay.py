@@ -14,7 +14,7 @@ warm page cache, medians of ``--repeat`` runs:
 * pipeline, frames in memory: ``replay_session`` with the pairs decoded
   beforehand (the pipeline's own rate on these frames, no reading or decoding);
 * replay: ``replay_session`` with the recorded plugins, no recording (the
-  frames read and decoded ahead on a second thread, ``crossfield.prefetch``);
+  frames read and decoded ahead on a second thread, ``crossfield.recording.prefetch``);
 * replay + record: the same, writing the replayed session's MCAP
   (what ``crossfield replay`` does, without the .rrd).
 

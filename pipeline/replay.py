@@ -33,7 +33,7 @@ import pluggy
 from crossfield.chain.runner import run_session, safe_session_name
 from crossfield.config import Config, with_overrides
 from crossfield.errors import ConfigError, RecordingError
-from crossfield.prefetch import ahead
+from crossfield.recording.prefetch import ahead
 from crossfield.recording import layout as L
 from crossfield.recording.codec import decode_image, decode_link_event, ground_truth_from_doc, utc_text  # noqa: F401 - public here too
 from crossfield.recording.facts import SessionFacts, load_session_facts, require_session  # noqa: F401
@@ -82,7 +82,7 @@ class RecordingSource:
 
     def frames(self) -> Iterator[StereoFrame]:
         """The recorded pairs, read and decoded ahead on a second thread
-        (:func:`crossfield.prefetch.ahead`, two pairs ahead): the same pairs in the
+        (:func:`crossfield.recording.prefetch.ahead`, two pairs ahead): the same pairs in the
         same order, and the same errors at the same point, as :meth:`decoded_frames`."""
         notes: list[str | None] = []
         for frame in ahead(lambda: self._decode(notes.append), depth=2, name="replay-decode"):

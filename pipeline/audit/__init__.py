@@ -21,11 +21,10 @@ from pathlib import Path
 import pluggy
 
 from crossfield.audit.calibration import audit_calibration, format_calibration_report
-from crossfield.audit.report import AuditReport, parse_head, to_json
+from crossfield.audit.report import AuditReport, to_json
 from crossfield.audit.session import audit_session, format_session_report
 from crossfield.audit.verification import audit_verification, format_verification_report
 from crossfield.recording import layout as L
-from crossfield.recording import seal
 from crossfield.recording.reader import open_recording
 
 __all__ = ["AuditReport", "audit", "format_report", "to_json"]
@@ -45,13 +44,9 @@ def audit(
     reproduce: replay (or solve, or evaluate) again and compare; expect_head: the chain
     head kept outside the file (printed by ``crossfield run``, in report.json and the
     seal); public_key: the station's Ed25519 public key (PEM file or 64 hex digits).
-    Both are checked before anything is replayed (a bad value is a ``ConfigError``).
+    Each audit checks both before anything is replayed (a bad value is a ``ConfigError``).
     """
     path = Path(path)
-    if expect_head is not None:
-        parse_head(expect_head)
-    if public_key is not None:
-        seal.load_public_key(public_key)
     checks = dict(reproduce=reproduce, expect_head=expect_head, public_key=public_key)
     profile = open_recording(path).profile
     if profile == L.CALIBRATION_PROFILE:

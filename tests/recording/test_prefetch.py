@@ -1,4 +1,4 @@
-"""crossfield.prefetch.ahead: the same items, order and errors as the generator itself."""
+"""crossfield.recording.prefetch.ahead: the same items, order and errors as the generator itself."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from crossfield.prefetch import ahead
+from crossfield.recording.prefetch import ahead
 
 
 def test_same_items_in_the_same_order_produced_on_another_thread():
