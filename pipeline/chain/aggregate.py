@@ -377,12 +377,15 @@ class SessionAccumulator:
         rows_kept: int = FRAME_ROWS_KEPT,
         errors_kept: int = FRAME_ERRORS_KEPT,
         calibration_source: str = "",
+        reference_source: str = "",
     ) -> None:
         if rows_kept < 0 or errors_kept < 0:
             raise ValueError(f"rows_kept and errors_kept must be >= 0, got {rows_kept}, {errors_kept}")
         self.plan = plan
         self.rows_kept = rows_kept
         self.errors_kept = errors_kept
+        #: How the consistency warning names the CMM sigma's source (``describe_reference``).
+        self.reference_source = reference_source
         self.frames_processed = 0
         self.frames_failed = 0
         self._rows: list[FrameResult] = []
@@ -436,7 +439,7 @@ class SessionAccumulator:
     def result(self) -> SessionAggregate:
         """The aggregates of every frame added so far."""
         kept = [f.registration for f in self._rows if f.registration is not None]
-        check = self._consistency.result(self.plan.uncertainty.consistency_alpha)
+        check = self._consistency.result(self.plan.uncertainty.consistency_alpha, self.reference_source)
         inflation = 1.0 if check is None else check.cmm_inflation
         stated = self.plan.uncertainty.calibration_scale_u
         per_frame = DEFAULT_SCALE_U if stated is None else stated  # what the measurer used

@@ -71,6 +71,7 @@ from crossfield.types import (
     StereoCentroids,
     StereoFrame,
 )
+from crossfield.uncertainty.consistency import describe_reference
 from crossfield.uncertainty.montecarlo import session_monte_carlo
 
 __all__ = [
@@ -562,7 +563,15 @@ def run_pipeline(
     hook.on_reference(reference=reference)
     # Aggregated frame by frame: memory does not grow with the session's length
     # (the first rows are kept for the report; the recording has every frame).
-    accumulator = SessionAccumulator(info.plan, calibration_source=info.calibration.source)
+    accumulator = SessionAccumulator(
+        info.plan,
+        calibration_source=info.calibration.source,
+        reference_source=describe_reference(
+            stages.implementations["reference"].name,
+            (p.sigma_mm for p in reference.points),
+            info.config.stages["reference"].options,
+        ),
+    )
     session_pose = SessionPoseAccumulator()
     failed: str | None = None
     for frame in frames:

@@ -28,8 +28,9 @@ alike (same arm). Otherwise f = 1.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
+from typing import Any
 
 from scipy.stats import chi2
 
@@ -77,12 +78,12 @@ class ConsistencyRun:
         self.e_cmm += (c.expected_cmm_ss_mm2 - self.e_cmm) / self.n
         self.dof = max(self.dof, int(c.dof))
 
-    def result(self, alpha: float = ALPHA) -> ConsistencyCheck | None:
-        return check_means(self.n, self.ss, self.e_cam, self.e_cmm, self.dof, alpha)
+    def result(self, alpha: float = ALPHA, reference: str = "") -> ConsistencyCheck | None:
+        return check_means(self.n, self.ss, self.e_cam, self.e_cmm, self.dof, alpha, reference)
 
 
 def check_means(
-    n: int, ss: float, e_cam: float, e_cmm: float, dof: int, alpha: float = ALPHA
+    n: int, ss: float, e_cam: float, e_cmm: float, dof: int, alpha: float = ALPHA, reference: str = ""
 ) -> ConsistencyCheck | None:
     """The test from per-frame means (see the module docstring); None without data."""
     expected = e_cam + e_cmm
@@ -99,7 +100,7 @@ def check_means(
         warning = (
             f"registration residuals contradict the stated sigmas: chi2 = {T:.1f} for {dof} degrees of "
             f"freedom (p = {p:.2g}, Birge ratio {math.sqrt(T / dof):.2f}); the CMM standard deviation "
-            f"is inflated by {inflation:.2f} in the budget"
+            f"{('stated by ' + reference + ' ') if reference else ''}is inflated by {inflation:.2f} in the budget"
         )
     return ConsistencyCheck(
         n, ss, e_cam, e_cmm, dof, T, p, math.sqrt(T / dof), alpha, consistent, inflation, warning
@@ -112,3 +113,19 @@ def check(frames: Iterable[RegistrationConsistency], alpha: float = ALPHA) -> Co
     for c in frames:
         run.add(c)
     return run.result(alpha)
+
+
+def describe_reference(name: str, sigmas_mm: Iterable[float], options: Mapping[str, Any]) -> str:
+    """The reference source as the consistency warning names it: the plugin ``name``,
+    the per-coordinate sigma(s) its points state (mm) and where they came from
+    (``options`` holds ``sigma_mm``: the configuration; else the plugin's default, for
+    ``romer-serial`` its ``arm_model``'s specification)."""
+    values = sorted({float(s) for s in sigmas_mm})
+    stated = " to ".join(f"{v:g}" for v in (values[:1] + values[-1:] if len(values) > 1 else values))
+    if "sigma_mm" in options:
+        origin = "option sigma_mm"
+    elif "arm_model" in options:
+        origin = f"the {options['arm_model']} arm model's specification"
+    else:
+        origin = "the plugin's default"
+    return f"the reference source {name!r} ({stated or 'no'} mm per coordinate, {origin})"
