@@ -481,11 +481,13 @@ def session_summary(
     report_files: Iterable[Path] = (),
     thumbnails: Iterable[CameraThumbnail] = (),
     characteristics: Iterable[CharacteristicSummary] | None = None,
+    station_moved: str | None = None,
 ) -> SessionSummary:
     """The summary of a session whose frames went through ``accumulator``: the one
     place a session's summary is made (the runner's session end, the viewer's reading
     of a recording, the Python API). ``characteristics``: instead of the aggregate's
-    (a test or a report that states its own)."""
+    (a test or a report that states its own); ``station_moved``: the session pose's
+    motion-test line when the station moved (the session is then not PASS)."""
     aggregate = accumulator.result()
     return SessionSummary(
         info=info,
@@ -496,6 +498,7 @@ def session_summary(
         incomplete=incomplete,
         aggregate=aggregate,
         thumbnails=tuple(thumbnails),
+        station_moved=station_moved,
     )
 
 
