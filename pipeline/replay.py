@@ -231,6 +231,31 @@ def _refuse_unreplayable(options: Sequence[str]) -> None:
             )
 
 
+#: The replay's note on a recording whose measurements state no budget (recorded before
+#: the budget existed): the budget the replay reports is computed now, not recorded.
+NO_RECORDED_BUDGET = (
+    "the recording states no uncertainty budget (recorded before budgets were recorded): "
+    "the budget in this replay is computed now by the replayed measure stage"
+)
+
+
+def recorded_budget_note(path: Path) -> str | None:
+    """:data:`NO_RECORDED_BUDGET` when the recording's first ``/measurement`` with
+    characteristics has none with a ``budget`` key, else None (also when there is none
+    to read: nothing to say about what was not measured)."""
+    from crossfield.recording.reader import open_recording
+
+    try:
+        with open_recording(path, validate_crcs=False) as rec:
+            for message in rec.messages(L.TOPIC_MEASUREMENT):
+                characteristics = (message.decoded or {}).get("characteristics") or []
+                if characteristics:
+                    return None if any("budget" in c for c in characteristics) else NO_RECORDED_BUDGET
+    except RecordingError:
+        return None
+    return None
+
+
 def replay_session(
     path: str | Path,
     pm: pluggy.PluginManager,
@@ -298,6 +323,9 @@ def replay_session(
         "changed": changed,
         "replayed_at_utc": utc_text(time.time_ns()),
     }
+    budget_note = recorded_budget_note(recorded.path)
+    if budget_note is not None:
+        parent["notes"] = [budget_note]
     return run_session(
         config,
         pm,

@@ -327,6 +327,7 @@ class SessionSummary(SummaryTables):
     monte_carlo: the GUM-S1 Monte Carlo check of the budget, one result per
     characteristic, run at the session end when ``[session] monte_carlo`` > 0
     (:mod:`crossfield.uncertainty.montecarlo`); None when not run.
+    station_moved: the motion test's line when the station moved (not PASS then).
     report: the report document (report.json's content,
     :func:`crossfield.report.document.build_report`), built once at the session end
     and handed to the recorder, report.json and every reporter, with the
@@ -343,6 +344,9 @@ class SessionSummary(SummaryTables):
     thumbnails: tuple[CameraThumbnail, ...] = ()
     monte_carlo: tuple[MonteCarloResult, ...] | None = None
     report: Mapping[str, Any] | None = field(default=None, repr=False)
+    #: The session pose's motion-test line when it found the station moved
+    #: (:mod:`crossfield.chain.session_pose`); None when static or not tested.
+    station_moved: str | None = None
 
     @property
     def registrations(self) -> list[Registration]:
@@ -367,10 +371,12 @@ class SessionSummary(SummaryTables):
     @property
     def passed(self) -> bool:
         """True when every characteristic passed, no frame failed and the session
-        ran to its end (``incomplete`` is None). (A failed kept row also fails
+        ran to its end (``incomplete`` is None) with a static station
+        (``station_moved`` is None). (A failed kept row also fails
         the session, should ``frames`` have been replaced after aggregation.)"""
         return (
-            bool(self.characteristics)
+            self.station_moved is None
+            and bool(self.characteristics)
             and all(c.passed for c in self.characteristics)
             and self.aggregate.frames_failed == 0
             and not any(f.error for f in self.frames)

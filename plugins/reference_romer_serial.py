@@ -406,11 +406,28 @@ class LinkOutage:
         return None if self.up_ns is None else (self.up_ns - self.down_ns) / 1e9
 
 
+def _stated_sigma(sigma_mm: float | None, arm_model: str) -> tuple[float, str]:
+    """The arm's stated per-coordinate sigma (mm) and where it came from: the option
+    ``sigma_mm`` when given, else the ``arm_model``'s specification (:data:`ARM_MODELS`)."""
+    if not isinstance(arm_model, str) or arm_model not in ARM_MODELS:
+        raise ValueError(f"option 'arm_model' must be one of {', '.join(ARM_MODELS)}, got {arm_model!r}")
+    if sigma_mm is None:
+        return ARM_MODELS[arm_model], f"the {arm_model} arm model's specification (option arm_model)"
+    return _positive(sigma_mm, "sigma_mm", "mm"), "option sigma_mm"
+
+
 def _positive(value, name: str, unit: str) -> float:
     number = isinstance(value, (int, float)) and not isinstance(value, bool)
     if not (number and math.isfinite(value) and value > 0):
         raise ValueError(f"option {name!r} must be a positive number of {unit}, got {value!r}")
     return float(value)
+
+
+#: Per-coordinate standard uncertainty (mm) of each arm model this source knows, the
+#: documented default of ``sigma_mm`` (docs/serial-protocol.md). "simulated": the arm
+#: of crossfield's simulator (``crossfield.simulator.arm``, ``romer-sim --sigma``
+#: default). A real arm: give ``sigma_mm`` from its calibration certificate.
+ARM_MODELS: dict[str, float] = {"simulated": 0.01}
 
 
 class RomerSerialReference:
@@ -423,7 +440,12 @@ class RomerSerialReference:
     last point has arrived; if no new point arrives for ``timeout_s`` before
     that (the link may drop and come back meanwhile), the import fails
     naming how many of how many points arrived.
-    sigma_mm: stated standard uncertainty of each coordinate of the arm, mm.
+    sigma_mm: stated standard uncertainty of each coordinate of the arm, mm;
+    unset: the ``arm_model``'s specification (:data:`ARM_MODELS`).
+    arm_model: the arm whose specification ``sigma_mm`` defaults to
+    (``"simulated"``). ``sigma_origin`` (attribute): where the stated sigma
+    came from, in words; the consistency check names it when the scatter
+    disagrees.
     first_seq: seq number of the plan's first point (the arm counts presses
     from 1 each session); ``"auto"`` takes it from the first valid point.
     format: ``"cfp"``, ``"pcdmis"`` or ``"ippdme"``.
@@ -448,7 +470,8 @@ class RomerSerialReference:
         port: str,
         baudrate: int = 9600,
         timeout_s: float = 60.0,
-        sigma_mm: float = 0.01,
+        sigma_mm: float | None = None,
+        arm_model: str = "simulated",
         first_seq: int | str = 1,
         format: str = "cfp",
         units: str = "mm",
@@ -470,7 +493,8 @@ class RomerSerialReference:
         self.port = port
         self.baudrate = baudrate
         self.timeout_s = _positive(timeout_s, "timeout_s", "seconds")
-        self.sigma_mm = _positive(sigma_mm, "sigma_mm", "mm")
+        self.sigma_mm, self.sigma_origin = _stated_sigma(sigma_mm, arm_model)
+        self.arm_model = arm_model
         self.first_seq = first_seq
         self.format: LineFormat = FORMATS[format]
         self.units = units

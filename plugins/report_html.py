@@ -428,6 +428,9 @@ def render_html(
     if report["incomplete"]:
         reason = esc(report["incomplete_reason"])
         summary_facts.append(("Session", f'<span class="fail-text">INCOMPLETE: {reason}</span>'))
+    if report.get("station_moved"):
+        moved = esc(report["station_moved"])
+        summary_facts.append(("Station", f'<span class="fail-text">MOVED: {moved}</span>'))
 
     problems = report["problems"]
     problem_html = (
@@ -611,7 +614,8 @@ def render_text(report: Mapping[str, Any], decimals: int = 4) -> str:
     if len(report["problems"]) > 5:
         lines.append(f"! ... and {len(report['problems']) - 5} more problems (see report.json)")
     incomplete = " (session incomplete)" if report["incomplete"] else ""
-    lines.append(f"Result: {verdict(report['passed'])}{incomplete}")
+    moved = " (the station moved)" if report.get("station_moved") else ""
+    lines.append(f"Result: {verdict(report['passed'])}{incomplete}{moved}")
     return "\n".join(lines)
 
 

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from crossfield.recording.codec import utc_text
-from crossfield.recording.integrity import GENESIS, INTEGRITY_FORMAT, Entry, link
+from crossfield.recording.integrity import CHAIN_FORMATS, INTEGRITY_FORMAT, INTEGRITY_FORMAT_1, Entry, link
 from crossfield.recording.layout import TOPIC_INTEGRITY
 from crossfield.recording.scan import FileEntry, Problem, entry_key, name_message, record_doc, scan_file
 
@@ -48,15 +48,41 @@ class IntegrityResult:
     problems: list[Problem] = field(default_factory=list)
     has_chain: bool = True
     final_record_doc: dict[str, Any] | None = None
+    #: The chain layout of the file's records and what it covers ("every record";
+    #: format 1: "messages only", the header, schemas, channels, metadata and
+    #: attachments are not checked).
+    chain_format: str = INTEGRITY_FORMAT
+    covers: str = "every record"
+
+    @property
+    def coverage_note(self) -> str:
+        """One line saying what the chain covers, when it is not every record ('' else)."""
+        if self.chain_format != INTEGRITY_FORMAT_1:
+            return ""
+        return (
+            "chain format 1: covers messages only (the header, schemas, channels, metadata "
+            "and attachments are not checked)"
+        )
 
     @property
     def passed(self) -> bool:
         return self.has_chain and self.complete and self.final_record and not self.problems
 
+    def chained_text(self, topic: str = TOPIC_INTEGRITY) -> str:
+        """What the chain folded, in words: every record, or (format 1) the messages only."""
+        if self.chain_format == INTEGRITY_FORMAT_1:
+            return f"{self.messages} messages chained in {self.records} {topic} records (chain format 1)"
+        return (
+            f"{self.messages} messages and {self.entries - self.messages} other records chained "
+            f"in {self.records} {topic} records"
+        )
+
     def to_json(self) -> dict[str, Any]:
         return {
             "passed": self.passed,
             "has_chain": self.has_chain,
+            "chain_format": self.chain_format,
+            "covers": self.covers,
             "complete": self.complete,
             "final_record": self.final_record,
             "messages": self.messages,
@@ -135,6 +161,29 @@ def _merge_moves(problems: list[Problem]) -> list[Problem]:
     return out
 
 
+def detect_format(records: list[tuple[int, FileEntry]]) -> str:
+    """The chain format of the first ``/integrity`` record that names a known one
+    (:data:`crossfield.recording.integrity.CHAIN_FORMATS`); the current format if none does."""
+    for _, fe in records:
+        for chain_format in CHAIN_FORMATS:
+            if record_doc(fe, chain_format) is not None:
+                return chain_format
+    return INTEGRITY_FORMAT
+
+
+def chained(
+    entries: list[FileEntry], records: list[tuple[int, FileEntry]], chain_format: str
+) -> tuple[list[FileEntry], list[tuple[int, FileEntry]]]:
+    """The entries ``chain_format`` folds (format 1: messages only) and the records with
+    their positions counted in those entries."""
+    if chain_format != INTEGRITY_FORMAT_1:
+        return entries, records
+    before = [0]
+    for e in entries:
+        before.append(before[-1] + (1 if e.is_message else 0))
+    return [e for e in entries if e.is_message], [(before[pos], fe) for pos, fe in records]
+
+
 def verify(path: str | Path) -> IntegrityResult:
     """Check the integrity chain of a session recording (see module doc).
 
@@ -148,9 +197,13 @@ def verify(path: str | Path) -> IntegrityResult:
     )
     problems = list(scan.problems)
     result.records = len(scan.records)
-    head = GENESIS
-    heads = [GENESIS]
-    for m in scan.entries:
+    chain_format = detect_format(scan.records)
+    genesis, listing, covers = CHAIN_FORMATS[chain_format]
+    result.chain_format, result.covers = chain_format, covers
+    entries_chained, records = chained(scan.entries, scan.records, chain_format)
+    head = genesis
+    heads = [genesis]
+    for m in entries_chained:
         head = link(head, m.label, m.log_time_ns, m.sequence, bytes.fromhex(m.digest))
         heads.append(head)
     result.chain_sha256 = head.hex()
@@ -163,19 +216,19 @@ def verify(path: str | Path) -> IntegrityResult:
                 f"without this integrity chain",
             )
         )
-    listed_head = GENESIS
+    listed_head = genesis
     listed_count = 0
     previous_sha: str | None = None
     previous_pos = 0
     segment_problems: list[Problem] = []
-    for number, (pos, fm) in enumerate(scan.records):
-        doc = record_doc(fm)
+    for number, (pos, fm) in enumerate(records):
+        doc = record_doc(fm, chain_format)
         where = f"{TOPIC_INTEGRITY} record at {utc_text(fm.log_time_ns)} (byte {fm.offset})"
         if doc is None:
             problems.append(
                 Problem(
                     "record",
-                    f"{where}: not a readable {INTEGRITY_FORMAT} record",
+                    f"{where}: not a readable {chain_format} record",
                     fm.label,
                     fm.sequence,
                     fm.log_time_ns,
@@ -210,7 +263,7 @@ def verify(path: str | Path) -> IntegrityResult:
         previous_sha = fm.digest
         entries: list[Entry] = []
         bad_entry = False
-        for e in doc.get("entries", []) if isinstance(doc.get("entries"), list) else [None]:
+        for e in doc.get(listing, []) if isinstance(doc.get(listing), list) else [None]:
             key = entry_key(e)
             if key is None:
                 bad_entry = True
@@ -244,7 +297,7 @@ def verify(path: str | Path) -> IntegrityResult:
             except (KeyError, TypeError, ValueError):
                 pass
             listed_count = doc["count"] if isinstance(doc.get("count"), int) else listed_count
-        _diff_segment(entries, scan.entries[previous_pos:pos], segment_problems)
+        _diff_segment(entries, entries_chained[previous_pos:pos], segment_problems)
         previous_pos = pos
         if heads[pos].hex() == doc.get("chain_sha256") and pos == doc.get("count"):
             result.covered = pos
@@ -252,12 +305,12 @@ def verify(path: str | Path) -> IntegrityResult:
         if doc.get("final"):
             result.final_record = True
             result.final_record_doc = doc
-            if number != len(scan.records) - 1:
+            if number != len(records) - 1:
                 problems.append(
                     Problem("record", f"{where} is marked final but more records follow it", offset=fm.offset)
                 )
     problems.extend(_merge_moves(segment_problems))
-    tail = scan.entries[previous_pos:]
+    tail = entries_chained[previous_pos:]
     if tail and scan.records:
         if result.final_record:
             for m in tail:

@@ -219,79 +219,61 @@ def seal_check(
     """
     problems: list[str] = []
     notes: list[str] = []
+    checked: list[str] = []
+    not_checked: list[str] = []
     head = integrity.chain_sha256
     final = integrity.final_record_doc or {}
     recorded_head = final.get("chain_sha256")
-    levels = ["self-consistency"]
+    side_name = seal.sidecar_path(path).name
+    levels = ["self-consistency"] if integrity.passed else []
+    if not integrity.passed:
+        checked.append("self-consistency: FAILED (see integrity)")
+    elif integrity.coverage_note:
+        checked.append(f"self-consistency of the messages only ({integrity.coverage_note})")
+    else:
+        checked.append("self-consistency (the chain head the file's own records give)")
     try:
         sidecar = seal.read_sidecar(path)
     except seal.SealError as exc:
         sidecar = None
         problems.append(str(exc))
     if sidecar is None:
-        notes.append(f"no seal next to the recording ({seal.sidecar_path(path).name})")
+        not_checked.append(f"the seal file ({side_name}: none next to the recording)")
     else:
+        checked.append(f"the file's SHA-256 and chain head against the seal file ({side_name})")
         if sidecar.get("file_sha256") != actual_sha256:
             problems.append(
                 f"the file's SHA-256 {actual_sha256} differs from its seal's {sidecar.get('file_sha256')} "
-                f"({seal.sidecar_path(path).name})"
+                f"({side_name})"
             )
         if sidecar.get("chain_head") != head:
             problems.append(
                 f"the chain head {head} differs from its seal's {sidecar.get('chain_head')} "
-                f"({seal.sidecar_path(path).name})"
+                f"({side_name})"
             )
     expected = None
     if expect_head is not None:
         expected = parse_head(expect_head)
-        if expected == head and recorded_head == head:
+        checked.append("the chain head against the head kept elsewhere (--expect-head)")
+        if expected == head and recorded_head == head and levels:
             levels.append("agreement with a head kept elsewhere")
         else:
             problems.append(f"the chain head {head} is not the expected {expected}")
-    signature: dict[str, Any] = {"in_file": final.get("signature"), "checked": False}
-    if sidecar is not None:
-        signature["sidecar"] = sidecar.get("signature")
+    else:
+        not_checked.append("a chain head kept elsewhere (no --expect-head)")
+    signature = signature_check(path, final, head, actual_sha256, sidecar, public_key, problems, notes)
     if public_key is not None:
-        key = seal.load_public_key(public_key)
-        key_hex = seal.public_key_hex(key)
-        signature.update(checked=True, public_key=key_hex)
-        in_file = final.get("signature")
-        ok_file = (
-            in_file is not None
-            and recorded_head == head
-            and seal.signature_valid(key, in_file, seal.head_statement(head))
-        )
-        signature["in_file_valid"] = ok_file
-        if in_file is None:
-            problems.append("the recording is not signed (no signature in its final /integrity record)")
-        elif not ok_file:
-            problems.append(
-                f"the signature in the recording is not a valid signature of its chain head {head} "
-                f"by the key {key_hex}"
-            )
-        if sidecar is not None and sidecar.get("signature") is not None:
-            ok_side = (
-                sidecar.get("chain_head") == head
-                and sidecar.get("file_sha256") == actual_sha256
-                and seal.signature_valid(key, sidecar["signature"], seal.seal_statement(head, actual_sha256))
-            )
-            signature["sidecar_valid"] = ok_side
-            if not ok_side:
-                problems.append(
-                    f"the seal's signature is not the key {key_hex}'s signature of this file's "
-                    f"chain head and SHA-256"
-                )
-        if ok_file and not problems:
+        checked.append(f"the station's signature (key {signature['public_key']})")
+        if signature.get("in_file_valid") and not problems and levels:
             levels.append("signed by the station's key")
-    elif final.get("signature") is not None:
-        notes.append(
-            f"the recording is signed by the key {final['signature'].get('public_key')}; "
-            f"give --public-key to check it against the station's key"
-        )
+    else:
+        not_checked.append("the station's signature (no --public-key)")
     return {
         "passed": not problems,
-        "level": levels[-1],
+        "level": levels[-1] if levels and not problems else "nothing",
         "levels": levels,
+        "checked": checked,
+        "not_checked": not_checked,
         "chain_head": head,
         "recorded_chain_head": recorded_head,
         "file_sha256": actual_sha256,
@@ -301,6 +283,79 @@ def seal_check(
         "problems": problems,
         "notes": notes,
     }
+
+
+def signature_check(
+    path: Path,
+    final: Mapping[str, Any],
+    head: str,
+    actual_sha256: str,
+    sidecar: Mapping[str, Any] | None,
+    public_key: str | Path | None,
+    problems: list[str],
+    notes: list[str],
+) -> dict[str, Any]:
+    """The station's signatures (in the final /integrity record and in the seal file)
+    against ``public_key`` (None: not checked, a note if the file is signed); findings
+    are appended to ``problems``."""
+    recorded_head = final.get("chain_sha256")
+    signature: dict[str, Any] = {"in_file": final.get("signature"), "checked": False}
+    if sidecar is not None:
+        signature["sidecar"] = sidecar.get("signature")
+    if public_key is None:
+        if final.get("signature") is not None:
+            notes.append(
+                f"the recording is signed by the key {final['signature'].get('public_key')}; "
+                f"give --public-key to check it against the station's key"
+            )
+        return signature
+    key = seal.load_public_key(public_key)
+    key_hex = seal.public_key_hex(key)
+    signature.update(checked=True, public_key=key_hex)
+    in_file = final.get("signature")
+    ok_file = (
+        in_file is not None
+        and recorded_head == head
+        and seal.signature_valid(key, in_file, seal.head_statement(head))
+    )
+    signature["in_file_valid"] = ok_file
+    if in_file is None:
+        problems.append("the recording is not signed (no signature in its final /integrity record)")
+    elif not ok_file:
+        problems.append(
+            f"the signature in the recording is not a valid signature of its chain head {head} "
+            f"by the key {key_hex}"
+        )
+    if sidecar is not None and sidecar.get("signature") is not None:
+        ok_side = (
+            sidecar.get("chain_head") == head
+            and sidecar.get("file_sha256") == actual_sha256
+            and seal.signature_valid(key, sidecar["signature"], seal.seal_statement(head, actual_sha256))
+        )
+        signature["sidecar_valid"] = ok_side
+        if not ok_side:
+            problems.append(
+                f"the seal's signature is not the key {key_hex}'s signature of this file's "
+                f"chain head and SHA-256"
+            )
+    return signature
+
+
+def seal_lines(sealed: Mapping[str, Any]) -> list[str]:
+    """The seal section of an audit's text: the verdict with what it proves, then
+    exactly what was checked and what was not (``seal_check``), problems and notes."""
+    lines = [
+        section(
+            "seal",
+            sealed.get("passed", False),
+            f"chain head {sealed.get('chain_head')}; proves: {sealed.get('level')}",
+        )
+    ]
+    lines += [f"  checked: {c}" for c in sealed.get("checked", [])]
+    lines += [f"  not checked: {c}" for c in sealed.get("not_checked", [])]
+    lines += [f"  - {p}" for p in sealed.get("problems", [])]
+    lines += [f"  note: {n}" for n in sealed.get("notes", [])]
+    return lines
 
 
 def checked_report(
@@ -395,12 +450,12 @@ def format_checks(
     lines = [*header, *(f"  {n}" for n in report.notes), ""]
     if integ.passed:
         text = (
-            f"{integ.messages} messages and {integ.entries - integ.messages} other records chained "
-            f"in {integ.records} {L.TOPIC_INTEGRITY} records, chain head {integ.chain_sha256}"
+            f"{integ.chained_text(L.TOPIC_INTEGRITY)}, chain head {integ.chain_sha256}"
         )
     else:
         text = f"{len(integ.problems)} finding(s)"
     lines.append(section("integrity", integ.passed, text))
+    lines += [f"  note: {integ.coverage_note}"] if integ.coverage_note else []
     lines += [f"  - {p.detail}" for p in integ.problems[:limit]]
     cal = prov.get("calibration") or {}
     lines.append(section("provenance", prov.get("passed", False)))
@@ -428,15 +483,7 @@ def format_checks(
             lines.append(f"  ... and {repro['differences_total'] - limit} more (see --json)")
         lines += [f"  - missing from the recording: {m}" for m in repro.get("missing", [])]
         lines += [f"  - only in the recording: {m}" for m in repro.get("only_recorded", [])]
-    lines.append(
-        section(
-            "seal",
-            sealed.get("passed", False),
-            f"chain head {sealed.get('chain_head')}; proves: {sealed.get('level')}",
-        )
-    )
-    lines += [f"  - {p}" for p in sealed.get("problems", [])]
-    lines += [f"  note: {n}" for n in sealed.get("notes", [])]
+    lines += seal_lines(sealed)
     verdict = f"Audit: {'PASS' if report.passed else 'FAIL'}"
     lines += ["", verdict + ("" if report.complete else " (incomplete recording)")]
     return "\n".join(lines)

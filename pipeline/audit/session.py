@@ -45,6 +45,7 @@ from crossfield.audit.report import (
     json_differences,
     package_notes,
     parse_head,
+    seal_lines,
     section,
     short,
 )
@@ -349,8 +350,7 @@ def format_session_report(report: AuditReport, *, limit: int = 40) -> str:
     integ = report.integrity
     if integ.passed:
         text = (
-            f"{integ.messages} messages and {integ.entries - integ.messages} other records chained "
-            f"in {integ.records} {L.TOPIC_INTEGRITY} records, chain head {integ.chain_sha256}"
+            f"{integ.chained_text(L.TOPIC_INTEGRITY)}, chain head {integ.chain_sha256}"
         )
     elif report.intact:
         text = (
@@ -360,6 +360,8 @@ def format_session_report(report: AuditReport, *, limit: int = 40) -> str:
     else:
         text = f"{len([p for p in integ.problems if p.kind not in TRUNCATION])} finding(s)"
     lines.append(section("integrity", integ.passed, text))
+    if integ.coverage_note:
+        lines.append(f"  note: {integ.coverage_note}")
     for p in integ.problems[:limit]:
         lines.append(f"  - {p.detail}")
     if len(integ.problems) > limit:
@@ -432,18 +434,7 @@ def format_session_report(report: AuditReport, *, limit: int = 40) -> str:
                     f"  - only in the replay (missing from the recording): "
                     f"{name_message(m['topic'], m['sequence'], m['log_time_ns'])}"
                 )
-    sealed = report.seal
-    lines.append(
-        section(
-            "seal",
-            sealed.get("passed", False),
-            f"chain head {sealed.get('chain_head')}; proves: {sealed.get('level')}",
-        )
-    )
-    for p in sealed.get("problems", []):
-        lines.append(f"  - {p}")
-    for n in sealed.get("notes", []):
-        lines.append(f"  note: {n}")
+    lines += seal_lines(report.seal)
     lines.append("")
     lines.append(
         f"Audit: {'PASS' if report.passed else 'FAIL'}"

@@ -381,12 +381,15 @@ class SessionAccumulator:
         rows_kept: int = FRAME_ROWS_KEPT,
         errors_kept: int = FRAME_ERRORS_KEPT,
         calibration_source: str = "",
+        reference_source: str = "",
     ) -> None:
         if rows_kept < 0 or errors_kept < 0:
             raise ValueError(f"rows_kept and errors_kept must be >= 0, got {rows_kept}, {errors_kept}")
         self.plan = plan
         self.rows_kept = rows_kept
         self.errors_kept = errors_kept
+        #: How the consistency warning names the CMM sigma's source (``describe_reference``).
+        self.reference_source = reference_source
         self.frames_processed = 0
         self.frames_failed = 0
         self._rows: list[FrameResult] = []
@@ -440,7 +443,7 @@ class SessionAccumulator:
     def result(self) -> SessionAggregate:
         """The aggregates of every frame added so far."""
         kept = [f.registration for f in self._rows if f.registration is not None]
-        check = self._consistency.result(self.plan.uncertainty.consistency_alpha)
+        check = self._consistency.result(self.plan.uncertainty.consistency_alpha, self.reference_source)
         inflation = 1.0 if check is None else check.cmm_inflation
         stated = self.plan.uncertainty.calibration_scale_u
         per_frame = DEFAULT_SCALE_U if stated is None else stated  # what the measurer used
@@ -482,11 +485,13 @@ def session_summary(
     report_files: Iterable[Path] = (),
     thumbnails: Iterable[CameraThumbnail] = (),
     characteristics: Iterable[CharacteristicSummary] | None = None,
+    station_moved: str | None = None,
 ) -> SessionSummary:
     """The summary of a session whose frames went through ``accumulator``: the one
     place a session's summary is made (the runner's session end, the viewer's reading
     of a recording, the Python API). ``characteristics``: instead of the aggregate's
-    (a test or a report that states its own)."""
+    (a test or a report that states its own); ``station_moved``: the session pose's
+    motion-test line when the station moved (the session is then not PASS)."""
     aggregate = accumulator.result()
     return SessionSummary(
         info=info,
@@ -497,6 +502,7 @@ def session_summary(
         incomplete=incomplete,
         aggregate=aggregate,
         thumbnails=tuple(thumbnails),
+        station_moved=station_moved,
     )
 
 

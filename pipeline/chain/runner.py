@@ -72,6 +72,7 @@ from crossfield.types import (
     StereoCentroids,
     StereoFrame,
 )
+from crossfield.uncertainty.consistency import describe_reference
 from crossfield.uncertainty.montecarlo import session_monte_carlo
 
 __all__ = [
@@ -567,7 +568,15 @@ def run_pipeline(
     hook.on_reference(reference=reference)
     # Aggregated frame by frame: memory does not grow with the session's length
     # (the first rows are kept for the report; the recording has every frame).
-    accumulator = SessionAccumulator(info.plan, calibration_source=info.calibration.source)
+    accumulator = SessionAccumulator(
+        info.plan,
+        calibration_source=info.calibration.source,
+        reference_source=describe_reference(
+            stages.implementations["reference"].name,
+            (p.sigma_mm for p in reference.points),
+            info.config.stages["reference"].options,
+        ),
+    )
     session_pose = SessionPoseAccumulator()
     failed: str | None = None
     for frame in frames:
@@ -585,10 +594,10 @@ def run_pipeline(
         accumulator.add(result)
         session_pose.add(result.points, result.registration)
         t = frame.timestamp_ns
-    _log_session_pose(hook, session_pose, reference, info.plan, stages.register, t)
+    moved = _log_session_pose(hook, session_pose, reference, info.plan, stages.register, t)
     return finish_session(
         hook, stages, info, reference, accumulator, _joined(incomplete(), failed), recordings=recordings,
-        thumbnails=thumbnails(),
+        thumbnails=thumbnails(), station_moved=moved,
     )
 
 
@@ -600,17 +609,20 @@ def _joined(*reasons: str | None) -> str | None:
 
 def _log_session_pose(
     hook: Any, session_pose: SessionPoseAccumulator, reference, plan, registrar, timestamp_ns: int
-) -> None:
+) -> str | None:
     """The joint static-station pose of all frames and its motion test, as one log line
-    (time stamped with the last frame's capture time, so a replay logs it alike)."""
+    (time stamped with the last frame's capture time, so a replay logs it alike);
+    returns that line when the test found the station moved (the verdict's), else None."""
     ids, xyz, sigma = control_points(reference, plan)
     try:
         pose = session_pose.result(dict(zip(ids, xyz)), dict(zip(ids, sigma.tolist())), registrar)
     except CrossfieldError as exc:
         hook.on_log(level="warning", message=f"session pose: {exc}", timestamp_ns=timestamp_ns)
-        return
-    if pose is not None and pose.frames > 1:
-        hook.on_log(level="warning" if pose.moved else "info", message=pose.message(), timestamp_ns=timestamp_ns)
+        return None
+    if pose is None or pose.frames <= 1:
+        return None
+    hook.on_log(level="warning" if pose.moved else "info", message=pose.message(), timestamp_ns=timestamp_ns)
+    return pose.message() if pose.moved else None
 
 
 def finish_session(
@@ -622,8 +634,10 @@ def finish_session(
     incomplete: str | None = None,
     recordings: Sequence[SessionRecorder] = (),
     thumbnails: Sequence[CameraThumbnail] = (),
+    station_moved: str | None = None,
 ) -> SessionSummary:
-    """The session's end: summarise the aggregated frames
+    """The session's end (``station_moved``: the motion test's line when the station
+    moved, which fails the session): summarise the aggregated frames
     (:func:`~crossfield.chain.aggregate.session_summary`), run the Monte Carlo check
     (``[session] monte_carlo`` draws), build the report document once, end the
     recordings with it, add the seal to it, hand it to the reporter, tell the
@@ -638,7 +652,9 @@ def finish_session(
     written stays in the file (a truncated recording replays as INCOMPLETE).
     A report that cannot be written is a :class:`RecordingError` naming it.
     """
-    summary = session_summary(info, reference, accumulator, incomplete=incomplete, thumbnails=thumbnails)
+    summary = session_summary(
+        info, reference, accumulator, incomplete=incomplete, thumbnails=thumbnails, station_moved=station_moved
+    )
     draws = int(info.config.session.get("monte_carlo", 0))
     if draws:
         summary = dataclasses.replace(summary, monte_carlo=tuple(session_monte_carlo(summary, draws)))

@@ -239,6 +239,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
         print(f"  {stage}: {c['from']} -> {c['to']}")
     for key, c in (changed.get("options") or {}).items():
         print(f"  {key}: {c['from']!r} -> {c['to']!r}")
+    for note in parent.get("notes", []):
+        print(f"  note: {note}")
     if summary.incomplete:
         print(f"INCOMPLETE: {summary.incomplete}")
     print(impl.summary_text(summary))

@@ -61,6 +61,18 @@ from typing import Any
 INTEGRITY_FORMAT = "crossfield-integrity/2"
 GENESIS = hashlib.sha256(INTEGRITY_FORMAT.encode()).digest()
 
+#: The first chain layout (recordings made before the chain covered every record):
+#: the same link over **messages only**, listed under ``"messages"`` in each record;
+#: metadata and attachments were listed by a digest this code no longer checks.
+INTEGRITY_FORMAT_1 = "crossfield-integrity/1"
+GENESIS_1 = hashlib.sha256(INTEGRITY_FORMAT_1.encode()).digest()
+
+#: Per chain format: (genesis h_0, the record key listing its entries, what the chain covers).
+CHAIN_FORMATS: dict[str, tuple[bytes, str, str]] = {
+    INTEGRITY_FORMAT: (GENESIS, "entries", "every record"),
+    INTEGRITY_FORMAT_1: (GENESIS_1, "messages", "messages only"),
+}
+
 #: Entry labels of the records that are not messages.
 HEADER_LABEL = "#header"
 _SCHEMA = "#schema "

@@ -304,12 +304,13 @@ def _chunk_bytes(chunk: Any, get_chunk_data_stream: Any) -> bytes:
     return stream.read(length)
 
 
-def record_doc(fe: FileEntry) -> dict[str, Any] | None:
+def record_doc(fe: FileEntry, chain_format: str = INTEGRITY_FORMAT) -> dict[str, Any] | None:
+    """The JSON of an ``/integrity`` record in ``chain_format`` (None: unreadable or another format)."""
     try:
         doc = json.loads(fe.data or b"")
     except ValueError:
         return None
-    if not isinstance(doc, dict) or doc.get("format") != INTEGRITY_FORMAT:
+    if not isinstance(doc, dict) or doc.get("format") != chain_format:
         return None
     return doc
 

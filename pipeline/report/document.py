@@ -318,6 +318,8 @@ def problems(summary: SessionSummary) -> list[str]:
     lines: list[str] = []
     if summary.incomplete:
         lines.append(f"session incomplete: {summary.incomplete}")
+    if summary.station_moved:
+        lines.append(f"session pose: {summary.station_moved}")
     lines.extend(f"reference import: {p}" for p in summary.reference.problems)
     check = summary.aggregate.consistency
     if check is not None and check.warning:
@@ -414,6 +416,7 @@ def build_report(summary: SessionSummary) -> dict[str, Any]:
         "passed": bool(summary.passed),
         "incomplete": summary.incomplete is not None,
         "incomplete_reason": summary.incomplete,
+        "station_moved": summary.station_moved,
         "problems": problems(summary),
         **(
             {"monte_carlo": monte_carlo_section(summary.monte_carlo, int(info.config.session.get("monte_carlo", 0)))}

@@ -41,8 +41,9 @@ alike (same arm).
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
+from typing import Any
 
 from scipy.stats import chi2
 
@@ -104,13 +105,15 @@ class ConsistencyRun:
         self.epi_chi2 += float(getattr(c, "epipolar_chi2", 0.0))
         self.epi_count += int(getattr(c, "epipolar_count", 0))
 
-    def result(self, alpha: float = ALPHA) -> ConsistencyCheck | None:
-        return check_means(self.n, self.ss, self.e_cam, self.e_cmm, self.dof, alpha, self.epi_chi2, self.epi_count)
+    def result(self, alpha: float = ALPHA, reference: str = "") -> ConsistencyCheck | None:
+        return check_means(
+            self.n, self.ss, self.e_cam, self.e_cmm, self.dof, alpha, self.epi_chi2, self.epi_count, reference
+        )
 
 
 def check_means(
     n: int, ss: float, e_cam: float, e_cmm: float, dof: int, alpha: float = ALPHA,
-    epipolar_chi2: float = 0.0, epipolar_count: int = 0,
+    epipolar_chi2: float = 0.0, epipolar_count: int = 0, reference: str = "",
 ) -> ConsistencyCheck | None:
     """The test and the Type A rule from per-frame means (see the module docstring); None without data.
 
@@ -135,7 +138,8 @@ def check_means(
     if not consistent:
         warning = (
             f"registration residuals contradict the stated sigmas: chi2 = {T:.1f} for {dof} degrees of "
-            f"freedom (p = {p:.2g}, Birge ratio {math.sqrt(T / dof):.2f})"
+            f"freedom (p = {p:.2g}, Birge ratio {math.sqrt(T / dof):.2f}); the CMM standard deviation "
+            f"{('stated by ' + reference + ' ') if reference else ''}is inflated by {inflation:.2f} in the budget"
         )
     notes = []
     if camera_excess > 0:
@@ -146,7 +150,8 @@ def check_means(
         )
     if inflation > 1.0:
         notes.append(
-            f"CMM standard deviation inflated by {inflation:.2f} (Type A evidence: registration residuals, "
+            f"CMM standard deviation {('stated by ' + reference + ' ') if reference else ''}inflated by "
+            f"{inflation:.2f} (Type A evidence: registration residuals, "
             f"shrunk ratio {reg_ratio:.2f} for {dof} degrees of freedom)"
         )
     return ConsistencyCheck(
@@ -161,3 +166,19 @@ def check(frames: Iterable[RegistrationConsistency], alpha: float = ALPHA) -> Co
     for c in frames:
         run.add(c)
     return run.result(alpha)
+
+
+def describe_reference(name: str, sigmas_mm: Iterable[float], options: Mapping[str, Any]) -> str:
+    """The reference source as the consistency warning names it: the plugin ``name``,
+    the per-coordinate sigma(s) its points state (mm) and where they came from
+    (``options`` holds ``sigma_mm``: the configuration; else the plugin's default, for
+    ``romer-serial`` its ``arm_model``'s specification)."""
+    values = sorted({float(s) for s in sigmas_mm})
+    stated = " to ".join(f"{v:g}" for v in (values[:1] + values[-1:] if len(values) > 1 else values))
+    if "sigma_mm" in options:
+        origin = "option sigma_mm"
+    elif "arm_model" in options:
+        origin = f"the {options['arm_model']} arm model's specification"
+    else:
+        origin = "the plugin's default"
+    return f"the reference source {name!r} ({stated or 'no'} mm per coordinate, {origin})"

@@ -8,7 +8,11 @@ implementation (its ``measure``) give, corrected to 20 degC. One draw
 (GUM-S1 7.2-7.4) is one whole session:
 
 * one CMM draw shared by every frame (controls, reference points, line probes):
-  ``+ N(0, (f sigma)^2 I)``, f the CMM inflation of the consistency check;
+  ``+ N(0, (f sigma)^2 I)`` for controls and reference points, f the CMM inflation
+  of the consistency check; each probe of a reference line ``+ N(0, sigma_line^2 I)``,
+  sigma_line the one per-probe sigma of the linear budget's ``reference_line`` term
+  (the line fit's posterior sigma, max(stated, observed): already supported by the
+  data, so not inflated again; :func:`reference_draw_sigmas`);
 * one calibration scale shared by every frame: the camera points times
   ``1 + N(0, u_s^2)``;
 * one eccentricity offset per target (and per control), shared by every frame
@@ -65,6 +69,7 @@ import numpy as np
 
 from crossfield.batch.engine import Engine, client
 from crossfield.errors import CrossfieldError
+from crossfield.geometry import element_probes, fit_reference_element
 from crossfield.plan import MeasurementPlan
 from crossfield.session import MonteCarloResult
 from crossfield.types import CameraPoints, Correspondence, ReferenceData, Registration
@@ -220,10 +225,32 @@ def _implementations(problem: MonteCarloProblem) -> tuple[Any, Any]:
     )
 
 
-def _draw_reference(reference: ReferenceData, rng: np.random.Generator, inflation: float) -> ReferenceData:
+def reference_draw_sigmas(problem: MonteCarloProblem) -> tuple[float, ...]:
+    """The standard deviation (mm, per coordinate) each reference point is drawn with,
+    in ``problem.reference.points`` order: a reference line's probe gets the line fit's
+    ``sigma_mm`` (one sigma per probe, as the linear budget's ``reference_line`` term:
+    ``measure_plan`` and :func:`crossfield.geometry.fit_reference_element`), any other
+    point ``cmm_inflation * sigma_mm`` (as the ``control_cmm`` / ``reference_cmm`` terms)."""
+    points = problem.reference.points
+    line_sigma: dict[str, float] = {}
+    for spec in problem.plan.reference_lines:
+        try:
+            fit = fit_reference_element(spec, points)
+        except ValueError:
+            continue  # not measurable: the measurement reports it, the draws change nothing
+        for probe in element_probes(spec.id, points):
+            line_sigma[probe.label] = float(fit.sigma_mm)
+    return tuple(line_sigma.get(p.label, problem.cmm_inflation * float(p.sigma_mm)) for p in points)
+
+
+def draw_reference(
+    reference: ReferenceData, rng: np.random.Generator, sigmas_mm: tuple[float, ...]
+) -> ReferenceData:
+    """One CMM draw: each point ``+ N(0, sigma^2 I)``, sigma from ``sigmas_mm`` (mm,
+    :func:`reference_draw_sigmas`)."""
     points = tuple(
-        dataclasses.replace(p, xyz=np.asarray(p.xyz) + rng.normal(0.0, inflation * p.sigma_mm, 3))
-        for p in reference.points
+        dataclasses.replace(p, xyz=np.asarray(p.xyz) + rng.normal(0.0, sigma, 3))
+        for p, sigma in zip(reference.points, sigmas_mm, strict=True)
     )
     return dataclasses.replace(reference, points=points)
 
@@ -249,8 +276,9 @@ def draw_chunk(problem: MonteCarloProblem, seed: np.random.SeedSequence, n_draws
     column = {name: j for j, name in enumerate(problem.names)}
     out = np.full((n_draws, len(problem.names)), np.nan)
     labels = sorted({label for f in problem.frames for label in f.labels if label})
+    sigmas = reference_draw_sigmas(problem)
     for d in range(n_draws):
-        reference = _draw_reference(problem.reference, rng, problem.cmm_inflation)  # shared by the frames
+        reference = draw_reference(problem.reference, rng, sigmas)  # shared by the frames
         by_label = reference.by_label()
         scale = 1.0 + rng.normal(0.0, problem.calibration_scale_u)
         offsets = dict(zip(labels, rng.normal(size=(len(labels), 3))))  # eccentricity, per target

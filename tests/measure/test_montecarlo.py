@@ -208,3 +208,30 @@ def test_scheduler_flags_without_monte_carlo_are_an_error(tmp_path, capsys):
                  "-o", str(tmp_path), "--workers", "2"])
     assert code != 0
     assert "--monte-carlo" in capsys.readouterr().err
+
+
+def test_line_probes_are_drawn_with_the_linear_budgets_one_sigma(demo):
+    """Issue 26 item 9: with a CMM inflation f = 3 from the consistency check, the controls
+    are drawn with 3 sigma (as control_cmm), the reference line's probes with the line fit's
+    one sigma (as reference_line, not inflated again): the drawn scatter shows it."""
+    from crossfield.geometry import element_probes, fit_reference_element
+    from crossfield.uncertainty.montecarlo import draw_reference, reference_draw_sigmas
+
+    problem = dataclasses.replace(problem_from_summary(demo), cmm_inflation=3.0)
+    points = problem.reference.points
+    sigmas = reference_draw_sigmas(problem)
+    rng = np.random.default_rng(11)
+    draws = np.array([[p.xyz for p in draw_reference(problem.reference, rng, sigmas).points] for _ in range(800)])
+    scatter = (draws - np.array([p.xyz for p in points])).std(axis=(0, 2))  # (points,) mm
+    probes = set()
+    for spec in problem.plan.reference_lines:
+        line_sigma = fit_reference_element(spec, points).sigma_mm
+        for probe in element_probes(spec.id, points):
+            probes.add(probe.label)
+            k = points.index(probe)
+            assert scatter[k] == pytest.approx(line_sigma, rel=0.1), probe.label  # 1/sqrt(2*2400) = 1.4 %
+    assert probes
+    others = [k for k, p in enumerate(points) if p.label not in probes]
+    assert others
+    for k in others:
+        assert scatter[k] == pytest.approx(3.0 * points[k].sigma_mm, rel=0.1), points[k].label

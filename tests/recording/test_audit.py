@@ -655,3 +655,88 @@ def test_a_compressed_recording_audits_and_a_cut_one_is_read_to_its_last_chunk(t
     report = audit(cut, make_plugin_manager())
     assert report.intact and not report.complete and not report.passed
     assert "at byte" in report.integrity.ends
+def seal_section(text: str) -> list[str]:
+    """The seal line of an audit's text and the indented lines under it."""
+    lines = text.splitlines()
+    start = next(k for k, line in enumerate(lines) if line.startswith("seal "))
+    end = next(k for k in range(start + 1, len(lines)) if not lines[k].startswith("  "))
+    return lines[start:end]
+
+
+def test_the_seal_line_says_what_was_checked_and_what_was_not(recorded, tmp_path):
+    """Issue 26 item 5: no "proves: self-consistency" next to a bare "no seal" note;
+    each check the seal did is under "checked:", each it could not is under "not checked:"."""
+    copy = tmp_path / "session.mcap"
+    shutil.copyfile(recorded, copy)  # no seal file next to the copy
+    bare = seal_section(format_report(audit(copy, make_plugin_manager(), reproduce=False)))
+    assert bare[0].startswith("seal           PASS") and bare[0].endswith("proves: self-consistency")
+    assert "  not checked: the seal file (session.mcap.seal.json: none next to the recording)" in bare
+    assert "  not checked: a chain head kept elsewhere (no --expect-head)" in bare
+    assert "  not checked: the station's signature (no --public-key)" in bare
+    assert not any("no seal" in line for line in bare)
+    assert [line for line in bare if line.startswith("  checked:")] == [
+        "  checked: self-consistency (the chain head the file's own records give)"
+    ]
+    head = verify(recorded).chain_sha256
+    sealed = seal_section(format_report(audit(recorded, make_plugin_manager(), reproduce=False, expect_head=head)))
+    assert "  checked: the file's SHA-256 and chain head against the seal file (session.mcap.seal.json)" in sealed
+    assert "  checked: the chain head against the head kept elsewhere (--expect-head)" in sealed
+    assert sealed[0].endswith("proves: agreement with a head kept elsewhere")
+    wrong = audit(recorded, make_plugin_manager(), reproduce=False, expect_head="0" * 64)
+    wrong_lines = seal_section(format_report(wrong))
+    assert wrong_lines[0].startswith("seal           FAIL") and wrong_lines[0].endswith("proves: nothing")
+    assert wrong.seal["level"] == "nothing"
+
+
+def as_chain_format_1(src: Path, dst: Path, tamper: tuple[str, int] | None = None) -> None:
+    """Copy ``src`` with its /integrity records rewritten in chain format 1 (the first
+    layout: the same link from SHA256("crossfield-integrity/1") over messages only,
+    listed under "messages"); ``tamper`` (topic, sequence): that message's last byte is
+    flipped after the chain was computed, as an edit after recording would."""
+    from crossfield.recording.integrity import GENESIS_1, INTEGRITY_FORMAT_1, link
+
+    def edit(msgs):
+        head, count, index, previous, listed, out = GENESIS_1, 0, 0, None, [], []
+        for m in msgs:
+            if m.topic != "/integrity":
+                digest = hashlib.sha256(m.data).digest()
+                head = link(head, m.topic, m.log_time, m.sequence, digest)
+                count += 1
+                listed.append([m.topic, m.sequence, m.log_time, digest.hex()])
+                data = m.data
+                if tamper == (m.topic, m.sequence):
+                    data = data[:-1] + bytes([data[-1] ^ 0x01])
+                out.append(Msg(m.topic, m.log_time, m.sequence, data))
+                continue
+            final = bool(json.loads(m.data).get("final"))
+            doc = {"format": INTEGRITY_FORMAT_1, "index": index, "final": final,
+                   "previous_record_sha256": previous, "count": count, "chain_sha256": head.hex(),
+                   "messages": listed, "metadata": [], "attachments": []}
+            data = json.dumps(doc, separators=(",", ":")).encode()
+            previous, index, listed = hashlib.sha256(data).hexdigest(), index + 1, []
+            out.append(Msg(m.topic, m.log_time, m.sequence, data))
+        return out
+
+    rewrite_mcap(src, dst, edit)
+
+
+def test_a_chain_format_1_recording_is_checked_for_what_it_covers(recorded, tmp_path):
+    """Issue 26 item 4: not "missing chain": the format-1 chain covers messages only,
+    says so, and an edited message in it is still named."""
+    old = tmp_path / "format1.mcap"
+    as_chain_format_1(recorded, old)
+    result = verify(old)
+    assert result.chain_format == "crossfield-integrity/1" and result.covers == "messages only"
+    assert result.has_chain and result.problems == [] and result.passed
+    assert result.covered == result.messages > 40
+    text = format_report(audit(old, make_plugin_manager(), reproduce=False))
+    integrity_line = next(line for line in text.splitlines() if line.startswith("integrity"))
+    assert "PASS" in integrity_line and "messages chained" in integrity_line and "other records" not in integrity_line
+    assert "  note: chain format 1: covers messages only" in text
+    assert "checked: self-consistency of the messages only" in text
+    edited = tmp_path / "format1-edited.mcap"
+    as_chain_format_1(recorded, edited, tamper=("/measurement", 2))
+    found = verify(edited)
+    assert not found.passed and [(p.kind, p.topic, p.sequence) for p in found.problems] == [
+        ("changed", "/measurement", 2)
+    ]

@@ -344,3 +344,39 @@ def test_options_a_replay_cannot_honour_are_refused_with_the_reason(recorded, tm
     assert main(["replay", str(path), "--option", option, "-o", str(tmp_path / "x.mcap")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and option.split("=")[0] in err
+
+
+def test_a_recording_without_budgets_replays_with_a_computed_budget_and_says_so(recorded, same_plugins, tmp_path, capsys):
+    """Issue 26 item 4 (second part): a recording made before budgets were recorded (its
+    /measurement characteristics without "budget", made here by rewriting them) replays
+    with the budget the measure stage computes now, and the replay says the recording had
+    none; a recording with budgets gets no such note."""
+    from session_tools import Msg, rewrite_mcap
+
+    from crossfield.replay import NO_RECORDED_BUDGET
+
+    _, path = recorded
+
+    def strip(msgs):
+        out = []
+        for m in msgs:
+            if m.topic == "/measurement":
+                doc = json.loads(m.data)
+                for c in doc["characteristics"]:
+                    c.pop("budget", None)
+                m = Msg(m.topic, m.log_time, m.sequence, json.dumps(doc).encode())
+            out.append(m)
+        return out
+
+    old = tmp_path / "old.mcap"
+    rewrite_mcap(path, old, strip)
+    with open_recording(old) as rec:
+        assert all("budget" not in c for m in rec.messages("/measurement") for c in m.decoded["characteristics"])
+    out = tmp_path / "replayed.mcap"
+    assert main(["replay", str(old), "-o", str(out), "-q", "--no-rerun"]) == 0
+    assert f"  note: {NO_RECORDED_BUDGET}" in capsys.readouterr().out
+    with open_recording(out) as rec:
+        report = next(m.decoded for m in rec.messages("/report"))
+    assert report["session"]["parent"]["notes"] == [NO_RECORDED_BUDGET]
+    assert all(c["budget"] and c["uncertainty_mm"] > 0 for c in report["characteristics"])
+    assert "notes" not in same_plugins.info.parent

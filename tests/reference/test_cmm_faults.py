@@ -411,3 +411,43 @@ def test_a_noise_flood_does_not_hold_the_import_open(plan):
     assert int(match[1]) == len(sink.recorded()) - len(b"".join(arm.sentence(k) for k in range(3)))
     assert elapsed < 2.5  # the arm would have sent noise for 4 s
     assert "more problem(s), not listed one by one" in message or "ignored 5 bytes of noise" in message
+
+
+def test_the_arms_sigma_comes_from_the_configuration_and_the_warning_names_it(plan):
+    """Issue 26 item 7: romer-serial states the configured sigma_mm (default: the arm
+    model's specification, ARM_MODELS), every point carries it, an unknown arm model is a
+    one-line error; when the residuals contradict it the consistency warning names the
+    reference source and where its sigma came from."""
+    from crossfield.plugins.reference_romer_serial import ARM_MODELS
+    from crossfield.uncertainty.consistency import check_means, describe_reference
+
+    probes = make_probes(len(plan.probing_order()))
+    arm = SimulatedArm(probes)
+    raw = b"".join(arm.sentence(k) for k in range(len(probes)))
+    default = RomerSerialReference(port="recorded").decode(raw, plan)
+    configured = RomerSerialReference(port="recorded", sigma_mm=0.003).decode(raw, plan)
+    assert {p.sigma_mm for p in default.points} == {ARM_MODELS["simulated"]}
+    assert {p.sigma_mm for p in configured.points} == {0.003}
+    assert RomerSerialReference(port="x").sigma_origin == "the simulated arm model's specification (option arm_model)"
+    with pytest.raises(ValueError, match="option 'arm_model' must be one of simulated"):
+        RomerSerialReference(port="x", arm_model="unknown")
+    named = describe_reference("romer-serial", (p.sigma_mm for p in configured.points), {"sigma_mm": 0.003})
+    assert named == "the reference source 'romer-serial' (0.003 mm per coordinate, option sigma_mm)"
+    # 8 residual dof, the observed sum of squares 9x the expected CMM part: chi2 = 72, f = 3
+    check = check_means(1, 9 * 3 * 0.003**2, 0.0, 3 * 0.003**2, 8, reference=named)
+    assert not check.consistent and check.cmm_inflation == pytest.approx(3.0)
+    assert f"the CMM standard deviation stated by {named} is inflated by 3.00" in check.warning
+
+
+def test_an_understated_arm_sigma_is_named_in_the_sessions_warning(tmp_path):
+    """The simulated arm scatters 0.01 mm per coordinate; stating 0.001 mm (option sigma_mm)
+    makes the registration residuals contradict it: the session's warning names romer-serial,
+    its stated sigma and its origin, and the inflation is of the order of the true ratio 10."""
+    from crossfield.api import run
+
+    summary = run(scenario="table3", frames=2, seed=1, output_dir=tmp_path, name="s", record=False,
+                  rerun=False, options={"reference": {"sigma_mm": 0.001}})
+    check = summary.aggregate.consistency
+    assert not check.consistent and 5.0 < check.cmm_inflation < 20.0
+    assert ("the CMM standard deviation stated by the reference source 'romer-serial' "
+            "(0.001 mm per coordinate, option sigma_mm) is inflated by") in check.warning

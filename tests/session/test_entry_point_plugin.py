@@ -85,6 +85,7 @@ def test_plugins_lists_the_entry_point_plugin(site):
         "threshold_sigma": 8.0,
         "min_area_px": 30,
         "dilate_px": 2,
+        "gain_e_per_dn": 2.86,
     }
     text = crossfield(site, "plugins").stdout
     assert "squared" in text and "crossfield-squared-centroid 0.1.0" in text
