@@ -23,6 +23,7 @@ from crossfield.cli.common import (
     print_session_files,
     stage_choices,
 )
+from crossfield.cli.inputs import require
 from crossfield.compare import compare, format_table
 from crossfield.config import SIMULATOR_OPTIONS, Config, session_config
 from crossfield.errors import ConfigError
@@ -38,6 +39,13 @@ from crossfield.viz.view import parse_window_size, spawn_live_viewer, view
 __all__ = ["COMMANDS", "resolve_run_config"]
 
 logger = logging.getLogger(__name__)
+
+
+#: The kinds of input (:data:`crossfield.cli.inputs.KINDS`) each command takes.
+SESSION_RECORDING = ("session-recording",)
+ANY_RECORDING = ("session-recording", "calibration-recording", "verification-recording")
+VIEWABLE = ("session-folder", "session-recording", "rerun")
+SESSION_REPORT = ("session-folder", "report")
 
 
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
@@ -199,6 +207,7 @@ def cmd_plugins(args: argparse.Namespace) -> int:
 def cmd_replay(args: argparse.Namespace) -> int:
 
     pm = plugin_manager()
+    require(args.recording, SESSION_RECORDING, "replay", "a session recording (session.mcap)")
     logger.info("replaying %s", args.recording)
     recorded = load_recorded_session(args.recording)
     total = None
@@ -245,6 +254,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
+    for path in (args.a, args.b):
+        require(path, SESSION_RECORDING, "compare", "two session recordings (session.mcap)")
     result = compare(args.a, args.b)
     if args.json:
         print(json.dumps(result, indent=2, allow_nan=False, default=str))
@@ -254,6 +265,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
 
 def cmd_audit(args: argparse.Namespace) -> int:
+    require(args.recording, ANY_RECORDING, "audit", "a session, calibration or verification recording (.mcap)")
     report = audit(
         args.recording,
         plugin_manager(),
@@ -273,6 +285,7 @@ def cmd_keygen(args: argparse.Namespace) -> int:
 
 
 def cmd_view(args: argparse.Namespace) -> int:
+    require(args.session, VIEWABLE, "view", "a session folder, session.rrd or session.mcap")
     return view(
         args.session,
         web=args.web,
@@ -286,6 +299,7 @@ def cmd_view(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
+    require(args.session, SESSION_REPORT, "export", "a session folder or its report.json", recording=False)
     if args.csv == "-":
         sys.stdout.write(to_csv(characteristic_rows(load_report(args.session))))
     else:
