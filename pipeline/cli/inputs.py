@@ -43,6 +43,14 @@ KINDS: dict[str, str] = {
     "other": "a file that is neither a recording nor a report",
 }
 
+#: kind -> the commands that do read it, named when another command is given it.
+READ_BY: dict[str, str] = {
+    "calibration-recording": "crossfield calibrate --replay, crossfield audit",
+    "verification-recording": "crossfield verify --recording, crossfield audit",
+    "session-recording": "crossfield replay, view, compare, audit",
+    "report": "crossfield export",
+}
+
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 RERUN_MAGIC = b"RRF"
 _PROFILES = {
@@ -111,5 +119,11 @@ def require(
     kind = kind_of(path)
     if kind in kinds or kind == "missing" or (recording and kind in ("other", "other-recording")):
         return kind
-    hint = f": give {Path(path) / 'session.mcap'}" if kind == "session-folder" and "report" not in kinds else ""
-    raise InputError(f"{path}: {KINDS[kind]}; {command} wants {wants}{hint}")
+    raise InputError(f"{path}: {KINDS[kind]}; {command} wants {wants}{_hint(path, kind, kinds)}")
+
+
+def _hint(path: str | Path, kind: str, kinds: Collection[str]) -> str:
+    """What to give instead: a folder's session.mcap, or the commands that read ``kind``."""
+    if kind == "session-folder" and "report" not in kinds:
+        return f": give {Path(path) / 'session.mcap'}"
+    return f" (read by {READ_BY[kind]})" if kind in READ_BY else ""

@@ -75,3 +75,15 @@ def test_export_of_a_recording_is_one_line(folder: Path, capsys: pytest.CaptureF
 def test_a_path_of_the_wrong_kind_is_one_line(folder, capsys, argv, got, wants) -> None:
     line = _one_error_line(capsys, argv(folder))
     assert got in line and wants in line, line
+
+
+@pytest.mark.parametrize("profile, kind", [(L.CALIBRATION_PROFILE, "a calibration recording"),
+                                           (L.VERIFICATION_PROFILE, "a verification recording")])
+@pytest.mark.parametrize("command", ["view", "replay", "compare"])
+def test_a_calibration_or_verification_recording_is_named(folder, tmp_path, capsys, profile, kind, command) -> None:
+    recording = str(_profiled_mcap(tmp_path / "other.mcap", profile))
+    argv = [command, recording] + ([str(folder / "session.mcap")] if command == "compare" else [])
+    line = _one_error_line(capsys, argv)
+    assert f"{recording}: {kind} (MCAP profile {profile!r}" in line, line
+    assert f"{command} wants" in line and "ends early" not in line, line
+    assert "crossfield audit" in line and ("calibrate --replay" in line or "verify --recording" in line), line
