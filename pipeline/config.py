@@ -51,6 +51,7 @@ SESSION_DEFAULTS: dict[str, Any] = {
     "rerun_image_every": 5,  # session.rrd: images of every n-th pair (0 = none); docs/visualisation.md
     "match_tolerance_mm": 0.5,  # rigid-distance agreement for control-point matching
     "signing_key": "",  # Ed25519 station key (PEM) that signs the recording's seal; docs/replay-and-audit.md
+    "allow_overdue_instruments": False,  # keep the decisions with an instrument past its due date; docs/report.md
     "monte_carlo": 0,  # GUM-S1 Monte Carlo check of the budget at the session end: draws (0 = off); docs/uncertainty.md
 }
 
