@@ -124,6 +124,6 @@ def require(
 
 def _hint(path: str | Path, kind: str, kinds: Collection[str]) -> str:
     """What to give instead: a folder's session.mcap, or the commands that read ``kind``."""
-    if kind == "session-folder" and "report" not in kinds:
+    if kind == "session-folder" and "session-recording" in kinds:
         return f": give {Path(path) / 'session.mcap'}"
     return f" (read by {READ_BY[kind]})" if kind in READ_BY else ""

@@ -46,6 +46,7 @@ SESSION_RECORDING = ("session-recording",)
 ANY_RECORDING = ("session-recording", "calibration-recording", "verification-recording")
 VIEWABLE = ("session-folder", "session-recording", "rerun")
 SESSION_REPORT = ("session-folder", "report")
+TOML_TEXT = ("other",)  # not a recording, report, seal or folder: the TOML reader names any fault
 
 
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
@@ -147,7 +148,9 @@ def resolve_run_config(args: argparse.Namespace) -> Config:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-
+    for flag, path in (("--config", args.config), ("--plan", args.plan)):
+        if path:
+            require(path, TOML_TEXT, "run", f"a TOML file for {flag}", recording=False)
     config = resolve_run_config(args)
     logger.info(
         "config %s: %s", config.source, ", ".join(f"{s}={config.stages[s].plugin}" for s in STAGES)

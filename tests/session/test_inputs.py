@@ -69,12 +69,27 @@ def test_export_of_a_recording_is_one_line(folder: Path, capsys: pytest.CaptureF
          "export wants a session folder"),
         (lambda f: ["export", str(f.parent.parent), "--csv", "-"], "a folder without session.mcap",
          "export wants a session folder"),
+        (lambda f: ["run", "--plan", str(f / "session.mcap"), "-o", str(f.parent / "never")],
+         "a session recording", "run wants a TOML file for --plan"),
+        (lambda f: ["run", "--config", str(f / "report.json"), "-o", str(f.parent / "never")],
+         "report.json", "run wants a TOML file for --config"),
+        (lambda f: ["crb", str(f / "session.mcap")], "a session recording", "crb wants a station file"),
     ],
-    ids=["audit-folder", "replay-folder", "compare-report", "view-report", "export-seal", "export-empty-folder"],
+    ids=["audit-folder", "replay-folder", "compare-report", "view-report", "export-seal", "export-empty-folder",
+         "run-plan-recording", "run-config-report", "crb-station-recording"],
 )
 def test_a_path_of_the_wrong_kind_is_one_line(folder, capsys, argv, got, wants) -> None:
     line = _one_error_line(capsys, argv(folder))
     assert got in line and wants in line, line
+    assert not (folder.parent / "never").exists()
+
+
+@pytest.mark.parametrize("flag", ["--plan", "--config"])
+def test_a_binary_file_as_toml_is_one_line(tmp_path, capsys, flag) -> None:
+    binary = tmp_path / "noise.bin"
+    binary.write_bytes(bytes(range(128, 256)))
+    line = _one_error_line(capsys, ["run", flag, str(binary), "-o", str(tmp_path / "out")])
+    assert f"{binary}: not a" in line and "not UTF-8 TOML text" in line, line
 
 
 @pytest.mark.parametrize("profile, kind", [(L.CALIBRATION_PROFILE, "a calibration recording"),
