@@ -52,6 +52,7 @@ SESSION_DEFAULTS: dict[str, Any] = {
     "rerun_image_every": 5,  # session.rrd: images of every n-th pair (0 = none); docs/visualisation.md
     "match_tolerance_mm": 0.5,  # rigid-distance agreement for control-point matching
     "signing_key": "",  # Ed25519 station key (PEM) that signs the recording's seal; docs/replay-and-audit.md
+    "allow_overdue_instruments": False,  # keep the decisions with an instrument past its due date; docs/report.md
     "monte_carlo": 0,  # GUM-S1 Monte Carlo check of the budget at the session end: draws (0 = off); docs/uncertainty.md
     "compression": "lz4",  # session.mcap chunk compression: "lz4", "zstd" or "none" (lossless); docs/recording.md
 }
@@ -164,6 +165,8 @@ def load_config(path: str | Path | None = None) -> Config:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read config: {exc.strerror}") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: not a config: a binary file, not UTF-8 TOML text") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
     return parse_config(data, str(path))

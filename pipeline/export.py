@@ -36,6 +36,8 @@ def load_report(session: str | Path) -> dict[str, Any]:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read the session report: {exc.strerror}") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: not a session report: a binary file, not UTF-8 JSON") from None
     try:
         report = json.loads(text)
     except json.JSONDecodeError as exc:

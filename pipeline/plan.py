@@ -468,4 +468,6 @@ def load_plan(path: str | Path) -> MeasurementPlan:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read plan: {exc.strerror}") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: not a plan: a binary file, not UTF-8 TOML text") from None
     return parse_plan(text, str(path))

@@ -33,11 +33,11 @@ import pluggy
 from crossfield.chain.runner import run_session, safe_session_name
 from crossfield.config import Config, with_overrides
 from crossfield.errors import ConfigError, RecordingError
-from crossfield.recording.prefetch import ahead
 from crossfield.recording import layout as L
 from crossfield.recording.codec import decode_image, decode_link_event, ground_truth_from_doc, utc_text  # noqa: F401 - public here too
 from crossfield.recording.facts import SessionFacts, load_session_facts, require_session  # noqa: F401
 from crossfield.recording.integrity import file_sha256
+from crossfield.recording.prefetch import ahead
 from crossfield.session import SessionSummary
 from crossfield.stages import STAGES, SerialChunk
 from crossfield.types import CAMERAS, StereoFrame

@@ -87,9 +87,15 @@ class AuditReport:
             self.complete
             and self.integrity.passed
             and self.provenance.get("passed", False)
-            and self.reproduction.get("passed", False)
+            and (self.reproduction.get("passed", False) or not_run(self.reproduction))
             and self.seal.get("passed", False)
         )
+
+    @property
+    def not_run(self) -> list[str]:
+        """The checks not run (``--no-replay``: ``["reproduction"]``): neither passed nor
+        failed; :attr:`passed` goes by the checks that were run."""
+        return ["reproduction"] if not_run(self.reproduction) else []
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -97,6 +103,7 @@ class AuditReport:
             "path": self.path,
             "file_sha256": self.file_sha256,
             "passed": self.passed,
+            "not_run": self.not_run,
             "complete": self.complete,
             "intact": self.intact,
             "integrity": self.integrity.to_json(),
@@ -377,7 +384,7 @@ def checked_report(
     if reproduction_of is not None:
         repro = reproduction_of(path)
     else:
-        repro = {"passed": False, "skipped": "not run (--no-replay)", "differences": []}
+        repro = {"passed": None, "run": False, "skipped": "not run (--no-replay)", "differences": []}
     digest = file_sha256(path)
     report = AuditReport(
         path=str(path),
@@ -439,6 +446,30 @@ def section(title: str, ok: bool, text: str = "") -> str:
     return f"{title:<14} {'PASS' if ok else 'FAIL'}{('  ' + text) if text else ''}"
 
 
+def not_run(check: dict[str, Any]) -> bool:
+    """True for a check that was not run (``run: False``, e.g. the reproduction under
+    ``--no-replay``), as opposed to one that ran and failed or broke (``error``)."""
+    return check.get("run", True) is False and not check.get("error")
+
+
+def reproduction_line(repro: dict[str, Any], summary: str) -> str:
+    """The reproduction's section line: ``not run (--no-replay)``, its error (FAIL), or
+    PASS/FAIL with ``summary``."""
+    if not_run(repro):
+        return f"{'reproduction':<14} {repro.get('skipped') or 'not run'}"
+    if repro.get("error") or repro.get("skipped"):
+        return section("reproduction", False, repro.get("error") or repro.get("skipped"))
+    return section("reproduction", repro["passed"], summary)
+
+
+def verdict_line(report: AuditReport) -> str:
+    """``Audit: PASS`` or ``FAIL`` by the checks run, naming those not run and an
+    incomplete recording: ``Audit: PASS (reproduction not run)``."""
+    notes = [f"{', '.join(report.not_run)} not run"] if report.not_run else []
+    notes += [] if report.complete else ["incomplete recording"]
+    return f"Audit: {'PASS' if report.passed else 'FAIL'}" + (f" ({'; '.join(notes)})" if notes else "")
+
+
 def format_checks(
     report: AuditReport, header: list[str], summary: str, *, replayed: str = "replayed", limit: int = 40
 ) -> str:
@@ -465,10 +496,8 @@ def format_checks(
     )
     lines += [f"  - {p}" for p in prov.get("problems", [])]
     lines += [f"  note: {n}" for n in prov.get("notes", [])]
-    if repro.get("error") or repro.get("skipped"):
-        lines.append(section("reproduction", False, repro.get("error") or repro.get("skipped")))
-    else:
-        lines.append(section("reproduction", repro["passed"], summary))
+    lines.append(reproduction_line(repro, summary))
+    if not (repro.get("error") or repro.get("skipped")):
         for d in repro["differences"][:limit]:
             where = (
                 f"attachment {d['attachment']}"
@@ -484,8 +513,7 @@ def format_checks(
         lines += [f"  - missing from the recording: {m}" for m in repro.get("missing", [])]
         lines += [f"  - only in the recording: {m}" for m in repro.get("only_recorded", [])]
     lines += seal_lines(sealed)
-    verdict = f"Audit: {'PASS' if report.passed else 'FAIL'}"
-    lines += ["", verdict + ("" if report.complete else " (incomplete recording)")]
+    lines += ["", verdict_line(report)]
     return "\n".join(lines)
 
 

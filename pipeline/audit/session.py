@@ -45,9 +45,11 @@ from crossfield.audit.report import (
     json_differences,
     package_notes,
     parse_head,
+    reproduction_line,
     seal_lines,
     section,
     short,
+    verdict_line,
 )
 from crossfield.chain.registry import STAGES, implementations
 from crossfield.errors import CrossfieldError, RecordingError
@@ -402,14 +404,13 @@ def format_session_report(report: AuditReport, *, limit: int = 40) -> str:
         lines.append(f"  note: {n}")
 
     repro = report.reproduction
-    if repro.get("error") or repro.get("skipped"):
-        lines.append(section("reproduction", False, repro.get("error") or repro.get("skipped")))
-    else:
-        text = (
-            f"{repro['messages_identical']} of {repro['messages_compared']} result messages identical "
-            f"({repro['frames_replayed']} stereo pairs replayed with the recorded plugins)"
-        )
-        lines.append(section("reproduction", repro["passed"], text))
+    ran = not (repro.get("error") or repro.get("skipped"))
+    text = (
+        f"{repro['messages_identical']} of {repro['messages_compared']} result messages identical "
+        f"({repro['frames_replayed']} stereo pairs replayed with the recorded plugins)"
+    ) if ran else ""
+    lines.append(reproduction_line(repro, text))
+    if ran:
         for d in repro["differences"][:limit]:
             lines.append(
                 f"  - {name_message(d['topic'], d['sequence'], d['log_time_ns'])}: {d['path']}: "
@@ -436,10 +437,7 @@ def format_session_report(report: AuditReport, *, limit: int = 40) -> str:
                 )
     lines += seal_lines(report.seal)
     lines.append("")
-    lines.append(
-        f"Audit: {'PASS' if report.passed else 'FAIL'}"
-        + ("" if report.complete else " (incomplete recording)")
-    )
+    lines.append(verdict_line(report))
     return "\n".join(lines)
 
 

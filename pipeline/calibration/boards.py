@@ -207,6 +207,8 @@ def read_board_file(path: str | Path) -> dict:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise ConfigError(f"{path}: board file not found") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: not a board file: a binary file, not UTF-8 TOML text") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
     if not isinstance(data.get("board"), dict):

@@ -21,8 +21,8 @@ import numpy as np
 
 from crossfield.calibration.covariance import triangulation_sensitivity
 from crossfield.calibration.coverage import COVERAGE_GRID, coverage_cells
-from crossfield.calibration.solve import CalibrationResult
 from crossfield.calibration.quality import quality_dict, quality_html
+from crossfield.calibration.solve import CalibrationResult
 from crossfield.types import CAMERAS
 
 

@@ -97,7 +97,8 @@ def audit_with_catalog(
     ``expect_head`` given as well must agree with the catalog's (ConfigError otherwise)."""
     from crossfield.audit import audit
     from crossfield.audit.report import parse_head
-    from crossfield.catalog.query import Catalog, open as open_catalog
+    from crossfield.catalog.query import Catalog
+    from crossfield.catalog.query import open as open_catalog
 
     path = Path(path)
     if path.is_dir():

@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from crossfield.instruments import gate_characteristics
 from crossfield.plan import CharacteristicSpec, MeasurementPlan
 from crossfield.rigid import chord_to_angle, project_to_rotation, rotation_angle
 from crossfield.session import (
@@ -497,7 +498,9 @@ def session_summary(
         info=info,
         reference=reference,
         frames=accumulator.rows,
-        characteristics=aggregate.characteristics if characteristics is None else tuple(characteristics),
+        characteristics=gate_characteristics(
+            aggregate.characteristics if characteristics is None else characteristics, info
+        ),
         report_files=tuple(report_files),
         incomplete=incomplete,
         aggregate=aggregate,

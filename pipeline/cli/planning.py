@@ -11,6 +11,7 @@ import numpy as np
 
 from crossfield.batch.engine import add_engine_flags, client, engine_from_args
 from crossfield.cli.common import Command
+from crossfield.cli.inputs import require
 from crossfield.errors import ConfigError
 from crossfield.planning.report import write_report
 from crossfield.planning.routes import camera_model, predict
@@ -54,6 +55,8 @@ def _station(args: argparse.Namespace):
 
     if bool(args.station) == bool(args.scenario):
         raise ConfigError("give a station file or --scenario NAME (one of them)")
+    if args.station:
+        require(args.station, ("other",), args.command, "a station file (TOML)", recording=False)
     station = load_station(args.station) if args.station else station_from_scenario(args.scenario)
     if args.cmm_sigma_mm is not None:
         if not args.cmm_sigma_mm >= 0:

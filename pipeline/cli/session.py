@@ -24,6 +24,7 @@ from crossfield.cli.common import (
     print_session_files,
     stage_choices,
 )
+from crossfield.cli.inputs import require
 from crossfield.compare import compare, format_table
 from crossfield.config import SIMULATOR_OPTIONS, Config, session_config
 from crossfield.errors import ConfigError
@@ -39,6 +40,14 @@ from crossfield.viz.view import parse_window_size, spawn_live_viewer, view
 __all__ = ["COMMANDS", "resolve_run_config"]
 
 logger = logging.getLogger(__name__)
+
+
+#: The kinds of input (:data:`crossfield.cli.inputs.KINDS`) each command takes.
+SESSION_RECORDING = ("session-recording",)
+ANY_RECORDING = ("session-recording", "calibration-recording", "verification-recording")
+VIEWABLE = ("session-folder", "session-recording", "rerun")
+SESSION_REPORT = ("session-folder", "report")
+TOML_TEXT = ("other",)  # not a recording, report, seal or folder: the TOML reader names any fault
 
 
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
@@ -144,7 +153,9 @@ def resolve_run_config(args: argparse.Namespace) -> Config:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-
+    for flag, path in (("--config", args.config), ("--plan", args.plan)):
+        if path:
+            require(path, TOML_TEXT, "run", f"a TOML file for {flag}", recording=False)
     config = resolve_run_config(args)
     logger.info(
         "config %s: %s", config.source, ", ".join(f"{s}={config.stages[s].plugin}" for s in STAGES)
@@ -205,6 +216,7 @@ def cmd_plugins(args: argparse.Namespace) -> int:
 def cmd_replay(args: argparse.Namespace) -> int:
 
     pm = plugin_manager()
+    require(args.recording, SESSION_RECORDING, "replay", "a session recording (session.mcap)")
     logger.info("replaying %s", args.recording)
     recorded = load_recorded_session(args.recording)
     total = None
@@ -253,6 +265,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
+    for path in (args.a, args.b):
+        require(path, SESSION_RECORDING, "compare", "two session recordings (session.mcap)")
     result = compare(args.a, args.b)
     if args.json:
         print(json.dumps(result, indent=2, allow_nan=False, default=str))
@@ -262,6 +276,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
 
 def cmd_audit(args: argparse.Namespace) -> int:
+    require(args.recording, ANY_RECORDING, "audit", "a session, calibration or verification recording (.mcap)")
     if args.catalog:  # the outside anchor: the head, SHA-256 and signature the catalog keeps
         report = catalog.audit_command(args, plugin_manager())
     else:
@@ -284,6 +299,7 @@ def cmd_keygen(args: argparse.Namespace) -> int:
 
 
 def cmd_view(args: argparse.Namespace) -> int:
+    require(args.session, VIEWABLE, "view", "a session folder, session.rrd or session.mcap")
     return view(
         args.session,
         web=args.web,
@@ -297,6 +313,7 @@ def cmd_view(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
+    require(args.session, SESSION_REPORT, "export", "a session folder or its report.json", recording=False)
     if not (args.csv or args.qif):
         raise ConfigError("crossfield export: give --csv FILE and/or --qif FILE")
     if args.csv == "-":

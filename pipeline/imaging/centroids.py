@@ -26,7 +26,14 @@ from typing import ClassVar
 
 import numpy as np
 
-from crossfield.imaging.blobs import Background, BlobDetector, BlobStack, DetectorOptions, sort_order, sort_rejected
+from crossfield.imaging.blobs import (
+    Background,
+    BlobDetector,
+    BlobStack,
+    DetectorOptions,
+    sort_order,
+    sort_rejected,
+)
 from crossfield.types import CentroidSet, RejectedBlob
 
 __all__ = ["BlobCentroids", "SubPixel"]

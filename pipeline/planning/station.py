@@ -435,6 +435,8 @@ def load_station(path: str | Path) -> Station:
         text = p.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(f"{p}: cannot read the station file ({exc.strerror or exc})") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{p}: not a station file: a binary file, not UTF-8 TOML text") from None
     return parse_station(text, str(p))
 
 

@@ -24,7 +24,13 @@ from typing import Any, Self
 from crossfield.errors import RecordingError
 from crossfield.hookspecs import hookimpl
 from crossfield.recording.seal import Seal
-from crossfield.recording.writer import DEFAULT_CHUNK_SIZE, DEFAULT_COMPRESSION, McapFileSink, SessionWriter, Sink
+from crossfield.recording.writer import (
+    DEFAULT_CHUNK_SIZE,
+    DEFAULT_COMPRESSION,
+    McapFileSink,
+    SessionWriter,
+    Sink,
+)
 from crossfield.report.document import REPORT_JSON, add_seal_to_file
 
 

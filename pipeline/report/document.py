@@ -25,6 +25,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from crossfield.errors import RecordingError
+from crossfield.instruments import instrument_problems
 from crossfield.jsonable import matrix, plain, real, vector
 from crossfield.rigid import rotation_angle
 from crossfield.session import FrameResult, SessionSummary
@@ -321,6 +322,7 @@ def problems(summary: SessionSummary) -> list[str]:
     if summary.station_moved:
         lines.append(f"session pose: {summary.station_moved}")
     lines.extend(f"reference import: {p}" for p in summary.reference.problems)
+    lines.extend(instrument_problems(summary.info))
     check = summary.aggregate.consistency
     if check is not None and check.warning:
         lines.append(f"uncertainty: {check.warning}")

@@ -31,7 +31,6 @@ from functools import cached_property
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from crossfield.types import CAMERAS, CameraIntrinsics, StereoCalibration, StereoFrame
 from crossfield.simulator.render import SensorModel
 from crossfield.simulator.render_mismatch import (
     PSF,
@@ -43,6 +42,7 @@ from crossfield.simulator.render_mismatch import (
     render_disc_electrons,
 )
 from crossfield.simulator.scene import Scene
+from crossfield.types import CAMERAS, CameraIntrinsics, StereoCalibration, StereoFrame
 
 __all__ = ["MismatchOptions", "MismatchScene", "mismatch_scene"]
 

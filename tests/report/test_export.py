@@ -48,7 +48,7 @@ def test_cli_and_api_give_the_same_rows(session, tmp_path, capsys):
 
 def test_bad_input_is_one_clear_error(tmp_path, capsys):
     assert main(["export", str(tmp_path), "--csv", str(tmp_path / "x.csv")]) == 2
-    assert "report.json: cannot read the session report" in capsys.readouterr().err
+    assert "a folder without session.mcap or report.json; export wants a session folder" in capsys.readouterr().err
     (tmp_path / "report.json").write_text("{not json", encoding="utf-8")
     assert main(["export", str(tmp_path), "--csv", str(tmp_path / "x.csv")]) == 2
     assert "not valid JSON: line 1" in capsys.readouterr().err
