@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from crossfield.instruments import gate_characteristics
+from crossfield.uncertainty.instruments import gate_characteristics
 from crossfield.plan import CharacteristicSpec, MeasurementPlan
 from crossfield.rigid import chord_to_angle, project_to_rotation, rotation_angle
 from crossfield.session import (

@@ -25,7 +25,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from crossfield.errors import RecordingError
-from crossfield.instruments import instrument_problems
+from crossfield.uncertainty.instruments import instrument_problems
 from crossfield.jsonable import matrix, plain, real, vector
 from crossfield.rigid import rotation_angle
 from crossfield.session import FrameResult, SessionSummary
