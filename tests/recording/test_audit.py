@@ -740,3 +740,36 @@ def test_a_chain_format_1_recording_is_checked_for_what_it_covers(recorded, tmp_
     assert not found.passed and [(p.kind, p.topic, p.sequence) for p in found.problems] == [
         ("changed", "/measurement", 2)
     ]
+
+
+def test_topics_a_recording_never_had_are_noted_not_failed(recorded, tmp_path):
+    """A recording made before a topic existed (here: /scene and the image annotations
+    removed with their channels) reproduces: the replay's messages on those topics are
+    named as not compared; one /scene message missing from a recording that has the
+    topic is still a difference."""
+    from crossfield.audit.session import reproduction
+
+    newer = {"/scene", "/camera/upper/annotations", "/camera/lower/annotations"}
+    older = tmp_path / "older.mcap"
+    rewrite_mcap(recorded, older, lambda msgs: [m for m in msgs if m.topic not in newer])
+    result = reproduction(older, make_plugin_manager())
+    assert result["passed"] and set(result["topics_not_recorded"]) == newer
+    assert "not compared: /camera/lower/annotations, /camera/upper/annotations, /scene" in format_report(
+        audit(older, make_plugin_manager())
+    )
+    gap = tmp_path / "gap.mcap"
+    first = []
+
+    def drop_one(msgs):
+        kept = []
+        for m in msgs:
+            if m.topic == "/scene" and not first:
+                first.append(m)
+                continue
+            kept.append(m)
+        return kept
+
+    rewrite_mcap(recorded, gap, drop_one)
+    result = reproduction(gap, make_plugin_manager())
+    assert not result["passed"] and result["topics_not_recorded"] == []
+    assert [m["topic"] for m in result["only_replayed"]] == ["/scene"]
