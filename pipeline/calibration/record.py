@@ -47,7 +47,7 @@ from crossfield.recording import layout as L
 from crossfield.recording.codec import decode_image, dump_json, raw_image_message, utc_text
 from crossfield.recording.reader import Recording, open_recording
 from crossfield.recording.seal import Seal
-from crossfield.recording.writer import ChannelSpec, McapFileSink, protobuf_channel, write_provenance
+from crossfield.recording.writer import DEFAULT_COMPRESSION, ChannelSpec, McapFileSink, protobuf_channel, write_provenance
 from crossfield.types import CAMERAS
 
 # The names of a calibration recording, defined with every other topic in the layout.
@@ -95,12 +95,15 @@ def record_calibration(
     *,
     signing_key: str | Path | None = None,
     overwrite: bool = False,
+    compression: str = DEFAULT_COMPRESSION,
 ) -> Seal:
     """Write the session (module docstring) to ``path`` with its integrity chain and seal
     (sidecar ``<path>.seal.json``; signed with ``signing_key`` when given); returns the seal.
-    An existing file is an error unless ``overwrite``."""
+    An existing file is an error unless ``overwrite``. compression: the chunks' (lossless,
+    as a session's ``[session] compression``)."""
     sink = McapFileSink(
-        path, overwrite=overwrite, writer_thread=False, signing_key=signing_key, profile=PROFILE
+        path, overwrite=overwrite, writer_thread=False, signing_key=signing_key, profile=PROFILE,
+        compression=compression,
     )
     yaml_text = calibration_result_yaml(result).encode()
     try:

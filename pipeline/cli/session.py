@@ -313,9 +313,9 @@ def cmd_view(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    require(args.session, SESSION_REPORT, "export", "a session folder or its report.json", recording=False)
     if not (args.csv or args.qif):
         raise ConfigError("crossfield export: give --csv FILE and/or --qif FILE")
+    require(args.session, SESSION_REPORT, "export", "a session folder or its report.json", recording=False)
     if args.csv == "-":
         sys.stdout.write(to_csv(characteristic_rows(load_report(args.session))))
     elif args.csv:

@@ -57,6 +57,7 @@ from crossfield.types import (
     ProbedPoint,
     ReferenceData,
     Registration,
+    RegistrationConsistency,
     RejectedBlob,
     RigidFit,
     StereoCalibration,
@@ -397,7 +398,46 @@ def measurement_doc(measurement: Any) -> dict[str, Any]:
         ],
         "target_points_mm": {str(k): reals(v) for k, v in measurement.target_points.items()},
         "missing_targets": [str(t) for t in measurement.missing_targets],
+        "consistency": consistency_doc(measurement.consistency),
     }
+
+
+def consistency_doc(c: RegistrationConsistency | None) -> dict[str, Any] | None:
+    """A pair's :class:`RegistrationConsistency` as plain data (None stays None)."""
+    if c is None:
+        return None
+    return {
+        "observed_ss_mm2": real(c.observed_ss_mm2),
+        "expected_camera_ss_mm2": real(c.expected_camera_ss_mm2),
+        "expected_cmm_ss_mm2": real(c.expected_cmm_ss_mm2),
+        "dof": int(c.dof),
+        "expected_residual_mm": {str(k): real(v) for k, v in c.expected_residual_mm.items()},
+        "pose_cov_camera": None if c.pose_cov_camera is None else reals(c.pose_cov_camera),
+        "pose_cov_cmm": None if c.pose_cov_cmm is None else reals(c.pose_cov_cmm),
+        "epipolar_chi2": real(c.epipolar_chi2),
+        "epipolar_count": int(c.epipolar_count),
+    }
+
+
+def consistency(doc: Mapping[str, Any] | None) -> RegistrationConsistency | None:
+    """A recorded ``consistency`` document (:func:`consistency_doc`), or None."""
+    if not doc:
+        return None
+
+    def matrix(value: Any) -> np.ndarray | None:
+        return None if value is None else _array(value, (6, 6))
+
+    return RegistrationConsistency(
+        observed_ss_mm2=_nan(doc["observed_ss_mm2"]),
+        expected_camera_ss_mm2=_nan(doc["expected_camera_ss_mm2"]),
+        expected_cmm_ss_mm2=_nan(doc["expected_cmm_ss_mm2"]),
+        dof=int(doc["dof"]),
+        expected_residual_mm={str(k): _nan(v) for k, v in doc.get("expected_residual_mm", {}).items()},
+        pose_cov_camera=matrix(doc.get("pose_cov_camera")),
+        pose_cov_cmm=matrix(doc.get("pose_cov_cmm")),
+        epipolar_chi2=_nan(doc.get("epipolar_chi2", 0.0)),
+        epipolar_count=int(doc.get("epipolar_count", 0)),
+    )
 
 
 def reference_doc(reference: Any) -> dict[str, Any]:
@@ -618,6 +658,7 @@ def measurement(doc: Mapping[str, Any]) -> Measurement:
         ),
         target_points={str(k): tuple(_nan(v) for v in xyz) for k, xyz in doc["target_points_mm"].items()},
         missing_targets=tuple(str(t) for t in doc.get("missing_targets", ())),
+        consistency=consistency(doc.get("consistency")),
     )
 
 

@@ -44,7 +44,8 @@ def solved():
 def recorded(tmp_path_factory, solved):
     images, bit_depth, result = solved
     path = tmp_path_factory.mktemp("calaudit") / "cal.mcap"
-    sealed = record_calibration(path, images, NAMES, bit_depth, result, "test")
+    # uncompressed, so that a test can flip one bit of an image in the file's bytes
+    sealed = record_calibration(path, images, NAMES, bit_depth, result, "test", compression="none")
     return path, sealed
 
 

@@ -7,6 +7,7 @@ link test runs over a real pty or a real TCP socket."""
 from __future__ import annotations
 
 import json
+import math
 import re
 import socket
 import threading
@@ -433,10 +434,12 @@ def test_the_arms_sigma_comes_from_the_configuration_and_the_warning_names_it(pl
         RomerSerialReference(port="x", arm_model="unknown")
     named = describe_reference("romer-serial", (p.sigma_mm for p in configured.points), {"sigma_mm": 0.003})
     assert named == "the reference source 'romer-serial' (0.003 mm per coordinate, option sigma_mm)"
-    # 8 residual dof, the observed sum of squares 9x the expected CMM part: chi2 = 72, f = 3
+    # 8 residual dof, the observed sum of squares 9x the expected CMM part: chi2 = 72; the
+    # budget's shrunk variance ratio (nu0 + chi2) / (nu0 + dof), nu0 = 4 (docs/uncertainty.md)
     check = check_means(1, 9 * 3 * 0.003**2, 0.0, 3 * 0.003**2, 8, reference=named)
-    assert not check.consistent and check.cmm_inflation == pytest.approx(3.0)
-    assert f"the CMM standard deviation stated by {named} is inflated by 3.00" in check.warning
+    f = math.sqrt((4 + 72) / (4 + 8))
+    assert not check.consistent and check.cmm_inflation == pytest.approx(f)
+    assert f"the CMM standard deviation stated by {named} is inflated by {f:.2f}" in check.warning
 
 
 def test_an_understated_arm_sigma_is_named_in_the_sessions_warning(tmp_path):

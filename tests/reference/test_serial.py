@@ -405,7 +405,7 @@ def test_registered_with_options():
     pm = make_plugin_manager(builtins=False, extra=[reference_romer_serial, reference_csv])
     serial_impl = get_implementation(pm, "reference", "romer-serial")
     assert set(serial_impl.options()) == {
-        "port", "baudrate", "timeout_s", "sigma_mm", "first_seq", "format", "units", "burst_radius_mm",
+        "port", "arm_model", "baudrate", "timeout_s", "sigma_mm", "first_seq", "format", "units", "burst_radius_mm",
         "measuring_volume_mm",
     }
     reader = serial_impl.create({"port": "/dev/ttyUSB0", "baudrate": 115200})

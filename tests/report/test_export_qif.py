@@ -47,7 +47,7 @@ due = "2027-03-02"
 id = "STEREO-1"
 kind = "stereo camera station"
 calibrated = "2026-05-01"
-due = "2026-11-01"
+due = "2027-11-01"
 
 [[job.instrument]]
 id = "TH-3"
@@ -247,7 +247,7 @@ def test_export_needs_a_format_and_reports_bad_input(tmp_path, capsys):
     assert main(["export", str(tmp_path)]) == 2
     assert "give --csv FILE and/or --qif FILE" in capsys.readouterr().err
     assert main(["export", str(tmp_path), "--qif", str(tmp_path / "x.qif")]) == 2
-    assert "report.json: cannot read the session report" in capsys.readouterr().err
+    assert "a folder without session.mcap or report.json; export wants a session folder" in capsys.readouterr().err
 
 
 def test_a_report_without_recording_incomplete_and_unmeasured_still_validates(tmp_path, capsys):

@@ -299,7 +299,7 @@ def test_a_foreign_or_missing_file_is_a_clear_error(tmp_path, capsys):
     assert main(["view", str(tmp_path / "nothing.rrd")]) == 2
     assert "no such file" in capsys.readouterr().err
     assert main(["view", str(tmp_path)]) == 2
-    assert "no session.rrd or session.mcap" in capsys.readouterr().err
+    assert "a folder without session.mcap or report.json; view wants a session folder" in capsys.readouterr().err
 
 
 # --------------------------------------------------------------------------
