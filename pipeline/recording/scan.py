@@ -199,19 +199,21 @@ def scan_file(path: Path) -> FileScan:
                 for record in reader.records:
                     if isinstance(record, Chunk):
                         scan.chunks += 1
-                        crc = zlib.crc32(_chunk_bytes(record, get_chunk_data_stream))
-                        records = None
+                        records = crc = None
                         try:
+                            # a compressed chunk whose bytes are damaged may not decompress at all
+                            crc = zlib.crc32(_chunk_bytes(record, get_chunk_data_stream))
                             records = breakup_chunk(record, validate_crc=False)
                         except Exception as exc:  # noqa: BLE001 - a damaged chunk is a finding
                             scan.problems.append(
                                 Problem(
                                     "unreadable",
-                                    f"chunk at byte {offset}: its records cannot be read ({exc})",
+                                    f"chunk at byte {offset} ({record.compression or 'uncompressed'}): its "
+                                    f"records cannot be read ({exc})",
                                     offset=offset,
                                 )
                             )
-                        bad_crc = record.uncompressed_crc != 0 and crc != record.uncompressed_crc
+                        bad_crc = crc is not None and record.uncompressed_crc != 0 and crc != record.uncompressed_crc
                         if records is not None:
                             first = len(scan.entries)
                             for r in records:

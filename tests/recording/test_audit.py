@@ -773,3 +773,24 @@ def test_topics_a_recording_never_had_are_noted_not_failed(recorded, tmp_path):
     result = reproduction(gap, make_plugin_manager())
     assert not result["passed"] and result["topics_not_recorded"] == []
     assert [m["topic"] for m in result["only_replayed"]] == ["/scene"]
+
+
+def test_a_damaged_compressed_chunk_is_a_finding_not_a_crash(tmp_path):
+    """One flipped byte inside an lz4 chunk can make it undecompressable: the scanner names
+    that chunk (unreadable, with its byte offset) and reads on; the audit fails, no traceback."""
+    record_session(tmp_path, "lz4", frames=1)  # the default compression
+    recorded = tmp_path / "lz4" / "session.mcap"
+    with open_recording(recorded) as rec:
+        image_chunk = max(
+            (c for c in rec._summary.chunk_indexes if c.compression == "lz4"), key=lambda c: c.chunk_length
+        )
+    start = image_chunk.chunk_start_offset
+    data = bytearray(recorded.read_bytes())
+    data[start + image_chunk.chunk_length // 2] ^= 0xFF  # inside that chunk's compressed records
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(bytes(data))
+    result = verify(damaged)
+    found = [p for p in result.problems if p.kind in ("unreadable", "crc")]
+    assert found and not result.passed, [(p.kind, p.detail) for p in result.problems]
+    assert any(p.offset == start for p in found), [p.detail for p in found]
+    assert not audit(damaged, make_plugin_manager(), reproduce=False).passed
