@@ -37,6 +37,7 @@ from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 
 from crossfield.recording.layout import FRAME_CAMERA, FRAME_GLOBAL
 from crossfield.types import CAMERAS
+from crossfield.viz.labels import centroid_names
 
 __all__ = [
     "COLOURS",
@@ -48,7 +49,6 @@ __all__ = [
     "ENTITY_TARGETS",
     "PIXEL_OFFSET",
     "FoxgloveOverlay",
-    "centroid_names",
     "image_annotations",
 ]
 
@@ -83,32 +83,6 @@ _PER_PAIR = (ENTITY_TARGETS, ENTITY_CHARACTERISTICS, ENTITY_CAMERA_CONTROLS)
 def _colour(message: Color, key: str, alpha: float = 1.0) -> None:
     r, g, b = COLOURS[key]
     message.r, message.g, message.b, message.a = r / 255.0, g / 255.0, b / 255.0, alpha
-
-
-def centroid_names(result: Any) -> dict[str, dict[int, tuple[str, str]]]:
-    """camera -> {centroid index: (plan id, role)} of the centroids whose camera point was
-    matched to a control point ("control") or identified as a target ("target"); the rule
-    of the Rerun view (the measurement reports the mapped camera point itself)."""
-    points, registration, measurement = result.points, result.registration, result.measurement
-    if points is None or registration is None:
-        return {}
-    by_point: dict[int, tuple[str, str]] = {}
-    corr = registration.correspondence
-    for cid, index in zip(corr.control_ids, corr.camera_index):
-        by_point[int(index)] = (str(cid), "control")
-    if measurement is not None and measurement.target_points and len(points):
-        global_xyz = registration.fit.apply(points.xyz)
-        for tid, xyz in measurement.target_points.items():
-            d = np.linalg.norm(global_xyz - np.asarray(xyz, dtype=np.float64), axis=1)
-            i = int(np.argmin(d))
-            if d[i] < 1e-6:
-                by_point[i] = (str(tid), "target")
-    out: dict[str, dict[int, tuple[str, str]]] = {camera: {} for camera in CAMERAS}
-    for i, named in by_point.items():
-        if 0 <= i < len(points):
-            out["upper"][int(points.upper_index[i])] = named
-            out["lower"][int(points.lower_index[i])] = named
-    return out
 
 
 def image_annotations(centroids: Any, names: Mapping[int, tuple[str, str]], timestamp_ns: int) -> bytes:

@@ -69,6 +69,7 @@ from crossfield.geometry import AxisFit, element_probes, fit_reference_element
 from crossfield.hookspecs import hookimpl
 from crossfield.types import CAMERAS, CameraIntrinsics, StereoCalibration
 from crossfield.viz import blueprint as bp
+from crossfield.viz.labels import centroid_names
 
 APPLICATION_ID = "crossfield"
 
@@ -480,7 +481,7 @@ class RerunLogger:
         if seq not in self._frame_times:
             self._remember_frame(seq, result.timestamp_ns)
         self._at_frame(seq, result.timestamp_ns)
-        names = self._centroid_names(result)
+        names = centroid_names(result)
         for camera in CAMERAS:
             cs = None if result.centroids is None else getattr(result.centroids, camera)
             self._log_centroids(camera, cs, names.get(camera, {}))
@@ -492,31 +493,6 @@ class RerunLogger:
 
     def _clear(self, entity: str) -> None:
         self.rec.log(entity, rr.Clear(recursive=True))
-
-    @staticmethod
-    def _centroid_names(result: Any) -> dict[str, dict[int, tuple[str, str]]]:
-        """camera -> {centroid index: (plan id, role)} for the centroids whose camera
-        point was matched to a control point or identified as a target."""
-        points, registration, measurement = result.points, result.registration, result.measurement
-        if points is None or registration is None:
-            return {}
-        by_point: dict[int, tuple[str, str]] = {}
-        corr = registration.correspondence
-        for cid, index in zip(corr.control_ids, corr.camera_index):
-            by_point[int(index)] = (str(cid), "control")
-        if measurement is not None and measurement.target_points and len(points):
-            global_xyz = registration.fit.apply(points.xyz)
-            for tid, xyz in measurement.target_points.items():
-                d = np.linalg.norm(global_xyz - np.asarray(xyz, dtype=np.float64), axis=1)
-                i = int(np.argmin(d))
-                if d[i] < 1e-6:  # the measurement reports the mapped camera point itself
-                    by_point[i] = (str(tid), "target")
-        out: dict[str, dict[int, tuple[str, str]]] = {camera: {} for camera in CAMERAS}
-        for i, named in by_point.items():
-            if 0 <= i < len(points):
-                out["upper"][int(points.upper_index[i])] = named
-                out["lower"][int(points.lower_index[i])] = named
-        return out
 
     def _log_centroids(self, camera: str, cs: Any, names: Mapping[int, tuple[str, str]]) -> None:
         base = IMAGE[camera]
