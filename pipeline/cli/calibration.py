@@ -11,6 +11,7 @@ from pathlib import Path
 
 from crossfield.calibration.boards import Board, board_from_dict, read_board_file
 from crossfield.calibration.coverage import coverage_line
+from crossfield.calibration.crossval import summary_line
 from crossfield.calibration.file import write_calibration_result
 from crossfield.calibration.images import read_image_pairs, write_image_pairs
 from crossfield.calibration.live import (
@@ -233,8 +234,6 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         )
     print(f"  baseline |T| = {result.baseline_mm:.4f} +- {result.baseline_std_mm:.4f} mm")
     if result.cross_validation is not None:
-        from crossfield.calibration.crossval import summary_line
-
         print(f"  {summary_line(result.cross_validation)}")
     for k, (rms, mx) in sorted(result.holdout_epipolar_px.items()):
         print(f"  held-out {result.view_names[k]}: epipolar error RMS {rms:.3f} px, max {mx:.3f} px")

@@ -33,6 +33,7 @@ from crossfield.progress import Progress
 from crossfield.recording.layout import IMAGE_TOPICS
 from crossfield.recording.seal import generate_key
 from crossfield.replay import load_recorded_session, replay_session
+from crossfield.report.qif import write_qif
 from crossfield.uncertainty.montecarlo import on_dask
 from crossfield.viz.rerun_log import RerunLogger
 from crossfield.viz.view import parse_window_size, spawn_live_viewer, view
@@ -321,8 +322,6 @@ def cmd_export(args: argparse.Namespace) -> int:
     elif args.csv:
         print(f"wrote {write_csv(args.session, args.csv)}")
     if args.qif:
-        from crossfield.report.qif import write_qif
-
         print(f"wrote {write_qif(args.session, args.qif)} (valid QIF 3.0.0)")
     return 0
 
