@@ -37,7 +37,7 @@ from crossfield.stages import (
 )
 
 if TYPE_CHECKING:  # pragma: no cover
-    from crossfield.session import FrameResult, SessionInfo, SessionSummary
+    from crossfield.session import FrameResult, SessionInfo, SessionStop, SessionSummary
     from crossfield.types import (
         CameraPoints,
         Measurement,
@@ -170,6 +170,14 @@ def on_frame_done(result: FrameResult) -> None:
 @hookspec
 def on_log(level: str, message: str, timestamp_ns: int) -> None:
     """A log line (``level`` one of debug, info, warning, error)."""
+
+
+@hookspec
+def on_session_stop(stop: SessionStop) -> None:
+    """The session stopped taking input before its end: the operator interrupted it
+    (SIGINT) or its camera or reference source raised (raw input: recorded on
+    ``/session/stop``; a replay stops there too). ``on_session_end`` follows, the
+    session INCOMPLETE."""
 
 
 @hookspec

@@ -17,6 +17,8 @@ whose ``parent`` (metadata and report) names the recording it re-ran
 
 A recording that was cut short (killed writer, truncated file) is replayed
 up to its last complete chunk; the summary's ``incomplete`` says where it ends.
+A session that stopped early (Ctrl-C, a source error: ``/session/stop``) is
+replayed up to where it stopped and states the same stop and reason.
 """
 
 from __future__ import annotations
@@ -38,7 +40,8 @@ from crossfield.recording.codec import decode_image, decode_link_event, ground_t
 from crossfield.recording.facts import SessionFacts, load_session_facts, require_session  # noqa: F401
 from crossfield.recording.integrity import file_sha256
 from crossfield.recording.prefetch import ahead
-from crossfield.session import SessionSummary
+from crossfield.recording.stop import read_stop
+from crossfield.session import SessionStop, SessionSummary
 from crossfield.stages import STAGES, SerialChunk
 from crossfield.types import CAMERAS, StereoFrame
 
@@ -79,6 +82,8 @@ class RecordingSource:
         self.start_time_ns = int(recorded.session.get("start_time_ns") or 0)
         self.incomplete: str | None = None
         self.frames_read = 0
+        #: Why the live run stopped early (``/session/stop``): the replay stops there too.
+        self.recorded_stop: SessionStop | None = read_stop(recorded.recording)
 
     def frames(self) -> Iterator[StereoFrame]:
         """The recorded pairs, read and decoded ahead on a second thread

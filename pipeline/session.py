@@ -41,8 +41,40 @@ __all__ = [
     "RegistrationAggregate",
     "SessionAggregate",
     "SessionInfo",
+    "SessionStop",
     "SessionSummary",
 ]
+
+
+#: ``SessionStop.kind`` of a run stopped by the operator (SIGINT, Ctrl-C).
+STOP_INTERRUPTED = "interrupted"
+#: ``SessionStop.kind`` of a run stopped because its camera or reference source raised.
+STOP_SOURCE_ERROR = "source_error"
+
+
+@dataclass(frozen=True)
+class SessionStop:
+    """Why a session stopped taking input before its end (``docs/faults.md``).
+
+    kind: :data:`STOP_INTERRUPTED` (the operator, SIGINT) or
+    :data:`STOP_SOURCE_ERROR` (the camera or reference source raised);
+    stage: where it stopped, ``"reference"`` (during the CMM import, before the
+    first stereo pair) or ``"acquire"`` (between stereo pairs); source: the
+    implementation of that stage (e.g. ``"romer-serial"``); message: the
+    source's error message (empty for an interruption); reason: the whole
+    sentence the report states as ``incomplete_reason``; frames: the stereo
+    pairs processed before the stop; timestamp_ns: when it stopped (wall clock,
+    ns since the Unix epoch). Recorded on ``/session/stop`` (a raw input: a
+    replay reads it and stops where the live run stopped).
+    """
+
+    kind: str
+    stage: str
+    source: str
+    reason: str
+    frames: int
+    timestamp_ns: int
+    message: str = ""
 
 
 @dataclass(frozen=True)
@@ -137,6 +169,9 @@ class CharacteristicSummary:
     lower_tol_mm: float | None = None
     measured_raw_mm: float | None = None
     temperature_correction_mm: float = 0.0
+    #: True when the session stopped before its end (``SessionSummary.incomplete``):
+    #: the value is of the pairs measured so far, the decision then never conforms.
+    partial: bool = False
 
 
 @dataclass(frozen=True)
@@ -347,6 +382,9 @@ class SessionSummary(SummaryTables):
     #: The session pose's motion-test line when it found the station moved
     #: (:mod:`crossfield.chain.session_pose`); None when static or not tested.
     station_moved: str | None = None
+    #: Why the session stopped taking input early (SIGINT, a source error); None when
+    #: it ran to the end of its source (:class:`SessionStop`).
+    stop: SessionStop | None = None
 
     @property
     def registrations(self) -> list[Registration]:

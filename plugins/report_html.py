@@ -121,7 +121,8 @@ def _decision_cell(c: Mapping[str, Any]) -> str:
     cls = {"conforms": "pass", "does_not_conform": "fail"}.get(decision, "open")
     mark = {"pass": "&#10003; ", "fail": "&#10007; "}.get(cls, "? ")
     accepted = "" if c["passed"] == (decision == "conforms") else (" (accepted)" if c["passed"] else "")
-    return _td(f"{mark}{esc(text)}{accepted}", cls)
+    partial = " (partial)" if c.get("partial") else ""  # the session stopped early
+    return _td(f"{mark}{esc(text)}{accepted}{partial}", cls)
 
 
 def _budget_table(report: Mapping[str, Any], decimals: int) -> str:
@@ -453,7 +454,9 @@ def render_html(
         "title": title,
         "decimals": decimals,
         "verdict_class": cls,
-        "verdict_text": Markup(f'{"&#10003;" if passed else "&#10007;"} {verdict(passed)}'),
+        "verdict_text": Markup(
+            f'{"&#10003;" if passed else "&#10007;"} {"INCOMPLETE" if report["incomplete"] else verdict(passed)}'
+        ),
         "job": Markup(_job_html(report)),
         "summary_facts": Markup(_dl(summary_facts)),
         "table1": Markup(_table1(reg, decimals)),
@@ -597,7 +600,7 @@ def render_text(report: Mapping[str, Any], decimals: int = 4) -> str:
             line += f"  {actual:>10}  {error:>8}"
         line += f"  {fixed(c['nominal_mm'], decimals):>10}  {tolerance_text(c, decimals):>{tol_w}}"
         line += f"  {fixed(c['deviation_mm'], decimals, True):>8}  {DECISION_TEXT.get(c['decision'], c['decision'])}"
-        lines.append(line)
+        lines.append(line + (" (partial)" if c.get("partial") else ""))
     if report["rms_error_mm"] is not None:
         lines.append(f"RMS error vs ground truth: {fixed(report['rms_error_mm'], decimals)} mm")
     mc = report.get("monte_carlo")
@@ -613,9 +616,11 @@ def render_text(report: Mapping[str, Any], decimals: int = 4) -> str:
         lines.append(f"! {_printable(problem)}")
     if len(report["problems"]) > 5:
         lines.append(f"! ... and {len(report['problems']) - 5} more problems (see report.json)")
-    incomplete = " (session incomplete)" if report["incomplete"] else ""
     moved = " (the station moved)" if report.get("station_moved") else ""
-    lines.append(f"Result: {verdict(report['passed'])}{incomplete}{moved}")
+    if report["incomplete"]:  # never PASS: not proven by a part of the session
+        lines.append(f"Result: INCOMPLETE ({_printable(report['incomplete_reason'] or 'session incomplete')}){moved}")
+    else:
+        lines.append(f"Result: {verdict(report['passed'])}{moved}")
     return "\n".join(lines)
 
 

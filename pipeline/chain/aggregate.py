@@ -46,6 +46,7 @@ from crossfield.session import (
     RegistrationAggregate,
     SessionAggregate,
     SessionInfo,
+    SessionStop,
     SessionSummary,
 )
 from crossfield.types import (
@@ -487,26 +488,38 @@ def session_summary(
     thumbnails: Iterable[CameraThumbnail] = (),
     characteristics: Iterable[CharacteristicSummary] | None = None,
     station_moved: str | None = None,
+    stop: SessionStop | None = None,
 ) -> SessionSummary:
     """The summary of a session whose frames went through ``accumulator``: the one
     place a session's summary is made (the runner's session end, the viewer's reading
     of a recording, the Python API). ``characteristics``: instead of the aggregate's
     (a test or a report that states its own); ``station_moved``: the session pose's
-    motion-test line when the station moved (the session is then not PASS)."""
+    motion-test line when the station moved (the session is then not PASS).
+    ``incomplete``: why the session did not run to its end; every characteristic is
+    then :func:`partial` (of the pairs measured so far, decision ``not_proven``).
+    ``stop``: the interruption or source error that ended it early, if one did."""
     aggregate = accumulator.result()
+    decided = gate_characteristics(aggregate.characteristics if characteristics is None else characteristics, info)
     return SessionSummary(
         info=info,
         reference=reference,
         frames=accumulator.rows,
-        characteristics=gate_characteristics(
-            aggregate.characteristics if characteristics is None else characteristics, info
-        ),
+        characteristics=decided if incomplete is None else partial(decided),
         report_files=tuple(report_files),
         incomplete=incomplete,
         aggregate=aggregate,
         thumbnails=tuple(thumbnails),
         station_moved=station_moved,
+        stop=stop,
     )
+
+
+def partial(characteristics: Iterable[CharacteristicSummary]) -> tuple[CharacteristicSummary, ...]:
+    """``characteristics`` of a session that stopped before its end: each marked
+    ``partial``, its decision ``not_proven`` (ISO 14253-1: conformance is not proven
+    by a part of the planned measurement) and not passed; measured values, u and U
+    are those of the pairs measured so far, unchanged."""
+    return tuple(dataclasses.replace(c, decision="not_proven", passed=False, partial=True) for c in characteristics)
 
 
 def summary_of_frames(

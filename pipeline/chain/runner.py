@@ -32,6 +32,7 @@ import pluggy
 
 from crossfield.chain.aggregate import SessionAccumulator, session_summary
 from crossfield.chain.correspondence import match_control_points
+from crossfield.chain.interrupt import InterruptedAgain, OperatorInterrupts, operator_interrupts
 from crossfield.chain.provenance import package_versions
 from crossfield.chain.registry import Implementation, get_implementation
 from crossfield.chain.session_pose import SessionPoseAccumulator
@@ -43,7 +44,15 @@ from crossfield.recording.recorder import McapRecorder, SessionRecorder
 from crossfield.recording.writer import DEFAULT_COMPRESSION
 from crossfield.report.document import build_report, with_seal
 from crossfield.report.thumbnails import ThumbnailObserver
-from crossfield.session import CameraThumbnail, FrameResult, SessionInfo, SessionSummary
+from crossfield.session import (
+    STOP_INTERRUPTED,
+    STOP_SOURCE_ERROR,
+    CameraThumbnail,
+    FrameResult,
+    SessionInfo,
+    SessionStop,
+    SessionSummary,
+)
 from crossfield.stages import (
     STAGES,
     Acquisition,
@@ -434,7 +443,9 @@ def run_session(
         recorded = source if isinstance(source, RecordedAcquisition) else None
         thumbnails = ThumbnailObserver()  # one image per camera for the report (docs/report.md, "Cameras")
         session_observers = [*_session_observers(config, out_dir, observers, mcap_path), thumbnails]
-        with _registered(pm, session_observers):
+        # Ctrl-C ends the session as INCOMPLETE (crossfield.chain.interrupt); installed
+        # outside the observers, so that the recorders are closed under it too.
+        with operator_interrupts() as interrupts, _registered(pm, session_observers):
             return run_pipeline(
                 pm.hook,
                 stages,
@@ -445,6 +456,9 @@ def run_session(
                 incomplete=(lambda: recorded.incomplete) if recorded is not None else (lambda: None),
                 recordings=[o for o in session_observers if isinstance(o, SessionRecorder)],
                 thumbnails=thumbnails.thumbnails,
+                interrupts=interrupts,
+                recorded_stop=getattr(recorded, "recorded_stop", None) if recorded is not None else None,
+                source_errors=recorded is None,
             )
     finally:
         if owned:
@@ -454,7 +468,9 @@ def run_session(
 #: ``import_reference(hook) -> (reference, time_ns)``: reads (or replays) the
 #: CMM data, handing every raw byte to ``hook.on_serial_bytes`` first; time_ns
 #: is when the last byte was read (None if none was), the time of the import's log lines.
-ReferenceImport = Callable[[Any], tuple[ReferenceData, int | None]]
+#: A replay's also takes ``decode=False``: hand the recorded bytes on, decode nothing
+#: (the live import was stopped there) and return None.
+ReferenceImport = Callable[..., Any]
 
 
 def _reference_reader(config: Config, stages: Stages, hook: Any, port: str | None = None) -> ReferenceSource:
@@ -505,7 +521,7 @@ def _recorded_reference(
     """Hand the recorded reads to the observers with their recorded times, then
     decode them as the live import did (``reader.decode``)."""
 
-    def import_reference(hook: Any) -> tuple[ReferenceData, int | None]:
+    def import_reference(hook: Any, decode: bool = True) -> tuple[ReferenceData, int | None] | None:
         parts: list[bytes] = []
         events: list[tuple[int, LinkEvent]] = []  # (offset in the joined bytes, event)
         size = 0
@@ -522,6 +538,8 @@ def _recorded_reference(
             parts.append(chunk.data)
             size += len(chunk.data)
             last = chunk.timestamp_ns
+        if not decode:
+            return None
         if not events:
             return reader.decode(b"".join(parts), plan), last
         if not implements(reader, DecodesLinkEvents):
@@ -545,6 +563,10 @@ def run_pipeline(
     incomplete: Callable[[], str | None] = lambda: None,
     recordings: Sequence[SessionRecorder] = (),
     thumbnails: Callable[[], Sequence[CameraThumbnail]] = tuple,
+    *,
+    interrupts: OperatorInterrupts | None = None,
+    recorded_stop: SessionStop | None = None,
+    source_errors: bool = True,
 ) -> SessionSummary:
     """The session's chain, shared by a live run and a replay.
 
@@ -559,13 +581,46 @@ def run_pipeline(
     are written. A recording that fails while frames are processed (disk
     full) ends the frames there: the session is then finished as incomplete.
     ``thumbnails()``: the camera thumbnails for the summary, asked after the last frame.
+
+    Stopping early (docs/faults.md, "Interrupted runs"): a Ctrl-C (KeyboardInterrupt;
+    with ``interrupts`` one that arrives while a pair is processed lets the pair
+    finish) or, when ``source_errors``, a :class:`CrossfieldError` or ``OSError`` of
+    the reference import or of the acquisition between pairs, ends the input there:
+    a :class:`SessionStop` goes to ``on_session_stop`` (recorded on ``/session/stop``)
+    and the session is finished as INCOMPLETE with the pairs measured so far, every
+    result partial. ``recorded_stop``: a replay's recorded stop; the replay stops
+    where it says (at the reference import: the recorded bytes are handed on, not
+    decoded) and states the same stop.
     """
     hook.on_session_start(session=info)
-    reference, reference_time_ns = import_reference(hook)
+    planned = _planned_pairs(info)
+    reference_name = stages.implementations["reference"].name
+    stop: SessionStop | None = None
+    reference = ReferenceData(points=())
+    reference_time_ns: int | None = None
+    try:
+        if recorded_stop is not None and recorded_stop.stage == "reference":
+            import_reference(hook, decode=False)
+            stop = recorded_stop
+        else:
+            reference, reference_time_ns = import_reference(hook)
+    except KeyboardInterrupt as exc:
+        if isinstance(exc, InterruptedAgain):
+            raise
+        stop = _stop(STOP_INTERRUPTED, "reference", reference_name, 0, planned)
+    except RecordingError:
+        raise
+    except (CrossfieldError, OSError) as exc:
+        if not source_errors:
+            raise
+        stop = _stop(STOP_SOURCE_ERROR, "reference", reference_name, 0, planned, exc)
     t = reference_time_ns if reference_time_ns is not None else time.time_ns()
-    for problem in reference.problems:
-        hook.on_log(level="warning", message=f"reference: {problem}", timestamp_ns=t)
-    hook.on_reference(reference=reference)
+    if stop is None:
+        for problem in reference.problems:
+            hook.on_log(level="warning", message=f"reference: {problem}", timestamp_ns=t)
+        hook.on_reference(reference=reference)
+    else:
+        t = stop.timestamp_ns
     # Aggregated frame by frame: memory does not grow with the session's length
     # (the first rows are kept for the report; the recording has every frame).
     accumulator = SessionAccumulator(
@@ -579,26 +634,91 @@ def run_pipeline(
     )
     session_pose = SessionPoseAccumulator()
     failed: str | None = None
-    for frame in frames:
+    deferred = interrupts.deferred if interrupts is not None else contextlib.nullcontext
+    pairs = iter(frames)
+    while stop is None:
         try:
-            hook.on_frame(frame=frame)
-            result = process_frame(
-                frame, stages, info.calibration, info.plan, reference, info.ground_truth, hook, match_tolerance_mm
-            )
-            hook.on_frame_done(result=result)
-        except RecordingError as exc:  # an observer's recording failed (disk full): no more frames
-            if not recordings:
-                raise
-            failed = f"the recording failed after {accumulator.frames_processed} frame(s): {exc}"
+            frame = next(pairs)
+        except StopIteration:
             break
-        accumulator.add(result)
-        session_pose.add(result.points, result.registration)
-        t = frame.timestamp_ns
+        except KeyboardInterrupt as exc:  # while waiting for the source
+            if isinstance(exc, InterruptedAgain):
+                raise
+            stop = _stop(STOP_INTERRUPTED, "acquire", _acquire_name(info), accumulator.frames_processed, planned)
+            break
+        except RecordingError:
+            raise
+        except (CrossfieldError, OSError) as exc:
+            if not source_errors:
+                raise
+            stop = _stop(
+                STOP_SOURCE_ERROR, "acquire", _acquire_name(info), accumulator.frames_processed, planned, exc
+            )
+            break
+        with deferred():  # a first Ctrl-C now lets this pair finish: it is recorded and counted whole
+            try:
+                hook.on_frame(frame=frame)
+                result = process_frame(
+                    frame, stages, info.calibration, info.plan, reference, info.ground_truth, hook, match_tolerance_mm
+                )
+                hook.on_frame_done(result=result)
+            except RecordingError as exc:  # an observer's recording failed (disk full): no more frames
+                if not recordings:
+                    raise
+                failed = f"the recording failed after {accumulator.frames_processed} frame(s): {exc}"
+                break
+            accumulator.add(result)
+            session_pose.add(result.points, result.registration)
+            t = frame.timestamp_ns
+        if interrupts is not None and interrupts.requested:
+            stop = _stop(STOP_INTERRUPTED, "acquire", _acquire_name(info), accumulator.frames_processed, planned)
+    if stop is not None:
+        close = getattr(pairs, "close", None)
+        if callable(close):
+            close()  # the source's generator: stopped here
+    if stop is None and recorded_stop is not None:
+        stop = recorded_stop  # a replay: the live run stopped after these pairs
+    if stop is not None:
+        hook.on_log(level="error", message=f"session stopped: {stop.reason}", timestamp_ns=stop.timestamp_ns)
+        hook.on_session_stop(stop=stop)
     moved = _log_session_pose(hook, session_pose, reference, info.plan, stages.register, t)
     return finish_session(
-        hook, stages, info, reference, accumulator, _joined(incomplete(), failed), recordings=recordings,
-        thumbnails=thumbnails(), station_moved=moved,
+        hook, stages, info, reference, accumulator,
+        _joined(incomplete(), failed, stop.reason if stop is not None else None), recordings=recordings,
+        thumbnails=thumbnails(), station_moved=moved, stop=stop,
     )
+
+
+def _planned_pairs(info: SessionInfo) -> int | None:
+    """How many stereo pairs the source was asked for (``[acquire] frames``), None if not said."""
+    frames = info.config.stages["acquire"].options.get("frames")
+    return frames if isinstance(frames, int) and not isinstance(frames, bool) and frames > 0 else None
+
+
+def _acquire_name(info: SessionInfo) -> str:
+    """The acquisition implementation's name (as recorded: a replay's is the recorded one)."""
+    return str((info.plugins.get("acquire") or {}).get("name") or info.config.stages["acquire"].plugin)
+
+
+def _stop(
+    kind: str, stage: str, source: str, frames: int, planned: int | None, error: BaseException | None = None
+) -> SessionStop:
+    """The :class:`SessionStop` of a live run stopped now, its reason in words, e.g.
+    ``interrupted by the operator (SIGINT) after 3 of 150 stereo pairs`` or
+    ``reference source romer-serial failed: <message> (during the CMM import, before
+    the first stereo pair)``."""
+    if stage == "reference":
+        where = "during the CMM import, before the first stereo pair"
+    else:
+        where = f"after {frames} of {planned} stereo pairs" if planned else f"after {frames} stereo pair(s)"
+    message = ""
+    if kind == STOP_INTERRUPTED:
+        reason = f"interrupted by the operator (SIGINT) {where}"
+    else:
+        message = " ".join(str(error).split()) or type(error).__name__
+        what = "reference" if stage == "reference" else "acquisition"
+        reason = f"{what} source {source} failed: {message} ({where})"
+    return SessionStop(kind, stage, source, reason, frames, time.time_ns(), message)
 
 
 def _joined(*reasons: str | None) -> str | None:
@@ -635,8 +755,9 @@ def finish_session(
     recordings: Sequence[SessionRecorder] = (),
     thumbnails: Sequence[CameraThumbnail] = (),
     station_moved: str | None = None,
+    stop: SessionStop | None = None,
 ) -> SessionSummary:
-    """The session's end (``station_moved``: the motion test's line when the station
+    """The session's end (``stop``: why it stopped early, if it did; ``station_moved``: the motion test's line when the station
     moved, which fails the session): summarise the aggregated frames
     (:func:`~crossfield.chain.aggregate.session_summary`), run the Monte Carlo check
     (``[session] monte_carlo`` draws), build the report document once, end the
@@ -653,7 +774,8 @@ def finish_session(
     A report that cannot be written is a :class:`RecordingError` naming it.
     """
     summary = session_summary(
-        info, reference, accumulator, incomplete=incomplete, thumbnails=thumbnails, station_moved=station_moved
+        info, reference, accumulator, incomplete=incomplete, thumbnails=thumbnails, station_moved=station_moved,
+        stop=stop,
     )
     draws = int(info.config.session.get("monte_carlo", 0))
     if draws:

@@ -66,6 +66,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     except CrossfieldError as exc:
         print(f"crossfield: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("crossfield: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as exc:  # a second Ctrl-C of a session says what it left (InterruptedAgain)
+        print(f"crossfield: interrupted{': ' + str(exc) if str(exc) else ''}", file=sys.stderr)
         return 130

@@ -33,6 +33,7 @@ from crossfield.progress import Progress
 from crossfield.recording.layout import IMAGE_TOPICS
 from crossfield.recording.seal import generate_key
 from crossfield.replay import load_recorded_session, replay_session
+from crossfield.session import STOP_INTERRUPTED
 from crossfield.report.qif import write_qif
 from crossfield.uncertainty.montecarlo import on_dask
 from crossfield.viz.rerun_log import RerunLogger
@@ -183,6 +184,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     print_seal(summary.info.out_dir / "session.mcap")
     print_session_files(summary.info.out_dir, "session written to")
     catalog.ingest_run(args, config, summary.info.out_dir)  # --catalog / [catalog] url; never fails the run
+    if summary.stop is not None:  # Ctrl-C or a source error: the INCOMPLETE report is written
+        print(
+            f"crossfield: session INCOMPLETE: {summary.stop.reason}; report in {summary.info.out_dir}",
+            file=sys.stderr,
+        )
+        return 130 if summary.stop.kind == STOP_INTERRUPTED else 2
     return 0 if summary.passed else 1
 
 

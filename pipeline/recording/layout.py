@@ -51,6 +51,9 @@ TOPIC_LOG = "/log"
 TOPIC_SCENE = "/scene"
 #: The integrity chain's records (:mod:`crossfield.recording.integrity`).
 TOPIC_INTEGRITY = "/integrity"
+#: Why a session stopped taking input before its end (SIGINT, a source error): at most
+#: one message, a raw input (replay reads it and stops where the live run stopped).
+TOPIC_SESSION_STOP = "/session/stop"
 
 # ---- a calibration session (crossfield calibrate --record; docs/calibration.md) ----
 
@@ -110,7 +113,7 @@ CAMERA_OF_TOPIC = {
 }
 
 #: Raw inputs: what a replay reads (and so does not reproduce), plus the chain.
-RAW_TOPICS = frozenset({*IMAGE_TOPICS, TOPIC_CMM_RAW, TOPIC_INTEGRITY})
+RAW_TOPICS = frozenset({*IMAGE_TOPICS, TOPIC_CMM_RAW, TOPIC_INTEGRITY, TOPIC_SESSION_STOP})
 
 #: Coordinate frame id of the global (CMM) frame (foxglove ``frame_id``).
 FRAME_GLOBAL = "global"
@@ -144,6 +147,7 @@ SCHEMA_REFERENCE = "crossfield.ReferenceData"
 SCHEMA_FRAME_STATUS = "crossfield.FrameStatus"
 SCHEMA_REPORT = "crossfield.Report"
 SCHEMA_INTEGRITY = "crossfield.Integrity"
+SCHEMA_SESSION_STOP = "crossfield.SessionStop"
 
 #: JSON schema name -> file in ``pipeline/recording/schemas``.
 JSON_SCHEMAS: dict[str, str] = {
@@ -157,6 +161,7 @@ JSON_SCHEMAS: dict[str, str] = {
     SCHEMA_FRAME_STATUS: "frame_status.schema.json",
     SCHEMA_REPORT: "report.schema.json",
     SCHEMA_INTEGRITY: "integrity.schema.json",
+    SCHEMA_SESSION_STOP: "session_stop.schema.json",
 }
 
 # ---- metadata records and attachments ------------------------------------------

@@ -107,6 +107,10 @@ class SessionRecorder:
     def on_log(self, level: str, message: str, timestamp_ns: int) -> None:
         self.writer.log(level, message, timestamp_ns)
 
+    @hookimpl
+    def on_session_stop(self, stop: Any) -> None:
+        self.writer.session_stop(stop)
+
     def end_session(self, summary: Any) -> Seal | None:
         """Record the session's end (``/report``, the result record) and close
         the recording; the runner calls this before any report is written.

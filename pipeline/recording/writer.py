@@ -739,6 +739,18 @@ class SessionWriter:
         # the results, which a replay reproduces from the data's own times.
         self._message(protobuf_channel(L.TOPIC_LOG, Log), t, log_message(level, message, t), advances_clock=False)
 
+    def session_stop(self, stop: Any) -> None:
+        """Why the session stopped early (``/session/stop``, :mod:`crossfield.recording.stop`),
+        at the time it stopped; like a log line it does not move the results' time stamps."""
+        from crossfield.recording.stop import stop_doc
+
+        t = int(stop.timestamp_ns) or self._now()
+        self._message(
+            json_channel(L.TOPIC_SESSION_STOP, L.SCHEMA_SESSION_STOP), t, dump_json(stop_doc(stop)),
+            advances_clock=False,
+        )
+        self.flush()
+
     def session_end(self, summary: Any) -> None:
         """The session report (``/report``) and result record; then the sink is closed."""
         if self.sink.closed:

@@ -273,6 +273,8 @@ def _characteristic_entry(index: int, c) -> dict[str, Any]:
     if c.actual_mm is not None:  # ground truth known (simulator)
         entry["actual_mm"] = real(c.actual_mm)
         entry["error_mm"] = real(c.error_mm)
+    if getattr(c, "partial", False):  # the session stopped early: of the pairs measured so far
+        entry["partial"] = True
     return entry
 
 
@@ -418,6 +420,7 @@ def build_report(summary: SessionSummary) -> dict[str, Any]:
         "passed": bool(summary.passed),
         "incomplete": summary.incomplete is not None,
         "incomplete_reason": summary.incomplete,
+        **({"stop": _stop_section(summary.stop)} if summary.stop is not None else {}),
         "station_moved": summary.station_moved,
         "problems": problems(summary),
         **(
@@ -425,6 +428,18 @@ def build_report(summary: SessionSummary) -> dict[str, Any]:
             if summary.monte_carlo is not None
             else {}
         ),
+    }
+
+
+def _stop_section(stop: Any) -> dict[str, Any]:
+    """The ``stop`` section: how a session that stopped early stopped (its
+    ``incomplete_reason`` says it in words)."""
+    return {
+        "kind": stop.kind,
+        "stage": stop.stage,
+        "source": stop.source,
+        "frames": int(stop.frames),
+        "message": stop.message,
     }
 
 
