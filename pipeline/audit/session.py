@@ -316,10 +316,22 @@ def audit_session(
     require_session(rec)
     integrity = verify(path)
     prov = provenance(path, pm)
-    return checked_report(
+    report = checked_report(
         path, rec, integrity, prov, (lambda p: reproduction(p, pm)) if reproduce else None,
         lambda: prov.get("result") is not None, incomplete_reason, "session", expect_head, public_key,
     )
+    stopped = recorded_incomplete(report)
+    if stopped and report.complete:  # ended INCOMPLETE (Ctrl-C, a source error), the recording finished
+        report.notes.append(f"the recorded session is INCOMPLETE: {stopped}")
+    return report
+
+
+def recorded_incomplete(report: AuditReport) -> str | None:
+    """The ``incomplete`` reason of the recorded ``crossfield.result`` (a session that
+    stopped early but whose recording was finished: Ctrl-C, a source error), else None."""
+    result = report.provenance.get("result")
+    reason = result.get("incomplete") if isinstance(result, dict) else None
+    return str(reason) if reason else None
 
 
 def incomplete_reason(report: AuditReport) -> str:
@@ -352,6 +364,8 @@ def format_session_report(report: AuditReport, *, limit: int = 40) -> str:
             lines.append(f"    changed {key}: {c.get('from')!r} -> {c.get('to')!r}")
     if not report.complete:
         lines.append(f"  INCOMPLETE: {incomplete_reason(report)}")
+    elif recorded_incomplete(report):
+        lines.append(f"  session INCOMPLETE (as its report says): {recorded_incomplete(report)}")
     lines.append("")
 
     integ = report.integrity
@@ -447,7 +461,10 @@ def format_session_report(report: AuditReport, *, limit: int = 40) -> str:
                 )
     lines += seal_lines(report.seal)
     lines.append("")
-    lines.append(verdict_line(report))
+    verdict = verdict_line(report)
+    if report.complete and recorded_incomplete(report):  # the record is sound; the session is not complete
+        verdict += " (the recording and its partial results; the session is INCOMPLETE)"
+    lines.append(verdict)
     return "\n".join(lines)
 
 

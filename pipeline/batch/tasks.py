@@ -207,6 +207,9 @@ def audit_entry(path: str, folder: Path) -> dict[str, Any]:
         verdict, reason = "FAIL", "; ".join(findings)
     elif not report.complete:
         verdict, reason = "INCOMPLETE", f"{'; '.join(report.notes)}; intact and reproduced up to where it ends"
+    elif (report.provenance.get("result") or {}).get("incomplete"):  # stopped early (Ctrl-C, a source error)
+        stopped = report.provenance["result"]["incomplete"]
+        verdict, reason = "INCOMPLETE", f"the session ended INCOMPLETE: {stopped}; its recording is intact and reproduced"
     else:
         verdict, reason = "PASS", "integrity, provenance and reproduction pass"
     return {

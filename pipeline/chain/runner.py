@@ -678,9 +678,9 @@ def run_pipeline(
             close()  # the source's generator: stopped here
     if stop is None and recorded_stop is not None:
         stop = recorded_stop  # a replay: the live run stopped after these pairs
-    if stop is not None:
-        hook.on_log(level="error", message=f"session stopped: {stop.reason}", timestamp_ns=stop.timestamp_ns)
+    if stop is not None:  # recorded first: once the line is shown, a replay stops here too
         hook.on_session_stop(stop=stop)
+        hook.on_log(level="error", message=f"session stopped: {stop.reason}", timestamp_ns=stop.timestamp_ns)
     moved = _log_session_pose(hook, session_pose, reference, info.plan, stages.register, t)
     return finish_session(
         hook, stages, info, reference, accumulator,

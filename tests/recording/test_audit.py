@@ -578,35 +578,6 @@ def test_a_session_longer_than_the_report_rows_passes_its_own_audit(tmp_path, mo
     assert result.reproduction["differences"] == [] and result.passed
 
 
-@pytest.fixture(scope="module")
-def interrupted(tmp_path_factory):
-    """A `crossfield run` stopped with Ctrl-C (SIGINT) once some pairs are on disk:
-    the recorder finishes the file at exit, but the session never ended."""
-    out = tmp_path_factory.mktemp("interrupted")
-    path, code, err = stopped_run(out, "s", "table3", signal.SIGINT, 40e6)
-    assert code == 130 and b"interrupted" in err
-    return path
-
-
-def test_an_interrupted_session_is_incomplete_in_replay_and_audit(interrupted, tmp_path, capsys):
-    with open_recording(interrupted) as rec:
-        assert rec.complete  # finished at exit: footer and summary are there
-        assert "crossfield.result" not in rec.metadata()
-    code = main(["replay", str(interrupted), "-o", str(tmp_path / "r.mcap"), "-q", "--no-rerun"])
-    out = capsys.readouterr().out
-    assert code == 1 and "did not end normally" in out and "Result: PASS" not in out
-    with open_recording(tmp_path / "r.mcap") as rec:
-        result = rec.metadata_doc("crossfield.result")
-    assert not result["passed"] and "did not end normally" in result["incomplete"]
-    code = main(["audit", str(interrupted), "--json"])
-    doc = json.loads(capsys.readouterr().out)
-    assert code == 1 and not doc["passed"] and not doc["complete"]
-    assert any("did not end normally" in n for n in doc["notes"])
-    assert main(["audit", str(interrupted)]) == 1
-    text = capsys.readouterr().out
-    assert "INCOMPLETE: the session did not end normally" in text and "Audit: FAIL" in text
-
-
 def test_a_chunk_whose_record_length_is_damaged_is_named_and_reading_goes_on(recorded, tmp_path):
     """A damaged record length makes the rest of the file unparseable for a plain
     reader; the audit names the unreadable bytes and the message lost in them,
