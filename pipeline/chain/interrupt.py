@@ -13,10 +13,11 @@ depends on where the session is (``docs/faults.md``, "Interrupted runs"):
   :class:`KeyboardInterrupt` there at once, which the runner takes as the
   stop;
 * the second Ctrl-C: :class:`InterruptedAgain` at once, wherever the session
-  is (also while it writes its report): the recorders are still closed on
-  the way out, so the recording stays readable, but no report may be written;
-* a third and later one while that cleanup runs: ignored, so that the
-  recording can be closed.
+  is (also while it writes its report), except while a recording is ended and
+  closed (:meth:`OperatorInterrupts.shielded`): there it waits until the file
+  is whole. The recorders are still closed on the way out, so the recording
+  stays readable, but no report may be written;
+* a third and later one: ignored, so that the recording can be closed.
 """
 
 from __future__ import annotations
@@ -44,20 +45,28 @@ class OperatorInterrupts:
         self.count = 0
         self.requested = False
         self._deferring = False
+        self._shielded = False
+        self._pending = False
 
     def __call__(self, signum: int, frame: FrameType | None) -> None:
         self.count += 1
+        if self.count >= 3:
+            return  # ignored while the recording is closed
+        if self._shielded:
+            self._pending = True
+            return
+        if self.count == 1 and self._deferring:
+            self.requested = True
+            return
+        raise self._interrupt()
+
+    def _interrupt(self) -> KeyboardInterrupt:
         if self.count == 1:
-            if self._deferring:
-                self.requested = True
-                return
-            raise KeyboardInterrupt
-        if self.count == 2:
-            raise InterruptedAgain(
-                "interrupted again while the session was finishing: the recording is closed without "
-                "its result record (replay and audit call it INCOMPLETE); the report may be missing"
-            )
-        # third and later: ignored while the recording is closed
+            return KeyboardInterrupt()
+        return InterruptedAgain(
+            "interrupted again while the session was finishing: the recording is closed (replay and "
+            "audit read it); the report may be missing"
+        )
 
     @contextlib.contextmanager
     def deferred(self) -> Iterator[None]:
@@ -67,6 +76,21 @@ class OperatorInterrupts:
             yield
         finally:
             self._deferring = False
+
+    @contextlib.contextmanager
+    def shielded(self) -> Iterator[None]:
+        """No Ctrl-C interrupts this block (ending and closing a recording: a file
+        half-closed would lose its index and footer); one that arrived meanwhile is
+        raised when the block ends normally."""
+        outer = self._shielded
+        self._shielded = True
+        try:
+            yield
+        finally:
+            self._shielded = outer
+        if self._pending and not outer:
+            self._pending = False
+            raise self._interrupt()
 
 
 @contextlib.contextmanager

@@ -269,9 +269,12 @@ def new_session_dir(base: Path, name: str, what: str = "") -> Path:
 
 
 @contextlib.contextmanager
-def _registered(pm: pluggy.PluginManager, observers: Iterable[object]) -> Iterator[None]:
+def _registered(
+    pm: pluggy.PluginManager, observers: Iterable[object], interrupts: OperatorInterrupts | None = None
+) -> Iterator[None]:
     """Register the session's observers; unregister and close them at the end,
-    also when the session fails (a recorder then finishes its file)."""
+    also when the session fails (a recorder then finishes its file; not
+    interrupted by a Ctrl-C, ``interrupts``)."""
     added = []
     try:
         for obs in observers:
@@ -279,11 +282,17 @@ def _registered(pm: pluggy.PluginManager, observers: Iterable[object]) -> Iterat
             added.append(obs)
         yield
     finally:
-        for obs in reversed(added):
-            pm.unregister(obs)
-            close = getattr(obs, "close", None)
-            if callable(close):
-                close()
+        with _shielded(interrupts):
+            for obs in reversed(added):
+                pm.unregister(obs)
+                close = getattr(obs, "close", None)
+                if callable(close):
+                    close()
+
+
+def _shielded(interrupts: OperatorInterrupts | None) -> contextlib.AbstractContextManager[None]:
+    """``interrupts.shielded()``: no Ctrl-C while a recording is ended and closed."""
+    return interrupts.shielded() if interrupts is not None else contextlib.nullcontext()
 
 
 def _session_observers(
@@ -445,7 +454,7 @@ def run_session(
         session_observers = [*_session_observers(config, out_dir, observers, mcap_path), thumbnails]
         # Ctrl-C ends the session as INCOMPLETE (crossfield.chain.interrupt); installed
         # outside the observers, so that the recorders are closed under it too.
-        with operator_interrupts() as interrupts, _registered(pm, session_observers):
+        with operator_interrupts() as interrupts, _registered(pm, session_observers, interrupts):
             return run_pipeline(
                 pm.hook,
                 stages,
@@ -685,7 +694,7 @@ def run_pipeline(
     return finish_session(
         hook, stages, info, reference, accumulator,
         _joined(incomplete(), failed, stop.reason if stop is not None else None), recordings=recordings,
-        thumbnails=thumbnails(), station_moved=moved, stop=stop,
+        thumbnails=thumbnails(), station_moved=moved, stop=stop, interrupts=interrupts,
     )
 
 
@@ -756,8 +765,10 @@ def finish_session(
     thumbnails: Sequence[CameraThumbnail] = (),
     station_moved: str | None = None,
     stop: SessionStop | None = None,
+    interrupts: OperatorInterrupts | None = None,
 ) -> SessionSummary:
-    """The session's end (``stop``: why it stopped early, if it did; ``station_moved``: the motion test's line when the station
+    """The session's end (``stop``: why it stopped early, if it did; ``interrupts``:
+    a Ctrl-C waits while the recordings are ended; ``station_moved``: the motion test's line when the station
     moved, which fails the session): summarise the aggregated frames
     (:func:`~crossfield.chain.aggregate.session_summary`), run the Monte Carlo check
     (``[session] monte_carlo`` draws), build the report document once, end the
@@ -785,14 +796,15 @@ def finish_session(
     planned = tuple(stages.report.report_files(info.out_dir)) if implements(stages.report, ListsReportFiles) else ()
     summary = dataclasses.replace(summary, report=build_report(summary))
     seals, failures = [], []
-    for recording in recordings:
-        try:
-            sealed = recording.end_session(dataclasses.replace(summary, report_files=planned))
-        except CrossfieldError as exc:
-            failures.append(str(exc))
-        else:
-            if sealed is not None:
-                seals.append(sealed)
+    with _shielded(interrupts):  # a recording is ended whole, or not at all
+        for recording in recordings:
+            try:
+                sealed = recording.end_session(dataclasses.replace(summary, report_files=planned))
+            except CrossfieldError as exc:
+                failures.append(str(exc))
+            else:
+                if sealed is not None:
+                    seals.append(sealed)
     if failures:
         reason = "; ".join(failures)
         if not reason.startswith("the recording failed"):

@@ -270,3 +270,8 @@ def test_the_sigint_handler_defers_the_first_inside_a_pair_and_ignores_the_third
     with pytest.raises(KeyboardInterrupt) as caught:  # waiting for the source: at once
         fresh(signal.SIGINT, None)
     assert not isinstance(caught.value, InterruptedAgain) and not fresh.requested
+    with pytest.raises(InterruptedAgain):  # closing a recording: the second waits until the file is whole
+        with fresh.shielded():
+            fresh(signal.SIGINT, None)
+            closed = True
+    assert closed
