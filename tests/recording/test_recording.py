@@ -412,7 +412,10 @@ def test_json_messages_validate_against_their_recorded_schema(session):
             validator = jsonschema.Draft202012Validator(schema)
             for m in rec.messages(topic):
                 validator.validate(m.decoded)
-    assert set(JSON_SCHEMAS) == {i.schema_name for i in topics.values() if i.message_encoding == "json"}
+    # crossfield.SessionStop only in a session that stopped early (validated in tests/session/test_interrupted.py)
+    assert set(JSON_SCHEMAS) - {"crossfield.SessionStop"} == {
+        i.schema_name for i in topics.values() if i.message_encoding == "json"
+    }
 
 
 def test_stage_results_carry_the_numbers_sent(session):

@@ -21,6 +21,7 @@ import sys
 import time
 from pathlib import Path
 
+import jsonschema
 import pytest
 from session_tools import report_numbers, sigint_default
 
@@ -151,6 +152,10 @@ def test_sigint_writes_an_incomplete_report_of_the_pairs_measured(interrupted):
     assert f"crossfield: session INCOMPLETE: {reason}; report in {folder}" in stderr
     with open_recording(folder / "session.mcap") as rec:
         (stop,) = [m.decoded for m in rec.messages("/session/stop")]
+        for topic in ("/session/stop", "/report"):  # each valid under the schema the file carries
+            validator = jsonschema.Draft202012Validator(json.loads(rec.schema(topic)))
+            for m in rec.messages(topic):
+                validator.validate(m.decoded)
     assert stop["reason"] == reason and stop["frames"] == pairs
 
 
