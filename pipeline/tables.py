@@ -85,7 +85,7 @@ def _headline(report: Mapping[str, Any], decimals: int) -> list[str]:
     else:
         lines.append("Registration: none")
     rule = report["uncertainty"]["decision_rule"]
-    lines.append(f"Decision rule: {rule_text(rule)}; guard band {guard_band_text(rule)}")
+    lines.append(f"Decision rule: {rule_text(rule)}, guard band {guard_band_text(rule)}")
     return lines
 
 

@@ -59,11 +59,9 @@ RULE_WORDS = {
 
 #: Each rule's guard band w (ISO 14253-1:2017 5.2, 5.3; ILAC-G8:09/2019 4.2).
 GUARD_BAND_WORDS = {
-    "simple": "none (w = 0: the decision is taken at the tolerance limits)",
-    "guarded_acceptance": "w = U inside the tolerance zone (conforms only when the deviation is at least U "
-    "inside it)",
-    "guarded_rejection": "w = U outside the tolerance zone (does not conform only when the deviation is at "
-    "least U outside it)",
+    "simple": "none (w = 0)",
+    "guarded_acceptance": "w = U inside the tolerance zone",
+    "guarded_rejection": "w = U outside the tolerance zone",
 }
 
 
