@@ -2,7 +2,7 @@
 
 ``print(summary)``, ``crossfield run``'s summary and a notebook's display of a
 summary (``_repr_html_``) are one rendering of the session's report document
-(:func:`crossfield.report.document.document_of`): the headline (frames,
+(``summary.report``, built once at the session end by the runner): the headline (frames,
 registration RMS, the decision rule), the characteristics table of
 :func:`crossfield.report.vocabulary.result_table` (lengths in mm; u, U (k = 2),
 the ISO 14253-1 decision), the RMS error, the Monte Carlo check, the problems
@@ -136,20 +136,26 @@ def report_html(report: Mapping[str, Any], decimals: int = 4) -> str:
     return f"<div>{head}{caption}{html_table(table.headers, table.rows, table.right)}{foot}</div>"
 
 
-def _document(summary: Any) -> Mapping[str, Any]:
-    from crossfield.report.document import document_of  # the report imports the session: not at module level
-
-    return document_of(summary)
+def _no_document(summary: Any) -> str:
+    """What a summary without its report document prints (one made outside the runner,
+    which builds the document at the session end)."""
+    return (
+        f"Session {printable(summary.info.session_id)}: {summary.frames_processed} frames; no report document "
+        "yet (crossfield.report.document.document_of(summary) builds it; report_text(document) prints it)"
+    )
 
 
 def session_text(summary: Any, decimals: int = 4) -> str:
-    """The session as text (:func:`report_text` of its report document)."""
-    return report_text(_document(summary), decimals)
+    """The session as text: :func:`report_text` of its report document (``summary.report``,
+    built at the session end)."""
+    return _no_document(summary) if summary.report is None else report_text(summary.report, decimals)
 
 
 def session_html(summary: Any, decimals: int = 4) -> str:
-    """The session as an HTML fragment (:func:`report_html` of its report document)."""
-    return report_html(_document(summary), decimals)
+    """The session as an HTML fragment: :func:`report_html` of its report document."""
+    if summary.report is None:
+        return f"<div>{html.escape(_no_document(summary))}</div>"
+    return report_html(summary.report, decimals)
 
 
 class SummaryTables:

@@ -382,7 +382,6 @@ def render_html(
     templates: a folder whose ``report.html.j2`` / ``report.css`` replace crossfield's
     (Jinja2; ``docs/report.md``, "Templates")."""
     reg = report["registration"]
-    passed = report["passed"]
     n_frames, n_failed = report["frames_processed"], report["frames_failed"]
     summary_facts = [
         ("Frames processed", esc(f"{n_frames} ({n_failed} failed)")),

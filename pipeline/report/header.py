@@ -65,7 +65,7 @@ class RecordHeader:
 
 def now_utc() -> str:
     """The present time, ISO 8601 UTC to the second (when a page is written)."""
-    return _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat()
+    return _dt.datetime.now(_dt.UTC).replace(microsecond=0).isoformat()
 
 
 def signature_text(integrity: Mapping[str, Any] | None) -> str:

@@ -765,8 +765,8 @@ class RerunLogger:
         ]
         for row in table.rows:
             lines.append("| " + " | ".join(cell.replace("|", "\\|") for cell in row) + " |")
-        lines += ["", "u: standard uncertainty of the mean; U: expanded uncertainty; std (repeatability) and "
-                  "more in the HTML report."]
+        lines += ["", ("u: standard uncertainty of the mean; U: expanded uncertainty; std (repeatability) and "
+                       "more in the HTML report.")]
         rms = summary.rms_error_mm()
         if rms is not None:
             lines += ["", f"RMS error against the simulator's ground truth: {_fmt(rms)} mm"]

@@ -225,7 +225,7 @@ def test_report_has_inline_svg_plots_and_json(tmp_path, paper, sweeps):
     text = html_path.read_text()
     assert text.count("<svg") == len(sweeps["sweeps"]) + 1  # one per sweep + the TRE field
     for name in sweeps["sweeps"]:
-        assert f"id='sweep-{name}'" in text
+        assert f'id="sweep-{name}"' in text
     doc = json.loads(json_path.read_text())
     assert doc["sweeps"]["sweeps"].keys() == sweeps["sweeps"].keys()
     assert [c["name"] for c in doc["characteristics"]] == [c.name for c in paper.characteristics]

@@ -212,8 +212,9 @@ def test_session_rrd_verifies_and_holds_the_session(sim):
         )
     report = latest(rows, "/report", "TextDocument:text")[0]
     assert report.startswith("# PASS" if summary.passed else "# FAIL")
-    for c in summary.characteristics:
-        assert f"| {c.name} | {c.n} | {c.measured_mm:.4f} ± " in report
+    for k, c in enumerate(summary.characteristics, start=1):
+        assert f"| {k} | {c.name} | {c.n} | {c.measured_mm:.4f} | {c.uncertainty_mm:.4f} | " in report
+        assert f" | {c.expanded_uncertainty_mm:.4f} | " in report
     assert "x1000" in latest(rows, "/session", "TextDocument:text")[0]
 
 
