@@ -96,7 +96,15 @@ from crossfield.report.figures import deviation_chart, residual_chart, thumbnail
 from crossfield.report.header import session_header
 from crossfield.report.pages import render_page
 from crossfield.report.thumbnails import KIND_CONTROL, KIND_TARGET
-from crossfield.report.vocabulary import DASH, decision_class, decision_text, expanded_heading, fixed, tolerance_text
+from crossfield.report.vocabulary import (
+    DASH,
+    decision_class,
+    decision_text,
+    expanded_heading,
+    fixed,
+    rule_text,
+    tolerance_text,
+)
 from crossfield.rigid import (
     REFLECTION_RATIO,
     check_ratio,
@@ -292,6 +300,7 @@ __all__ = [
     "residual_rms",
     "resolve_units",
     "rigid_fit",
+    "rule_text",
     "session_header",
     "shape_from_moments",
     "skew",

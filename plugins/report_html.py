@@ -37,6 +37,7 @@ from crossfield.plugin_api import (
     render_page,
     report_text,
     residual_chart,
+    rule_text,
     session_header,
     thumbnail_chart,
     tolerance_text,
@@ -389,7 +390,7 @@ def render_html(
         ("Registration RMS", esc(f"{fixed(reg['rms_mm'], decimals)} mm" if reg else DASH)),
         ("Control points", esc(len(reg["control_points"]) if reg else 0)),
         ("Characteristics", esc(f"{sum(c['passed'] for c in report['characteristics'])} of "
-                                f"{len(report['characteristics'])} in tolerance")),
+                                f"{len(report['characteristics'])} accepted ({rule_text(report['uncertainty']['decision_rule'])})")),
         ("CMM points", esc(report["reference"]["n_points"])),
     ]
     if report["rms_error_mm"] is not None:
