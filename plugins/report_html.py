@@ -20,9 +20,9 @@ from typing import Any, Iterable, Mapping, Sequence
 from markupsafe import Markup
 
 from crossfield.plugin_api import (
+    DASH,
     KIND_CONTROL,
     KIND_TARGET,
-    DASH,
     REPORT_JSON,
     TEMPLATE_DIR,
     SessionSummary,
