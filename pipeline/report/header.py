@@ -73,7 +73,7 @@ def signature_text(integrity: Mapping[str, Any] | None) -> str:
     public key 1a2b…)``, ``not signed (no station key, [session] signing_key)``, or that
     there is no seal."""
     if not integrity:
-        return f"no seal: the recording was {NOT_RECORDED}"
+        return "no seal (nothing recorded)"
     if integrity.get("signed"):
         signature = integrity.get("signature") or {}
         key = str(signature.get("public_key", ""))
