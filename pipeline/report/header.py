@@ -22,7 +22,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from crossfield.report.vocabulary import DASH, guard_band_text, rule_text
+from crossfield.report.vocabulary import DASH, guard_band_text, rule_text, session_verdict, verdict_class
 
 __all__ = [
     "Fact",
@@ -117,19 +117,17 @@ def instrument_rows(instruments: Sequence[Mapping[str, Any]]) -> tuple[tuple[str
 
 def session_header(report: Mapping[str, Any]) -> RecordHeader:
     """The header of report.html, from the report document (report.json, with its ``integrity``)."""
-    from crossfield.report.vocabulary import session_verdict, verdict_class
-
     session = report["session"]
     job = report.get("job") or {}
     packages = report.get("packages") or {}
     calibration = report.get("calibration") or {}
     cal_text = str(calibration.get("source") or DASH)
+    recorded = (report.get("config") or {}).get("session", {}).get("record", True)
+    absent = f"{NOT_RECORDED} (session.record = false)" if not recorded else "no seal in the report document"
     facts = [
         Fact("Date (UTC)", str(session.get("start_time_utc") or NOT_RECORDED), "record-date"),
         Fact("Software", f"crossfield {packages.get('crossfield', NOT_RECORDED)}", "record-software"),
-        *seal_facts(report.get("integrity"), f"{NOT_RECORDED} (session.record = false)"
-                    if not report.get("config", {}).get("session", {}).get("record", True)
-                    else "no seal in the document"),
+        *seal_facts(report.get("integrity"), absent),
         *rule_facts(report["uncertainty"]["decision_rule"]),
         Fact("Calibration", cal_text, "record-calibration"),
         Fact("Calibration SHA-256", str(calibration.get("sha256") or NOT_RECORDED), "record-calibration-sha256",
