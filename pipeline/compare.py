@@ -36,6 +36,7 @@ from crossfield.chain.registry import STAGES
 from crossfield.recording import layout as L
 from crossfield.recording.facts import require_session
 from crossfield.recording.reader import Recording, open_recording
+from crossfield.report.vocabulary import decision_text, expanded_heading, verdict_word
 from crossfield.types import CAMERAS
 
 #: Per-characteristic values compared (report.json keys).
@@ -50,6 +51,7 @@ CHARACTERISTIC_KEYS = (
     "passed",
     "actual_mm",
     "error_mm",
+    "coverage_factor",
 )
 #: Session-level report values compared.
 SUMMARY_KEYS = ("passed", "frames_processed", "frames_failed", "rms_error_mm", "incomplete")
@@ -418,11 +420,21 @@ def _compare_registration(
 # --------------------------------------------------------------------------
 
 
+def _decision(c: Mapping[str, Any]) -> str:
+    """A side's ISO 14253-1 decision of a characteristic (crossfield.report.vocabulary); - when absent."""
+    return decision_text(c.get("decision"), c.get("passed")) if c else "-"
+
+
+def _verdict(passed: Any) -> str:
+    """A side's session verdict, PASS or FAIL; - without a report."""
+    return "-" if passed is None else verdict_word(bool(passed))
+
+
 def _f(value: Any, digits: int = 4) -> str:
     if value is None:
         return "-"
     if isinstance(value, bool):
-        return "PASS" if value else "FAIL"
+        return verdict_word(value)
     if isinstance(value, int):
         return str(value)
     if isinstance(value, float):
@@ -463,20 +475,26 @@ def format_table(result: Mapping[str, Any]) -> str:
     if result.get("note"):
         lines.append(result["note"])
     else:
-        lines.append("Characteristics (mm)")
+        chars = result["characteristics"]
+        k = next((s.get("coverage_factor") for c in chars for s in (c["a"], c["b"]) if s), None)
+        U = expanded_heading(k)
+        lines.append(f"Characteristics (mm; {U}: expanded uncertainty; decision: ISO 14253-1)")
         lines.append(
             f"  {'name':<10} {'A measured':>12} {'B measured':>12} {'B - A':>10} "
-            f"{'A dev':>9} {'B dev':>9}  A     B"
+            f"{'A dev':>9} {'B dev':>9} {'A ' + U:>13} {'B ' + U:>13}  {'A decision':<17} B decision"
         )
-        for c in result["characteristics"]:
+        for c in chars:
             a, b = c["a"] or {}, c["b"] or {}
             lines.append(
                 f"  {c['name']:<10} {_f(a.get('measured_mm')):>12} {_f(b.get('measured_mm')):>12} "
-                f"{_d(c.get('delta_mm')):>10} {_f(a.get('deviation_mm')):>9} {_f(b.get('deviation_mm')):>9}  "
-                f"{_f(a.get('passed')):<5} {_f(b.get('passed'))}"
+                f"{_d(c.get('delta_mm')):>10} {_f(a.get('deviation_mm')):>9} {_f(b.get('deviation_mm')):>9} "
+                f"{_f(a.get('expanded_uncertainty_mm')):>13} {_f(b.get('expanded_uncertainty_mm')):>13}  "
+                f"{_decision(a):<17} {_decision(b)}"
             )
         for row in result["summary"]:
-            if row["key"] in ("passed", "rms_error_mm"):
+            if row["key"] == "passed":
+                lines.append(f"  {'verdict':<10} {_verdict(row['a']):>12} {_verdict(row['b']):>12}")
+            elif row["key"] == "rms_error_mm":
                 lines.append(
                     f"  {row['key']:<10} {_f(row['a']):>12} {_f(row['b']):>12} {_d(row['delta']):>10}"
                 )

@@ -93,7 +93,18 @@ from crossfield.imaging.eccentricity import View, centre_offsets, fit_circles, o
 from crossfield.plan import CharacteristicSpec, MeasurementPlan
 from crossfield.report.document import REPORT_JSON, TEMPLATE_DIR, document_of, dumps
 from crossfield.report.figures import deviation_chart, residual_chart, thumbnail_chart, trend_chart
+from crossfield.report.header import session_header
+from crossfield.report.pages import render_page
 from crossfield.report.thumbnails import KIND_CONTROL, KIND_TARGET
+from crossfield.report.vocabulary import (
+    DASH,
+    decision_class,
+    decision_text,
+    expanded_heading,
+    fixed,
+    rule_text,
+    tolerance_text,
+)
 from crossfield.rigid import (
     REFLECTION_RATIO,
     check_ratio,
@@ -129,6 +140,7 @@ from crossfield.stages import (
     Triangulator,
     implements,
 )
+from crossfield.tables import report_text
 from crossfield.types import (
     CAMERAS,
     CameraPoints,
@@ -172,6 +184,7 @@ __all__ = [
     "ConfigError",
     "CorrespondenceError",
     "CrossfieldError",
+    "DASH",
     "DEFAULT_SCALE_U",
     "DEFAULT_VOLUME_MM",
     "Decoder",
@@ -251,15 +264,19 @@ __all__ = [
     "check_volume",
     "combined",
     "control_problems",
+    "decision_class",
+    "decision_text",
     "deviation_chart",
     "document_of",
     "dumps",
     "eccentricity_sigma_mm",
     "edge_profile",
+    "expanded_heading",
     "finite",
     "fit_circles",
     "fit_discs",
     "fit_reference_element",
+    "fixed",
     "hookimpl",
     "implements",
     "in_volume",
@@ -277,10 +294,14 @@ __all__ = [
     "read_stereo_calibration",
     "refine_points",
     "registration_jacobian",
+    "render_page",
+    "report_text",
     "residual_chart",
     "residual_rms",
     "resolve_units",
     "rigid_fit",
+    "rule_text",
+    "session_header",
     "shape_from_moments",
     "skew",
     "sort_order",
@@ -288,6 +309,7 @@ __all__ = [
     "stereo_geometry",
     "text_lines",
     "thumbnail_chart",
+    "tolerance_text",
     "trend_chart",
     "undistort",
     "unit_name",

@@ -20,17 +20,27 @@ from typing import Any, Iterable, Mapping, Sequence
 from markupsafe import Markup
 
 from crossfield.plugin_api import (
+    DASH,
     KIND_CONTROL,
     KIND_TARGET,
     REPORT_JSON,
     TEMPLATE_DIR,
     SessionSummary,
+    decision_class,
+    decision_text,
     deviation_chart,
     document_of,
     dumps,
+    expanded_heading,
+    fixed,
     hookimpl,
+    render_page,
+    report_text,
     residual_chart,
+    rule_text,
+    session_header,
     thumbnail_chart,
+    tolerance_text,
     trend_chart,
 )
 
@@ -39,8 +49,6 @@ KIND_LABELS = {
     "point_line": "point to line",
     "depth": "depth (global Z)",
 }
-
-DASH = "\u2014"
 
 #: crossfield's own report templates (Jinja2) and style sheet.
 TEMPLATE_DIR = TEMPLATE_DIR
@@ -54,31 +62,6 @@ TEMPLATE_DIR = TEMPLATE_DIR
 def esc(value: Any) -> str:
     """``value`` as text, escaped for HTML text and attribute values."""
     return html.escape("" if value is None else str(value), quote=True)
-
-
-def fixed(value: float | None, decimals: int, signed: bool = False) -> str:
-    """``value`` with ``decimals`` decimals (``+`` sign if ``signed``); a dash when unknown."""
-    if value is None:
-        return DASH
-    return f"{value:+.{decimals}f}" if signed else f"{value:.{decimals}f}"
-
-
-def verdict(passed: bool) -> str:
-    return "PASS" if passed else "FAIL"
-
-
-#: How a decision (ISO 14253-1) reads in tables.
-DECISION_TEXT = {"conforms": "conforms", "does_not_conform": "does not conform", "not_proven": "not proven"}
-
-
-def tolerance_text(c: Mapping[str, Any], decimals: int) -> str:
-    """``±0.1000`` for a symmetric zone, ``+0.1000/-0.0500`` otherwise (mm)."""
-    upper, lower = c.get("upper_tol_mm"), c.get("lower_tol_mm")
-    if upper is None or lower is None:
-        return "\u00b1" + fixed(c.get("tolerance_mm"), decimals)
-    if upper == lower:
-        return "\u00b1" + fixed(upper, decimals)
-    return f"{fixed(upper, decimals, True)}/{fixed(-lower, decimals, True)}"
 
 
 def _write_atomic(path: Path, text: str) -> None:
@@ -111,18 +94,11 @@ def _num(value: float | None, decimals: int, signed: bool = False) -> str:
     return _td(esc(fixed(value, decimals, signed)), "num")
 
 
-def _result_cell(passed: bool) -> str:
-    return _td("&#10003; PASS" if passed else "&#10007; FAIL", "pass" if passed else "fail")
-
-
 def _decision_cell(c: Mapping[str, Any]) -> str:
-    decision = c.get("decision", "conforms" if c["passed"] else "does_not_conform")
-    text = DECISION_TEXT.get(decision, decision)
-    cls = {"conforms": "pass", "does_not_conform": "fail"}.get(decision, "open")
+    """The ISO 14253-1 decision in the words of crossfield.report.vocabulary, marked and coloured."""
+    cls = decision_class(c.get("decision"))
     mark = {"pass": "&#10003; ", "fail": "&#10007; "}.get(cls, "? ")
-    accepted = "" if c["passed"] == (decision == "conforms") else (" (accepted)" if c["passed"] else "")
-    partial = " (partial)" if c.get("partial") else ""  # the session stopped early
-    return _td(f"{mark}{esc(text)}{accepted}{partial}", cls)
+    return _td(f"{mark}{esc(decision_text(c.get('decision'), c['passed'], bool(c.get('partial'))))}", cls)
 
 
 def _budget_table(report: Mapping[str, Any], decimals: int) -> str:
@@ -146,7 +122,7 @@ def _budget_table(report: Mapping[str, Any], decimals: int) -> str:
     return (
         '<table id="budget" class="wide">'
         "<caption>Uncertainty budget: contribution of each source (mm, standard uncertainties)</caption>"
-        f"<thead><tr><th>Characteristic</th>{head}<th>u<sub>c</sub></th><th>U (k={k:g})</th></tr></thead>"
+        f"<thead><tr><th>Characteristic</th>{head}<th>u<sub>c</sub></th><th>{esc(expanded_heading(k))}</th></tr></thead>"
         f"<tbody>{''.join(rows)}</tbody>"
         f'<tfoot><tr><td colspan="{len(sources) + 3}">u<sub>c</sub> = root sum of squares of the contributions '
         "(the shared registration's correlations are inside each source's contribution); "
@@ -207,7 +183,7 @@ def _table3(report: Mapping[str, Any], decimals: int) -> str:
     if truth:
         head += ["Actual", "Error"]
     k = chars[0]["coverage_factor"] if chars else 2.0
-    head += ["Nominal", "Tolerance", "Deviation", f"U (k={k:g})", "Decision"]
+    head += ["Nominal", "Tolerance", "Deviation", esc(expanded_heading(k)), "Decision"]
     rows = []
     for c in chars:
         kind = KIND_LABELS.get(c["kind"], c["kind"])
@@ -407,7 +383,6 @@ def render_html(
     templates: a folder whose ``report.html.j2`` / ``report.css`` replace crossfield's
     (Jinja2; ``docs/report.md``, "Templates")."""
     reg = report["registration"]
-    passed = report["passed"]
     n_frames, n_failed = report["frames_processed"], report["frames_failed"]
     summary_facts = [
         ("Frames processed", esc(f"{n_frames} ({n_failed} failed)")),
@@ -415,7 +390,7 @@ def render_html(
         ("Registration RMS", esc(f"{fixed(reg['rms_mm'], decimals)} mm" if reg else DASH)),
         ("Control points", esc(len(reg["control_points"]) if reg else 0)),
         ("Characteristics", esc(f"{sum(c['passed'] for c in report['characteristics'])} of "
-                                f"{len(report['characteristics'])} in tolerance")),
+                                f"{len(report['characteristics'])} accepted ({rule_text(report['uncertainty']['decision_rule'])})")),
         ("CMM points", esc(report["reference"]["n_points"])),
     ]
     if report["rms_error_mm"] is not None:
@@ -447,17 +422,15 @@ def render_html(
             f"characteristic{'s' if n_truth != 1 else ''}): "
             f"<strong>{esc(fixed(report['rms_error_mm'], decimals))} mm</strong></p>"
         )
-    cls = "pass" if passed else "fail"
+    header = session_header(report)
     title = f"Cross-field measurement report {DASH} {report['plan']['name']}"
     context = {
         "report": report,
         "title": title,
         "decimals": decimals,
-        "verdict_class": cls,
-        "verdict_text": Markup(
-            f'{"&#10003;" if passed else "&#10007;"} {"INCOMPLETE" if report["incomplete"] else verdict(passed)}'
-        ),
-        "job": Markup(_job_html(report)),
+        "header": header,
+        "verdict_class": header.verdict_class,
+        "verdict_text": header.verdict,
         "summary_facts": Markup(_dl(summary_facts)),
         "table1": Markup(_table1(reg, decimals)),
         "table2": Markup(_table2(reg, decimals)),
@@ -478,40 +451,7 @@ def render_html(
             {"camera": c["camera"], "figure": Markup(c["svg"]), "caption": c["caption"]} for c in cameras
         ],
     }
-    return _environment(templates).get_template("report.html.j2").render(context)
-
-
-def _environment(templates: str | Path | None):
-    """Jinja2 environment: the lab's template folder first (when given), then crossfield's."""
-    import jinja2
-
-    folders = [str(templates)] if templates else []
-    loader = jinja2.FileSystemLoader([*folders, str(TEMPLATE_DIR)])
-    return jinja2.Environment(loader=loader, autoescape=True, undefined=jinja2.StrictUndefined,
-                              keep_trailing_newline=True)
-
-
-def _job_html(report: Mapping[str, Any]) -> str:
-    job = report.get("job") or {}
-    pairs = [
-        ("Part", esc(job.get("part") or DASH)),
-        ("Serial number", esc(job.get("serial") or DASH)),
-        ("Operator", esc(job.get("operator") or DASH)),
-        ("Order", esc(job.get("order") or DASH)),
-    ]
-    instruments = job.get("instruments") or []
-    rows = "".join(
-        _row([_td(esc(i["id"])), _td(esc(i["kind"] or DASH)), _td(esc(i["calibrated"] or DASH)),
-              _td(esc(i["due"] or DASH))])
-        for i in instruments
-    )
-    table = (
-        '<table id="instruments"><caption>Instruments</caption><thead><tr><th>Id</th><th>Kind</th>'
-        f"<th>Calibrated</th><th>Calibration due</th></tr></thead><tbody>{rows}</tbody></table>"
-        if instruments
-        else '<p class="note">No instruments stated in the plan ([[job.instrument]]).</p>'
-    )
-    return '<dl class="facts job" id="job">' + "".join(f"<dt>{k}</dt><dd>{v}</dd>" for k, v in pairs) + "</dl>" + table
+    return render_page("report.html.j2", context, templates)
 
 
 def report_figures(report: Mapping[str, Any], positions: Mapping[str, Any] | None = None) -> dict[str, str]:
@@ -557,71 +497,10 @@ def camera_figures(thumbnails: Sequence[Any]) -> list[dict[str, Any]]:
 # --------------------------------------------------------------------------
 
 
-def _printable(text: Any) -> str:
-    """``text`` with control characters (ANSI escapes, newlines) made visible."""
-    return "".join(ch if ch.isprintable() else repr(ch)[1:-1] for ch in str(text))
-
-
 def summary_text(summary: SessionSummary, decimals: int = 4) -> str:
-    """A few lines for the terminal: frames, registration, Table 3, RMS error, verdict."""
-    return render_text(document_of(summary), decimals)
-
-
-def render_text(report: Mapping[str, Any], decimals: int = 4) -> str:
-    reg = report["registration"]
-    lines = [
-        f"Session {_printable(report['session']['id'])}  plan {_printable(report['plan']['name'])}",
-        f"Frames: {report['frames_processed']} processed, {report['frames_failed']} failed",
-    ]
-    if reg:
-        lines.append(
-            f"Registration: RMS {fixed(reg['rms_mm'], decimals)} mm over {len(reg['control_points'])} "
-            f"control points (session mean of {reg['n_frames']} frames)"
-        )
-    else:
-        lines.append("Registration: none")
-    chars = report["characteristics"]
-    width = max([len("Characteristic")] + [len(_printable(c["name"])) for c in chars])
-    truth = report["ground_truth_known"]
-    k = chars[0]["coverage_factor"] if chars else 2.0
-    u_head = f"U(k={k:g})"
-    lines.append(f"Lengths in mm; U = expanded uncertainty; rule: {report['uncertainty']['decision_rule']}")
-    header = f"{'No.':>3}  {'Characteristic':<{width}}  {'Measured':>10}  {u_head:>8}"
-    if truth:
-        header += f"  {'Actual':>10}  {'Error':>8}"
-    tol_w = max([len("Tolerance")] + [len(tolerance_text(c, decimals)) for c in chars])
-    header += f"  {'Nominal':>10}  {'Tolerance':>{tol_w}}  {'Dev':>8}  Decision"
-    lines.append(header)
-    for c in chars:
-        line = f"{c['no']:>3}  {_printable(c['name']):<{width}}  {fixed(c['measured_mm'], decimals):>10}"
-        line += f"  {fixed(c['expanded_uncertainty_mm'], decimals):>8}"
-        if truth:
-            actual, error = fixed(c.get("actual_mm"), decimals), fixed(c.get("error_mm"), decimals, True)
-            line += f"  {actual:>10}  {error:>8}"
-        line += f"  {fixed(c['nominal_mm'], decimals):>10}  {tolerance_text(c, decimals):>{tol_w}}"
-        line += f"  {fixed(c['deviation_mm'], decimals, True):>8}  {DECISION_TEXT.get(c['decision'], c['decision'])}"
-        lines.append(line + (" (partial)" if c.get("partial") else ""))
-    if report["rms_error_mm"] is not None:
-        lines.append(f"RMS error vs ground truth: {fixed(report['rms_error_mm'], decimals)} mm")
-    mc = report.get("monte_carlo")
-    if mc:
-        agreed = sum(c["agreed"] for c in mc["characteristics"])
-        worst = max((abs(c["agreement"]) for c in mc["characteristics"] if c["agreement"] is not None), default=0.0)
-        lines.append(
-            f"Monte Carlo (GUM-S1, {mc['n_draws']} draws): U_MC within {mc['tolerance']:.0%} of U for "
-            f"{agreed} of {len(mc['characteristics'])} characteristics (largest difference {worst:.1%})"
-        )
-
-    for problem in report["problems"][:5]:
-        lines.append(f"! {_printable(problem)}")
-    if len(report["problems"]) > 5:
-        lines.append(f"! ... and {len(report['problems']) - 5} more problems (see report.json)")
-    moved = " (the station moved)" if report.get("station_moved") else ""
-    if report["incomplete"]:  # never PASS: not proven by a part of the session
-        lines.append(f"Result: INCOMPLETE ({_printable(report['incomplete_reason'] or 'session incomplete')}){moved}")
-    else:
-        lines.append(f"Result: {verdict(report['passed'])}{moved}")
-    return "\n".join(lines)
+    """A few lines for the terminal: frames, registration, Table 3, RMS error, verdict
+    (:func:`crossfield.tables.report_text`, the text ``print(summary)`` shows)."""
+    return report_text(document_of(summary), decimals)
 
 
 # --------------------------------------------------------------------------
@@ -652,7 +531,7 @@ class JsonReport:
         return [path]
 
     def summary_text(self, summary: SessionSummary) -> str:
-        return render_text(document_of(summary), self.decimals)
+        return report_text(document_of(summary), self.decimals)
 
 
 class HtmlReport(JsonReport):

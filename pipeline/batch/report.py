@@ -22,7 +22,6 @@ FAIL / ERROR / INCOMPLETE, then PASS; for a comparison the plot of shifts
 
 from __future__ import annotations
 
-import html
 import json
 import os
 import time
@@ -178,68 +177,89 @@ class BatchReport:
     # ---- HTML ------------------------------------------------------------------
 
     def html(self) -> str:
+        """batch-report.html (``batch.html.j2``): the record header, the counts, the shift
+        distribution (compare) and one row per session, worst first (:func:`sort_key`)."""
+        from markupsafe import Markup
+
+        from crossfield.report.pages import render_page
+
         doc = self.to_json()
-        esc = html.escape
         title = f"crossfield batch {self.kind}: {doc['finished']} of {doc['inputs']} session(s)"
-        parts = [
-            "<!DOCTYPE html><html><head><meta charset='utf-8'>",
-            f"<title>{esc(title)}</title><style>",
-            "body{font-family:sans-serif;margin:1.5em}table{border-collapse:collapse}"
-            "td,th{border:1px solid #ccc;padding:2px 6px;font-size:90%;vertical-align:top}"
-            ".PASS{color:#185c18}.FAIL{color:#a01010}.ERROR{color:#a01010}.INCOMPLETE{color:#a06000}"
-            ".changed{background:#fde8e8}",
-            "</style></head><body>",
-            f"<h1>{esc(title)}</h1>",
+        swapped = [f"--{k} {v}" for k, v in self.plugins.items()] + [f"--option {o}" for o in self.options]
+        distribution = [
+            (name, st["sessions"], st["decision_changes"], *(
+                "n/a" if st[k] is None else f"{st[k]['min']:+.4g} / {st[k]['median']:+.4g} / {st[k]['max']:+.4g}"
+                for k in ("shift_mm", "shift_over_U")
+            ))
+            for name, st in sorted((doc.get("distribution") or {}).items())
         ]
-        if not doc["complete"]:
-            parts.append(
-                f"<p><b>INCOMPLETE report</b>: {len(doc['not_finished'])} session(s) not finished "
-                "(the batch was interrupted or is still running).</p>"
-            )
-        parts.append(
-            "<p>" + ", ".join(f"{v}: {n}" for v, n in doc["counts"].items()) + f". Started {esc(doc['started_utc'])}.</p>"
-        )
-        if self.plugins or self.options:
-            swapped = [f"--{k} {v}" for k, v in self.plugins.items()] + [f"--option {o}" for o in self.options]
-            parts.append(f"<p>Replayed with {esc(' '.join(swapped))}.</p>")
-        if self.kind == "compare":
-            parts.append(f"<p>{doc['decision_changes']} session(s) change a decision. {esc(doc['uncertainty'])}.</p>")
-            svg = shift_histogram_svg(doc["sessions"])
-            if svg:
-                parts.append(f"<figure>{svg}<figcaption>Shift of each measured value over the session's U, "
-                             "per characteristic, over the archive.</figcaption></figure>")
-        if doc.get("distribution"):
-            parts.append(
-                "<table><tr><th>characteristic</th><th>sessions</th><th>decision changes</th>"
-                "<th>shift mm (min / median / max)</th><th>shift / U (min / median / max)</th></tr>"
-            )
-            for name, st in sorted(doc["distribution"].items()):
-                cells = [
-                    "n/a" if st[k] is None else f"{st[k]['min']:+.4g} / {st[k]['median']:+.4g} / {st[k]['max']:+.4g}"
-                    for k in ("shift_mm", "shift_over_U")
-                ]
-                parts.append(
-                    f"<tr><td>{esc(name)}</td><td>{st['sessions']}</td><td>{st['decision_changes']}</td>"
-                    f"<td>{cells[0]}</td><td>{cells[1]}</td></tr>"
-                )
-            parts.append("</table><p></p>")
-        parts.append("<table><tr><th>session</th><th>verdict</th><th>reason</th><th>characteristics</th></tr>")
-        for entry in sorted(doc["sessions"], key=sort_key):
-            rows = []
-            for r in entry.get("characteristics") or ():
-                if "shift_mm" in r:
-                    shift = "n/a" if r["shift_mm"] is None else f"{r['shift_mm']:+.4f} mm"
-                    ratio = "" if r.get("shift_over_U") is None else f" = {r['shift_over_U']:+.3f} U"
-                    flag = f" decision {r['decision']} -> {r['replayed_decision']}" if r["decision_changed"] else ""
-                    rows.append(f"{esc(r['name'])}: {shift}{ratio}{esc(flag)}")
-                else:
-                    rows.append(f"{esc(r['name'])}: {r.get('measured_mm')} mm, passed {r.get('passed')}")
-            css = " class='changed'" if _changes_decision(entry) else ""
-            parts.append(
-                f"<tr{css}><td>{esc(entry['path'])}</td><td class='{esc(entry['verdict'])}'>{esc(entry['verdict'])}</td>"
-                f"<td>{esc(str(entry.get('reason', '')))}</td><td>{'<br>'.join(rows)}</td></tr>"
-            )
-        for path in doc["not_finished"]:
-            parts.append(f"<tr><td>{esc(path)}</td><td>not finished</td><td></td><td></td></tr>")
-        parts.append("</table></body></html>")
-        return "\n".join(parts)
+        rows = [
+            {
+                "path": entry["path"],
+                "verdict": entry["verdict"],
+                "reason": str(entry.get("reason", "")),
+                "changed": _changes_decision(entry),
+                "characteristics": [_characteristic_text(r) for r in entry.get("characteristics") or ()],
+            }
+            for entry in sorted(doc["sessions"], key=sort_key)
+        ]
+        svg = shift_histogram_svg(doc["sessions"]) if self.kind == "compare" else ""
+        return render_page("batch.html.j2", {
+            "title": title,
+            "header": batch_header(doc, title),
+            "doc": doc,
+            "swapped": " ".join(swapped),
+            "distribution": distribution,
+            "rows": rows,
+            "histogram": Markup(svg) if svg else "",
+        })
+
+
+def _characteristic_text(r: Mapping[str, Any]) -> str:
+    """One characteristic of a session row: its shift in mm and in U and a decision change
+    (compare), or its measured value and ISO 14253-1 decision (crossfield.report.vocabulary)."""
+    from crossfield.report.vocabulary import decision_text, fixed
+
+    if "shift_mm" in r:
+        shift = "n/a" if r["shift_mm"] is None else f"{r['shift_mm']:+.4f} mm"
+        ratio = "" if r.get("shift_over_U") is None else f" = {r['shift_over_U']:+.3f} U"
+        words = {k: _decision_words(r.get(k)) for k in ("decision", "replayed_decision")}
+        flag = f"; decision {words['decision']} \u2192 {words['replayed_decision']}" if r["decision_changed"] else ""
+        return f"{r['name']}: {shift}{ratio}{flag}"
+    return f"{r['name']}: {fixed(r.get('measured_mm'), 4)} mm, {decision_text(r.get('decision'), r.get('passed'))}"
+
+
+def _decision_words(decision: Any) -> str:
+    """A decision as compare tasks keep it: the ISO 14253-1 key, or ``passed`` (a bool) for a
+    report without decisions."""
+    from crossfield.report.vocabulary import DECISION_WORDS
+
+    if isinstance(decision, bool) or decision is None:
+        return "accepted" if decision else "not accepted"
+    return DECISION_WORDS.get(decision, str(decision))
+
+
+def batch_header(doc: Mapping[str, Any], title: str) -> Any:
+    """The record header of a batch report: when it was started and updated, the software,
+    where each session's seal and decision rule are (its own report), the counts as verdict."""
+    from crossfield.chain.provenance import crossfield_version
+    from crossfield.report.header import Fact, RecordHeader
+
+    counts = doc["counts"]
+    all_pass = doc["complete"] and counts["PASS"] == doc["inputs"]
+    facts = [
+        Fact("Started (UTC)", str(doc["started_utc"]), "record-date"),
+        Fact("Updated (UTC)", str(doc["updated_utc"]), "record-updated"),
+        Fact("Software", f"crossfield {crossfield_version()}", "record-software"),
+        Fact("Seal", "per session: each recording's chain head, file SHA-256 and signature, checked by the "
+             "session's task (batch-report.json)", "seal-recording"),
+        Fact("Decision rule", "per session: the ISO 14253-1 rule of its plan (its report.json)", "decision-rule"),
+        Fact("Sessions", f"{doc['finished']} of {doc['inputs']} finished", "record-sessions"),
+    ]
+    return RecordHeader(
+        title=title,
+        subtitle=", ".join(f"{v}: {n}" for v, n in counts.items()),
+        verdict="all PASS" if all_pass else ("INCOMPLETE" if not doc["complete"] else f"{counts['PASS']} PASS"),
+        verdict_class="pass" if all_pass else ("open" if not doc["complete"] else "fail"),
+        facts=tuple(facts),
+    )

@@ -270,7 +270,7 @@ def replay_entry(
         "changed": (summary.info.parent or {}).get("changed"),
         "frames_processed": summary.frames_processed,
         "characteristics": [
-            {"name": c.name, "measured_mm": _real(c.measured_mm), "passed": bool(c.passed)}
+            {"name": c.name, "measured_mm": _real(c.measured_mm), "decision": c.decision, "passed": bool(c.passed)}
             for c in summary.characteristics
         ],
     }

@@ -11,7 +11,7 @@ for points and for lengths between them.
 from __future__ import annotations
 
 import base64
-import html
+import hashlib
 import io
 import json
 from pathlib import Path
@@ -191,38 +191,79 @@ def coverage_figures(result: CalibrationResult) -> dict[str, str]:
     return out
 
 
-def report_html(result: CalibrationResult, data: dict[str, Any] | None = None) -> str:
-    """A self-contained HTML page of the report (images inline)."""
-    data = report_dict(result) if data is None else data
-    e = html.escape
-    figs = coverage_figures(result)
+def _fmt(x: Any) -> str:
+    """A px value (or list of them) with 3 decimals; empty for None."""
+    if x is None:
+        return ""
+    return f"{x:.3f}" if isinstance(x, float) else ", ".join(f"{v:.3f}" for v in x)
+
+
+def _setting(value: Any) -> str:
+    """A board or solver setting as table text (no Python or JSON reprs)."""
+    if value is None:
+        return "\u2014"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, float):
+        return f"{value:g}"
+    if isinstance(value, (list, tuple)):
+        return ", ".join(_setting(v) for v in value)
+    return str(value)
+
+
+def calibration_header(
+    data: dict[str, Any],
+    *,
+    calibration_path: str | None = None,
+    calibration_sha256: str | None = None,
+    seal: Any = None,
+) -> Any:
+    """The record header of the calibration report (:mod:`crossfield.report.header`):
+    date, software, the recording's seal (``crossfield calibrate --record``), the calibration
+    file written and its SHA-256, the instruments (the two cameras, the board)."""
+    from crossfield.chain.provenance import crossfield_version
+    from crossfield.report.header import Fact, RecordHeader, now_utc, seal_facts
+
     rms = data["rms_px"]
-    rows = "".join(
-        f"<tr><td>{e(p['name'])}</td><td>{p['value']:.6g}</td><td>{p['std']:.3g}</td></tr>"
-        for p in data["parameters"]
+    board = data["board"]
+    size = data["image_size"]
+    facts = [
+        Fact("Date (UTC)", now_utc(), "record-date"),
+        Fact("Software", f"crossfield {crossfield_version()}", "record-software"),
+        *seal_facts(None if seal is None else seal.to_json(), "not recorded (crossfield calibrate --record FILE)"),
+        Fact("Calibration", calibration_path or "\u2014", "record-calibration", True),
+        Fact("Calibration SHA-256", calibration_sha256 or "not recorded", "record-calibration-sha256", True),
+        Fact("Distortion model", str(data["settings"]["distortion"]), "record-distortion"),
+    ]
+    instruments = (
+        *((f"{cam} camera", f"{size[cam][0]} x {size[cam][1]} px", "\u2014", "\u2014") for cam in CAMERAS),
+        (f"board ({board.get('type', '')})", board.get("source") or "stated in the command", "\u2014", "\u2014"),
+    )
+    return RecordHeader(
+        title="Stereo calibration report",
+        subtitle=f"RMS reprojection error {rms['stereo']:.4f} px (stereo) \u00b7 baseline {data['baseline_mm']:.3f} mm",
+        verdict=f"{data['views_used']['stereo']} views used",
+        verdict_class="open",
+        facts=tuple(facts),
+        instruments=instruments,
     )
 
-    def fmt(x):
-        return "" if x is None else (f"{x:.3f}" if isinstance(x, float) else ", ".join(f"{v:.3f}" for v in x))
 
-    views = "".join(
-        f"<tr><td>{v['index']}</td><td>{e(v['name'])}</td><td>{e(v['status'])}</td>"
-        f"<td>{v['points']['upper']}</td><td>{v['points']['lower']}</td>"
-        f"<td>{fmt(v['rms_px']['upper'])}</td><td>{fmt(v['rms_px']['lower'])}</td><td>{fmt(v['rms_px']['stereo'])}</td>"
-        f"<td>{e('; '.join(v['notes']))}</td></tr>"
-        for v in data["views"]
-    )
-    dropped = (
-        "".join(f"<li>{e(d['name'])} ({e(d['stage'])}): {e(d['reason'])}</li>" for d in data["dropped"])
-        or "<li>none</li>"
-    )
-    held = (
-        "".join(
-            f"<li>{e(h['name'])}: epipolar RMS {h['epipolar_rms_px']:.3f} px, max {h['epipolar_max_px']:.3f} px</li>"
-            for h in data["held_out"]
-        )
-        or "<li>none held out</li>"
-    )
+def report_html(
+    result: CalibrationResult,
+    data: dict[str, Any] | None = None,
+    *,
+    calibration_path: str | None = None,
+    calibration_sha256: str | None = None,
+    seal: Any = None,
+) -> str:
+    """A self-contained HTML page of the report (``calibration.html.j2``, images inline)."""
+    from markupsafe import Markup
+
+    from crossfield.report.pages import render_page
+
+    data = report_dict(result) if data is None else data
+    figs = coverage_figures(result)
     u3 = data["uncertainty_3d"]
     length = u3["length"]
     length_text = (
@@ -231,44 +272,48 @@ def report_html(result: CalibrationResult, data: dict[str, Any] | None = None) -
         if length.get("pairs")
         else "no point pairs"
     )
-    med = ", ".join(f"{v * 1000:.1f}" for v in u3["median_sigma_mm"])
-    mx = ", ".join(f"{v * 1000:.1f}" for v in u3["max_sigma_mm"])
-    images = "".join(
-        f'<figure><img src="data:image/png;base64,{figs[c]}" alt="coverage {c}"></figure>' for c in CAMERAS
-    )
-    return f"""<!DOCTYPE html>
-<html><head><meta charset="utf-8"><title>crossfield calibration report</title>
-<style>body{{font-family:sans-serif;max-width:70em;margin:auto}}table{{border-collapse:collapse}}
-td,th{{border:1px solid #ccc;padding:2px 6px;text-align:right}}figure{{display:inline-block;margin:4px}}</style></head>
-<body><h1>Stereo calibration report</h1>
-<p>Board: {e(json.dumps(data["board"]))}. Distortion model: {e(data["settings"]["distortion"])}.</p>
-<h2>Reprojection error</h2>
-<p>RMS upper {rms["upper"]:.4f} px, lower {rms["lower"]:.4f} px, stereo {rms["stereo"]:.4f} px;
-corner noise estimated from the residuals {data["sigma_px"]:.4f} px.
-Views used: upper {data["views_used"]["upper"]}, lower {data["views_used"]["lower"]}, stereo {data["views_used"]["stereo"]}.</p>
-<p>Baseline |T| = {data["baseline_mm"]:.4f} mm &plusmn; {data["baseline_std_mm"] * 1000:.1f} um (1 sigma).</p>
-<h2>Coverage</h2>{images}
-<p>Coverage (cells of an {COVERAGE_GRID}x{COVERAGE_GRID} grid holding a point): upper {data["coverage"]["upper"]:.0%},
-lower {data["coverage"]["lower"]:.0%}.</p>
-<h2>Dropped views</h2><ul>{dropped}</ul>
-<h2>Held-out views (epipolar error)</h2><ul>{held}</ul>
-<h2>Predicted 3-D uncertainty (calibration only, 1 sigma)</h2>
-<p>Points in the working volume (x, y, z): median {med} um, max {mx} um. {e(length_text)}.
-A common shift of every point (from the principal points) cancels in the registration; lengths do not.</p>
-{quality_html(result, data)}
-<h2>Parameters</h2><table><tr><th>name</th><th>value</th><th>std</th></tr>{rows}</table>
-<h2>Views</h2><table><tr><th>#</th><th>name</th><th>status</th><th>pts upper</th><th>pts lower</th>
-<th>RMS upper</th><th>RMS lower</th><th>RMS stereo</th><th>notes</th></tr>{views}</table>
-</body></html>
-"""
+    context = {
+        "title": "crossfield calibration report",
+        "header": calibration_header(data, calibration_path=calibration_path,
+                                     calibration_sha256=calibration_sha256, seal=seal),
+        "data": data,
+        "board": [(k.replace("_", " "), _setting(v)) for k, v in data["board"].items() if v is not None],
+        "settings": [(k.replace("_", " "), _setting(v)) for k, v in data["settings"].items()],
+        "parameters": [(p["name"], f"{p['value']:.6g}", f"{p['std']:.3g}") for p in data["parameters"]],
+        "views": [
+            (v["index"], v["name"], v["status"], v["points"]["upper"], v["points"]["lower"],
+             _fmt(v["rms_px"]["upper"]), _fmt(v["rms_px"]["lower"]), _fmt(v["rms_px"]["stereo"]),
+             "; ".join(v["notes"]))
+            for v in data["views"]
+        ],
+        "held_out": [(h["name"], f"{h['epipolar_rms_px']:.3f}", f"{h['epipolar_max_px']:.3f}") for h in data["held_out"]],
+        "grid": COVERAGE_GRID,
+        "coverage": [(c, Markup(f'<img src="data:image/png;base64,{figs[c]}" alt="coverage {c}">')) for c in CAMERAS],
+        "median_um": ", ".join(f"{v * 1000:.1f}" for v in u3["median_sigma_mm"]),
+        "max_um": ", ".join(f"{v * 1000:.1f}" for v in u3["max_sigma_mm"]),
+        "length_text": length_text,
+        "quality": Markup(quality_html(result, data)),
+    }
+    return render_page("calibration.html.j2", context)
 
 
-def write_report(result: CalibrationResult, stem: str | Path) -> tuple[Path, Path]:
-    """Write ``<stem>.json`` and ``<stem>.html``; returns both paths."""
+def write_report(
+    result: CalibrationResult,
+    stem: str | Path,
+    *,
+    calibration_path: str | Path | None = None,
+    seal: Any = None,
+) -> tuple[Path, Path]:
+    """Write ``<stem>.json`` and ``<stem>.html``; returns both paths. calibration_path: the
+    calibration file written (its SHA-256 goes into the header); seal: the recording's
+    (``crossfield calibrate --record``), None when not recorded."""
     stem = Path(stem)
     data = report_dict(result)
     json_path = stem.with_suffix(".json")
     html_path = stem.with_suffix(".html")
     json_path.write_text(json.dumps(data, indent=2, allow_nan=False), encoding="utf-8")
-    html_path.write_text(report_html(result, data), encoding="utf-8")
+    digest = hashlib.sha256(Path(calibration_path).read_bytes()).hexdigest() if calibration_path else None
+    page = report_html(result, data, calibration_path=None if calibration_path is None else str(calibration_path),
+                       calibration_sha256=digest, seal=seal)
+    html_path.write_text(page, encoding="utf-8")
     return json_path, html_path

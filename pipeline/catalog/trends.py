@@ -263,10 +263,9 @@ def render(
     names: Sequence[str] = (), baseline: Baseline = Baseline(), templates: str | Path | None = None,
 ) -> tuple[str, list[CharacteristicTrend]]:
     """The page (HTML text) and the trends it shows."""
-    import jinja2
     from markupsafe import Markup  # the SVG is matplotlib's (no script), inlined as is
 
-    from crossfield.report.document import TEMPLATE_DIR
+    from crossfield.report.pages import render_page
 
     found = trends(catalog, station=station, since=since, until=until, names=names, baseline=baseline)
     health = catalog.health(station=station, since=since, until=until)
@@ -292,14 +291,13 @@ def render(
         {"name": f, "unit": HEALTH[f][0], "source": HEALTH[f][1], "figure": Markup(health_chart(health, f, f"health{j}"))}
         for j, f in enumerate(HEALTH) if not health.empty and (health["figure"] == f).any()
     ]
-    folders = [str(templates)] if templates else []
-    env = jinja2.Environment(loader=jinja2.FileSystemLoader([*folders, str(TEMPLATE_DIR)]), autoescape=True,
-                             undefined=jinja2.StrictUndefined, keep_trailing_newline=True)
     period = " – ".join(
         x.isoformat(sep=" ") if x else "…" for x in (parse_time(since), parse_time(until, "--until"))
     ) if (since or until) else "every catalogued session"
-    page = env.get_template("trends.html.j2").render(
+    n_firings = sum(len(t.firings) for t in found)
+    page = render_page("trends.html.j2", dict(
         title=f"crossfield trends: {catalog.url}",
+        header=_header(catalog.url, station or "every station", period, len(sessions), n_firings),
         catalog=catalog.url,
         station=station or "every station",
         period=period,
@@ -308,9 +306,33 @@ def render(
         charts=charts,
         health=health_figures,
         rules=spc.NELSON_RULES,
-        n_firings=sum(len(t.firings) for t in found),
+        n_firings=n_firings,
         generated=_dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M UTC"),
-    )
+    ), templates)
     return page, found
+
+
+def _header(url: str, station: str, period: str, n_sessions: int, n_firings: int) -> Any:
+    """The record header of the trends page (:mod:`crossfield.report.header`): when, by what,
+    over which sessions; each session's seal and decision rule are its own (the catalog keeps them)."""
+    from crossfield.chain.provenance import crossfield_version
+    from crossfield.report.header import Fact, RecordHeader, now_utc
+
+    facts = (
+        Fact("Date (UTC)", now_utc(), "record-date"),
+        Fact("Software", f"crossfield {crossfield_version()}", "record-software"),
+        Fact("Catalog", url, "record-catalog", True),
+        Fact("Sessions", f"{n_sessions} ({station}, {period})", "record-sessions"),
+        Fact("Seal", "per session: its chain head, file SHA-256 and signature, kept by the catalog "
+             "(crossfield audit --catalog)", "seal-recording"),
+        Fact("Decision rule", "per session: the ISO 14253-1 rule of its plan", "decision-rule"),
+    )
+    return RecordHeader(
+        title="Trends and process control",
+        subtitle=f"Catalog {url} \u00b7 {station} \u00b7 {period} \u00b7 {n_sessions} session(s)",
+        verdict=f"{n_firings} test(s) fired" if n_firings else "in control",
+        verdict_class="fail" if n_firings else "pass",
+        facts=facts,
+    )
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import hashlib
 import sys
 import tempfile
 from dataclasses import replace
@@ -31,10 +32,12 @@ from crossfield.chain.registry import get_implementation, make_plugin_manager
 from crossfield.cli.common import Command
 from crossfield.config import DEFAULT_PLUGINS, load_config, parse_option
 from crossfield.errors import ConfigError, CrossfieldError
+from crossfield.report.vocabulary import verdict_word
 from crossfield.simulator.board_views import cached_calibration_views
 from crossfield.simulator.scenarios import SCENARIOS, station_calibration
-from crossfield.verification.procedure import create_stages, evaluate, simulate_positions, write_verification
+from crossfield.verification.procedure import create_stages, evaluate, simulate_positions
 from crossfield.verification.record import read_verification_recording, record_verification
+from crossfield.verification.report import write_verification
 from crossfield.viz.view import spawn_live_viewer
 
 __all__ = ["COMMANDS"]
@@ -147,6 +150,7 @@ def add_verify_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "-o", "--output", metavar="OUT", default="verification", help="report stem (default verification)"
     )
+    parser.add_argument("--operator", metavar="NAME", help="who ran the verification (stated in the record's header)")
 
 
 def _board_and_settings(path: str | None, distortion: str | None):
@@ -239,7 +243,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         print(f"  held-out {result.view_names[k]}: epipolar error RMS {rms:.3f} px, max {mx:.3f} px")
     if not args.no_report:
         stem = out.with_name(out.stem + "-report")
-        for path in write_report(result, stem):
+        for path in write_report(result, stem, calibration_path=out, seal=sealed if args.record else None):
             print(f"  report: {path}")
     if args.record:
         print(f"  recorded to {args.record} (chain head {sealed.chain_head}; audit: crossfield audit {args.record})")
@@ -390,13 +394,15 @@ def cmd_verify(args: argparse.Namespace) -> int:
         print(
             f"  {p.name:<20} {p.length_mm:10.4f} mm  E {p.error_mm * 1000:+7.1f} um  {'pass' if p.passed else 'FAIL'}"
         )
-    print(f"max |E| = {result.max_abs_error_mm * 1000:.1f} um: {'PASS' if result.passed else 'FAIL'}")
-    for path in write_verification(result, args.output):
-        print(f"  report: {path}")
-    if args.record:
-        text = Path(args.calibration).read_text(encoding="utf-8", errors="replace")
+    print(f"max |E| = {result.max_abs_error_mm * 1000:.1f} um: {verdict_word(result.passed)}")
+    text = Path(args.calibration).read_text(encoding="utf-8", errors="replace")
+    sealed = None
+    if args.record:  # recorded first, so that the verification record states its seal
         sealed = record_verification(args.record, frames, result, text, specs, source)
         print(f"  recorded to {args.record} (chain head {sealed.chain_head})")
+    for path in write_verification(result, args.output, calibration_sha256=hashlib.sha256(text.encode()).hexdigest(),
+                                   seal=sealed, operator=args.operator):
+        print(f"  report: {path}")
     return 0 if result.passed else 1
 
 

@@ -10,18 +10,16 @@ and the session TRE field over the measuring plane.
 
 from __future__ import annotations
 
-import html
-import io
 import json
 from pathlib import Path
 from typing import Any
 
 
-def _svg(fig) -> str:
-    buf = io.StringIO()
-    fig.savefig(buf, format="svg", bbox_inches="tight")
-    text = buf.getvalue()
-    return text[text.index("<svg"):]
+def _svg(fig, prefix: str) -> str:
+    """The figure as inline SVG, its ids prefixed (several figures share one page)."""
+    from crossfield.report.figures import svg
+
+    return svg(fig, prefix)
 
 
 def sweep_svgs(sweeps: dict[str, Any]) -> dict[str, str]:
@@ -56,8 +54,7 @@ def sweep_svgs(sweeps: dict[str, Any]) -> dict[str, str]:
         ax.grid(alpha=0.3)
         if len(names) <= 6:
             ax.legend(fontsize=7)
-        out[name] = _svg(fig)
-        plt.close(fig)
+        out[name] = _svg(fig, f"sweep-{name}")
     return out
 
 
@@ -75,52 +72,85 @@ def tre_svg(tre: dict[str, Any]) -> str:
     ax.set_ylabel("y (mm)")
     ax.set_title(f"z = {tre['z_mm']:.0f} mm", fontsize=9)
     ax.invert_yaxis()
-    svg = _svg(fig)
-    plt.close(fig)
-    return svg
+    return _svg(fig, "tre")
+
+
+def _value(value: Any) -> str:
+    """A station parameter as table text (no Python reprs): numbers with %g, lists joined."""
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, float):
+        return f"{value:g}"
+    if isinstance(value, (list, tuple)):
+        return ", ".join(_value(v) for v in value)
+    if isinstance(value, dict):
+        return "; ".join(f"{k} {_value(v)}" for k, v in value.items())
+    return "\u2014" if value is None else str(value)
+
+
+def plan_header(prediction: dict[str, Any], recommendation: dict[str, Any] | None) -> Any:
+    """The record header of the plan report: date, software, that a plan is a prediction
+    (no recording, no seal, no decision), the coverage factor of its U."""
+    from crossfield.chain.provenance import crossfield_version
+    from crossfield.report.header import Fact, RecordHeader, now_utc, seal_facts
+    from crossfield.report.vocabulary import DASH, expanded_heading
+
+    st = prediction["station"]
+    k = prediction["coverage_factor"]
+    facts = [
+        Fact("Date (UTC)", now_utc(), "record-date"),
+        Fact("Software", f"crossfield {crossfield_version()}", "record-software"),
+        *seal_facts(None, "none: a plan is a prediction from the station model, not a recorded session"),
+        Fact("Decision rule", "none: a plan predicts U; each session decides under its plan's ISO 14253-1 rule",
+             "decision-rule"),
+        Fact("Expanded uncertainty", f"{expanded_heading(k)} = k u", "record-coverage"),
+        Fact("Prediction route", str(prediction["route"]), "record-route"),
+    ]
+    worst = max((c["predicted_U_mm"] for c in prediction["characteristics"]), default=None)
+    worst_text = DASH if worst is None else f"{worst:.4f}"
+    return RecordHeader(
+        title=f"Station plan: {st['name']}",
+        subtitle=f"{len(prediction['characteristics'])} characteristics \u00b7 largest predicted "
+        f"{expanded_heading(k)} = {worst_text} mm",
+        verdict="target reached" if recommendation and recommendation.get("reached")
+        else "target not reached" if recommendation else "prediction",
+        verdict_class="pass" if recommendation and recommendation.get("reached")
+        else "fail" if recommendation else "open",
+        facts=tuple(facts),
+    )
 
 
 def render_html(prediction: dict[str, Any], sweeps: dict[str, Any] | None, recommendation: dict[str, Any] | None) -> str:
-    e = html.escape
-    st = prediction["station"]
-    k = prediction["coverage_factor"]
-    rows = []
-    for c in prediction["characteristics"]:
-        an, mc = c.get("analytic", {}), c.get("monte_carlo", {})
+    """plan.html (``plan.html.j2``): the record header, the station as a table, the predicted
+    uncertainties, the recommendation, the TRE field and the sweeps (inline SVG)."""
+    from markupsafe import Markup
 
-        def f(d, key, scale=1.0):
-            return f"{scale * d[key]:.4f}" if key in d and d[key] is not None else "–"
+    from crossfield.report.pages import render_page
+    from crossfield.report.vocabulary import expanded_heading
 
-        rows.append(
-            f"<tr><td>{e(c['name'])}</td><td>{e(c['kind'])}</td><td>{c['true_mm']:.3f}</td>"
-            f"<td>{f(an, 'u_mm')}</td><td>{f(mc, 'u_mm')}</td><td>{c['predicted_U_mm']:.4f}</td>"
-            f"<td>{f(an, 'u_camera_frame_mm')}</td><td>{f(an, 'u_cmm_mm')}</td><td>{f(an, 'u_reference_line_mm')}</td></tr>"
-        )
-    parts = [
-        "<!DOCTYPE html><html><head><meta charset='utf-8'><title>crossfield plan</title>",
-        "<style>body{font-family:sans-serif;max-width:1100px;margin:1em auto}table{border-collapse:collapse}"
-        "td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}.plots{display:flex;flex-wrap:wrap}"
-        ".plots div{margin:4px}</style></head><body>",
-        f"<h1>Station plan: {e(str(st['name']))}</h1>",
-        "<p>" + ", ".join(f"{e(str(key))} = {e(str(v))}" for key, v in st.items() if key != "name") + "</p>",
-        f"<p>Centroid sigma {prediction['centroid_sigma_px']:.5f} px (Cramér-Rao bound "
-        f"{prediction['centroid_crb_px']:.5f} px); route for the prediction: {e(prediction['route'])}.</p>",
-        f"<h2>Predicted session uncertainty (mm)</h2><table><tr><th>characteristic</th><th>kind</th><th>true</th>"
-        f"<th>u analytic</th><th>u Monte Carlo</th><th>U (k = {k:g})</th><th>camera part per frame</th>"
-        f"<th>CMM part</th><th>of it: reference line</th></tr>",
-        *rows, "</table>",
+    def f(d: dict[str, Any], key: str) -> str:
+        return f"{d[key]:.4f}" if d.get(key) is not None else "\u2013"
+
+    rows = [
+        (c["name"], c["kind"], f"{c['true_mm']:.3f}", f(c.get("analytic", {}), "u_mm"),
+         f(c.get("monte_carlo", {}), "u_mm"), f"{c['predicted_U_mm']:.4f}",
+         f(c.get("analytic", {}), "u_camera_frame_mm"), f(c.get("analytic", {}), "u_cmm_mm"),
+         f(c.get("analytic", {}), "u_reference_line_mm"))
+        for c in prediction["characteristics"]
     ]
-    if recommendation:
-        parts.append(f"<h2>Recommendation</h2><p id='recommendation'>{e(recommendation['reason'])}</p>")
-    if "tre_field" in prediction:
-        parts.append("<h2>Target registration error over the measuring plane</h2>" + tre_svg(prediction["tre_field"]))
-    if sweeps:
-        parts.append(f"<h2>Sweeps</h2><p>Monte Carlo ({sweeps['sessions']} sessions per point): solid; analytic: "
-                     f"dashed; hollow markers: some point leaves an image.</p><div class='plots'>")
-        parts += [f"<div id='sweep-{e(n)}'>{svg}</div>" for n, svg in sweep_svgs(sweeps).items()]
-        parts.append("</div>")
-    parts.append("</body></html>")
-    return "\n".join(parts)
+    context = {
+        "title": f"crossfield plan \u2014 {prediction['station']['name']}",
+        "header": plan_header(prediction, recommendation),
+        "prediction": prediction,
+        "station": [(k.replace("_", " "), _value(v)) for k, v in prediction["station"].items() if k != "name"],
+        "U_heading": expanded_heading(prediction["coverage_factor"]),
+        "rows": rows,
+        "recommendation": recommendation,
+        "tre": Markup(tre_svg(prediction["tre_field"])) if "tre_field" in prediction else "",
+        "sweeps": sweeps,
+        "sweep_figures": [(n, Markup(svg)) for n, svg in sweep_svgs(sweeps).items()] if sweeps else [],
+    }
+    return render_page("plan.html.j2", context)
 
 
 def write_report(out_dir: str | Path, prediction: dict[str, Any], sweeps: dict[str, Any] | None = None,

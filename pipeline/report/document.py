@@ -16,6 +16,7 @@ fixed by ``pipeline/recording/schemas/report.schema.json``.
 from __future__ import annotations
 
 import datetime as _dt
+import hashlib
 import json
 import os
 from importlib import resources
@@ -39,6 +40,7 @@ __all__ = [
     "TEMPLATE_DIR",
     "add_seal_to_file",
     "build_report",
+    "calibration_sha256",
     "document_of",
     "dumps",
     "frames_note",
@@ -375,6 +377,15 @@ def frames_note(summary: SessionSummary) -> str | None:
     )
 
 
+def calibration_sha256(calibration) -> str:
+    """SHA-256 (hex) of the calibration as the recording attaches it (``calibration.yml``,
+    :func:`crossfield.recording.codec.calibration_yaml`), the digest the recording's
+    session metadata states (``calibration_sha256``) and the audit checks."""
+    from crossfield.recording.codec import calibration_yaml
+
+    return hashlib.sha256(calibration_yaml(calibration).encode()).hexdigest()
+
+
 def build_report(summary: SessionSummary) -> dict[str, Any]:
     """The content of report.json for ``summary`` (JSON-able, floats unrounded)."""
     info = summary.info
@@ -393,7 +404,7 @@ def build_report(summary: SessionSummary) -> dict[str, Any]:
         "plugins": {stage: plain(entry) for stage, entry in info.plugins.items()},
         "packages": plain(info.packages),
         "acquisition": plain(info.acquisition),
-        "calibration": {"source": info.calibration.source},
+        "calibration": {"source": info.calibration.source, "sha256": calibration_sha256(info.calibration)},
         "plan": {"name": info.plan.name, "source": info.plan.source, "sha256": info.plan.sha256},
         "job": _job_section(summary),
         "uncertainty": _uncertainty_section(summary),

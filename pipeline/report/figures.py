@@ -32,7 +32,10 @@ import numpy as np
 
 from crossfield.report.thumbnails import KIND_CONTROL, KIND_TARGET
 
-__all__ = ["LABEL_OFFSET", "THUMBNAIL_GID", "deviation_chart", "residual_chart", "svg", "thumbnail_chart", "trend_chart"]
+__all__ = [
+    "LABEL_OFFSET", "RESIDUAL_ARROW_FRACTION", "THUMBNAIL_GID", "deviation_chart", "residual_chart", "residual_gain", "svg",
+    "thumbnail_chart", "trend_chart",
+]
 
 #: SVG group ids of a thumbnail's parts (:func:`thumbnail_chart`), formatted
 #: with the camera name and a centroid's label: the image; the markers of the
@@ -115,9 +118,31 @@ def deviation_chart(report: Mapping[str, Any]) -> str:
     return svg(fig, "deviation")
 
 
+#: The residual figure's drawn length of the largest residual, as a fraction of the
+#: controls' spread: long enough to read its direction at print size.
+RESIDUAL_ARROW_FRACTION = 0.25
+
+
+def _step_below(value: float) -> float:
+    """The largest 1-2-5 step number (..., 0.1, 0.2, 0.5, 1, 2, 5, 10, ...) not above ``value`` > 0."""
+    decade = 10.0 ** np.floor(np.log10(value))
+    return float(max(step * decade for step in (1.0, 2.0, 5.0) if step * decade <= value * (1 + 1e-12)))
+
+
+def residual_gain(spread_mm: float, largest_mm: float, fraction: float = RESIDUAL_ARROW_FRACTION) -> float:
+    """The magnification of the residual figure: the largest 1-2-5 step number
+    (1, 2, 5, 10, 20, ...) that draws the largest residual ``largest_mm`` no longer than
+    ``fraction`` of the controls' spread ``spread_mm`` (so between 0.4 and 1 times that)."""
+    if not largest_mm > 0 or not spread_mm > 0:
+        return 1.0
+    return _step_below(fraction * spread_mm / largest_mm)
+
+
 def residual_chart(report: Mapping[str, Any], positions: Mapping[str, Any]) -> str:
     """Control residual vectors (global mm) at the controls' CMM positions ``positions``
-    (id -> (3,) mm), magnified so that the largest is about a tenth of the spread."""
+    (id -> (3,) mm), magnified (:func:`residual_gain`) so that the largest is a quarter
+    of the controls' spread, with a scale arrow in the corner; the figure is as wide as
+    the report's text at print size (7.2 in, fonts >= 9 pt)."""
     reg = report["registration"]
     if reg is None:
         return ""
@@ -133,20 +158,31 @@ def residual_chart(report: Mapping[str, Any], positions: Mapping[str, Any]) -> s
     xy, rxy = centred @ axes.T, r @ axes.T
     spread = float(np.ptp(xy, axis=0).max()) or 1.0
     largest = float(np.linalg.norm(rxy, axis=1).max()) or 1.0
-    gain = 10 ** np.floor(np.log10(0.12 * spread / largest))
+    gain = residual_gain(spread, largest)
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(5.2, 4.4))
-    ax.scatter(xy[:, 0], xy[:, 1], s=18, color="#234e77", zorder=3)
+    fig, ax = plt.subplots(figsize=(7.2, 5.0))
+    ax.scatter(xy[:, 0], xy[:, 1], s=30, color="#234e77", zorder=3)
     for (x, yv), (dx, dy), c in zip(xy, rxy, controls):
         ax.annotate("", (x + gain * dx, yv + gain * dy), (x, yv),
-                    arrowprops={"arrowstyle": "->", "color": "#b3261e", "lw": 1.2})
+                    arrowprops={"arrowstyle": "-|>", "color": "#b3261e", "lw": 1.8, "mutation_scale": 14})
         if c.get("expected_rms_mm"):
-            ax.add_patch(plt.Circle((x, yv), gain * c["expected_rms_mm"], fill=False, ls=":", color="#5b6b7b"))
-        ax.annotate(c["id"], (x, yv), textcoords="offset points", xytext=(4, 4), fontsize=8)
+            ax.add_patch(plt.Circle((x, yv), gain * c["expected_rms_mm"], fill=False, ls=":", lw=1.2,
+                                    color="#5b6b7b"))
+        ax.annotate(c["id"], (x, yv), textcoords="offset points", xytext=(5, 5), fontsize=10, fontweight="bold")
+    # scale arrow: a round residual length, drawn with the same magnification
+    key_mm = _step_below(largest)
+    x0 = float(xy[:, 0].min())
+    y0 = float(xy[:, 1].min()) - 0.15 * spread
+    ax.plot([x0, x0], [y0 - 0.06 * spread, y0], alpha=0.0)  # room for the key inside the axes
+    ax.annotate("", (x0 + gain * key_mm, y0), (x0, y0),
+                arrowprops={"arrowstyle": "-|>", "color": "#b3261e", "lw": 1.8, "mutation_scale": 14})
+    ax.annotate(f"{key_mm * 1000:g} \u00b5m", (x0 + gain * key_mm, y0), textcoords="offset points",
+                xytext=(6, -4), fontsize=10, va="baseline")
     ax.set_aspect("equal", adjustable="datalim")
-    ax.set_xlabel("principal axis 1 of the controls (mm)")
-    ax.set_ylabel("principal axis 2 (mm)")
-    ax.set_title(f"residual R p + t - q, magnified {gain:g}x; circles: expected RMS", fontsize=9)
+    ax.set_xlabel("principal axis 1 of the controls (mm)", fontsize=10)
+    ax.set_ylabel("principal axis 2 (mm)", fontsize=10)
+    ax.tick_params(labelsize=9)
+    ax.set_title(f"residual R p + t \u2212 q, magnified {gain:g}x; dotted circles: expected RMS", fontsize=10)
     ax.grid(color="#c9d2dc", linewidth=0.5)
     return svg(fig, "residuals")
 

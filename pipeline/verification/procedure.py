@@ -26,13 +26,8 @@ calibration; it never trusts the recorded results.
 
 from __future__ import annotations
 
-import base64
-import html
-import io
-import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -145,62 +140,6 @@ def simulate_positions(
         scene = bar_scene(position, length_mm, scenario)
         out.append((position.name, [scene.render_pair(k, rng) for k in range(frames)]))
     return out
-
-
-# ---- the report -----------------------------------------------------------------------------------
-
-
-def _plot_png(result: VerificationResult) -> str:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 3.5))
-    names = [p.name for p in result.positions]
-    errors = [p.error_mm * 1000 for p in result.positions]
-    ax.bar(
-        range(len(names)), errors, color=["tab:green" if p.passed else "tab:red" for p in result.positions]
-    )
-    for sign in (-1, 1):
-        ax.axhline(sign * result.mpe_mm * 1000, color="k", ls="--", lw=1)
-    ax.set_xticks(range(len(names)), names, rotation=30, ha="right", fontsize=8)
-    ax.set_ylabel("E (um)")
-    ax.set_title(
-        f"length error E, L = {result.certified_mm:g} mm, MPE = {result.mpe_mm * 1000:g} um (dashed)"
-    )
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
-    plt.close(fig)
-    return base64.b64encode(buf.getvalue()).decode("ascii")
-
-
-def write_verification(result: VerificationResult, stem: str | Path) -> tuple[Path, Path]:
-    """``<stem>.json`` and ``<stem>.html`` (table + plot of E against +-MPE)."""
-    stem = Path(stem)
-    data = result.to_dict()
-    json_path, html_path = stem.with_suffix(".json"), stem.with_suffix(".html")
-    json_path.write_text(json.dumps(data, indent=2, allow_nan=False), encoding="utf-8")
-    rows = "".join(
-        f"<tr><td>{html.escape(p.name)}</td><td>{p.length_mm:.4f}</td><td>{p.error_mm * 1000:+.1f}</td>"
-        f"<td>{'pass' if p.passed else 'FAIL'}</td></tr>"
-        for p in result.positions
-    )
-    html_path.write_text(
-        f"""<!DOCTYPE html><html><head><meta charset="utf-8"><title>crossfield verification</title>
-<style>body{{font-family:sans-serif;max-width:60em;margin:auto}}td,th{{border:1px solid #ccc;padding:2px 6px}}
-table{{border-collapse:collapse}}</style></head><body>
-<h1>Length verification ({"PASS" if result.passed else "FAIL"})</h1>
-<p>Scale bar L = {result.certified_mm:g} mm (u = {result.certified_u_mm * 1000:g} um); MPE = {result.mpe_mm * 1000:g} um;
-max |E| = {result.max_abs_error_mm * 1000:.1f} um over {len(result.positions)} positions.
-Calibration: {html.escape(result.calibration_source)}.</p>
-<img src="data:image/png;base64,{_plot_png(result)}" alt="E per position">
-<table><tr><th>position</th><th>measured (mm)</th><th>E (um)</th><th>result</th></tr>{rows}</table>
-</body></html>
-""",
-        encoding="utf-8",
-    )
-    return json_path, html_path
 
 
 def create_stages(specs: Mapping[str, Mapping[str, Any]], where: str) -> dict[str, Any]:

@@ -743,35 +743,30 @@ class RerunLogger:
 
     @staticmethod
     def _report_markdown(summary: Any) -> str:
-        verdict = "PASS" if summary.passed else "FAIL"
+        """The report panel: the session verdict and the characteristics table of
+        :func:`crossfield.report.vocabulary.result_table` (the CLI's and ``print(summary)``'s)."""
+        from crossfield.report.document import document_of
+        from crossfield.report.vocabulary import result_table, rule_text, session_verdict
+
+        report = document_of(summary)
         aggregate = summary.aggregate
-        simulated = any(c.error_mm is not None for c in summary.characteristics)
-        columns = [
-            "characteristic",
-            "n",
-            "measured ± u (mm)",
-            "nominal (mm)",
-            "deviation (± tol) (mm)",
-            "result",
-        ]
-        columns += ["error (mm)"] if simulated else []
+        verdict = session_verdict(report["passed"], report["incomplete"], report.get("station_moved"))
+        table = result_table(report)
         lines = [
             f"# {verdict}: session {summary.info.session_id}",
             "",
             f"{summary.frames_processed} stereo pairs, {summary.frames_failed} failed."
             + (f" Incomplete: {summary.incomplete}." if summary.incomplete else ""),
             "",
-            "| " + " | ".join(columns) + " |",
-            "|" + " --- |" * len(columns),
+            f"Lengths in mm; decision rule: {rule_text(report['uncertainty']['decision_rule'])}.",
+            "",
+            "| " + " | ".join(table.headers) + " |",
+            "|" + "".join(" ---: |" if r else " --- |" for r in table.right),
         ]
-        for c in summary.characteristics:
-            u = f" ± {_fmt(c.uncertainty_mm)}" if c.uncertainty_mm is not None else ""
-            deviation = "-" if not math.isfinite(c.deviation_mm) else f"{c.deviation_mm:+.4f}"
-            cells = [c.name, str(c.n), _fmt(c.measured_mm) + u, _fmt(c.nominal_mm)]
-            cells += [f"{deviation} (± {_fmt(c.tolerance_mm)})", "pass" if c.passed else "**FAIL**"]
-            cells += [_fmt(c.error_mm)] if simulated else []
-            lines.append("| " + " | ".join(cells) + " |")
-        lines += ["", "u: standard uncertainty of the mean; std (repeatability) and more in the HTML report."]
+        for row in table.rows:
+            lines.append("| " + " | ".join(cell.replace("|", "\\|") for cell in row) + " |")
+        lines += ["", ("u: standard uncertainty of the mean; U: expanded uncertainty; std (repeatability) and "
+                       "more in the HTML report.")]
         rms = summary.rms_error_mm()
         if rms is not None:
             lines += ["", f"RMS error against the simulator's ground truth: {_fmt(rms)} mm"]

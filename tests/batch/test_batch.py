@@ -178,6 +178,7 @@ def test_batch_compare_matches_per_session_replay_and_compare(archive, cluster, 
         assert (stats["shift_mm"]["min"], stats["shift_mm"]["max"]) == (min(shifts), max(shifts))
     html = (out / "batch-report.html").read_text()
     assert "<svg" in html and "ellipse" in html and "s0" in html
+    assert 'id="record-header"' in html and "True" not in html and "False" not in html  # no Python reprs
 
 
 # ---- interrupted client: a partial report marked incomplete -----------------------------
@@ -293,6 +294,12 @@ def test_embedded_cluster_replay_reproduces_the_recorded_results(archive, tmp_pa
     assert {c["name"]: c["measured_mm"] for c in entry["characteristics"]} == {
         c["name"]: c["measured_mm"] for c in recorded["characteristics"]
     }
+    # the page names each characteristic's ISO 14253-1 decision, not a Python bool (was "passed True")
+    page = (out / "batch-report.html").read_text()
+    for c in recorded["characteristics"]:
+        words = {"conforms": "conforms", "does_not_conform": "does not conform", "not_proven": "not proven"}
+        assert f"{c['name']}: {c['measured_mm']:.4f} mm, {words[c['decision']]}" in page
+    assert "passed True" not in page and "passed False" not in page and 'id="record-header"' in page
 
 
 # ---- pieces ---------------------------------------------------------------------------------

@@ -340,6 +340,10 @@ def test_report_json_and_html(tmp_path, station_result):
     text = html_path.read_text()
     # coverage and residual map per camera (no cross-validation plot: not asked for)
     assert text.count("data:image/png;base64,") == 4 and "Held-out views" in text
+    # issue 27 item 7: the shared record header, the board as a table (no JSON)
+    assert 'id="record-header"' in text and 'id="record-date"' in text and 'id="seal-chain-head"' in text
+    assert 'id="board"' in text and "{&#34;" not in text and '{"' not in text
+    assert f"<th>squares x</th><td>{station_result.board.squares_x}</td>" in text
 
 
 # ---- end to end ------------------------------------------------------------------------------------

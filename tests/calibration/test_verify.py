@@ -96,6 +96,23 @@ def test_verify_records_and_re_evaluates_from_the_recording(tmp_path, capsys):
     assert "recorded to" in capsys.readouterr().out
     integrity = verify(mcap)
     assert integrity.passed and read_sidecar(mcap)["chain_head"] == integrity.chain_sha256
+    # the verification record (issue 27 item 7): recorded first, so its header states the seal
+    import hashlib
+    import html as html_lib
+    import re
+
+    page = first.with_suffix(".html").read_text(encoding="utf-8")
+    header = {m[1]: html_lib.unescape(m[2]) for m in re.finditer(r'<dd id="([a-z0-9-]+)"[^>]*>([^<]*)</dd>', page)}
+    assert header["seal-chain-head"] == integrity.chain_sha256
+    assert header["seal-file-sha256"] == hashlib.sha256(mcap.read_bytes()).hexdigest()
+    assert header["seal-signature"].startswith("not signed")
+    assert header["record-calibration-sha256"] == hashlib.sha256(calib.read_bytes()).hexdigest()
+    assert header["record-software"].startswith("crossfield ") and re.match(r"\d{4}-\d\d-\d\dT", header["record-date"])
+    assert header["record-operator"].startswith("not stated")
+    assert "scale bar" in page and "certified length 100 mm" in page
+    record = json.loads(first.with_suffix(".json").read_text())["record"]
+    assert record["integrity"]["chain_head"] == integrity.chain_sha256
+    assert record["calibration_sha256"] == header["record-calibration-sha256"]
     recorded = read_verification_recording(mcap)
     assert [n for n, _ in recorded.named_frames] == [p.name for p in scale_bar_positions()]
     assert recorded.certified_mm == 100.0 and recorded.mpe_mm == 0.05
@@ -140,7 +157,7 @@ def test_verify_records_and_re_evaluates_from_the_recording(tmp_path, capsys):
     data = json.loads(out.with_suffix(".json").read_text())
     assert not data["passed"] and data["max_abs_error_mm"] > 0.25
     np.testing.assert_allclose([p["error_mm"] for p in data["positions"]], 0.3, atol=0.03)
-    assert "data:image/png;base64," in out.with_suffix(".html").read_text()
+    assert 'id="figure-verification"><svg' in out.with_suffix(".html").read_text()
 
 
 def test_verify_recording_errors_are_one_line(tmp_path, capsys):

@@ -225,7 +225,10 @@ def test_report_has_inline_svg_plots_and_json(tmp_path, paper, sweeps):
     text = html_path.read_text()
     assert text.count("<svg") == len(sweeps["sweeps"]) + 1  # one per sweep + the TRE field
     for name in sweeps["sweeps"]:
-        assert f"id='sweep-{name}'" in text
+        assert f'id="sweep-{name}"' in text
+    # issue 27 item 7: the shared record header, the station as a table (no Python reprs)
+    assert 'id="record-header"' in text and 'id="station-parameters"' in text
+    assert "{&#39;" not in text and "[&#39;" not in text and "{'" not in text
     doc = json.loads(json_path.read_text())
     assert doc["sweeps"]["sweeps"].keys() == sweeps["sweeps"].keys()
     assert [c["name"] for c in doc["characteristics"]] == [c.name for c in paper.characteristics]

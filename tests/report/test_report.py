@@ -38,6 +38,7 @@ from crossfield.types import (
 )
 from crossfield.plugins import report_html
 from crossfield.report import document as report_document
+from crossfield.report.document import calibration_sha256
 
 PLAN_NAME = 'Bracket <script>alert("x")</script> & co'
 EVIL_PROBLEM = "line 7: bad checksum <img src=x onerror=alert(1)>"
@@ -367,7 +368,9 @@ def test_provenance(summary, report):
     assert report["config_source"] == "demo.toml"
     assert report["plugins"] == {k: dict(v) for k, v in info.plugins.items()}
     assert report["packages"] == dict(info.packages)
-    assert report["calibration"] == {"source": "calib/<rig>.yaml"}
+    assert report["calibration"]["source"] == "calib/<rig>.yaml"
+    assert report["calibration"]["sha256"] == calibration_sha256(info.calibration)
+    assert re.fullmatch(r"[0-9a-f]{64}", report["calibration"]["sha256"])
     assert report["plan"] == {"name": PLAN_NAME, "source": "plans/bracket.toml", "sha256": info.plan.sha256}
     assert report["reference"] == {"source": "/dev/pts/7", "n_points": 0, "problems": [EVIL_PROBLEM]}
 
@@ -521,7 +524,7 @@ def test_html_table3_lengths(report, page):
     header = rows[0]
     assert header == [
         "No.", "Characteristic", "Elements", "Frames", "Measured", "Std", "u", "Actual", "Error",
-        "Nominal", "Tolerance", "Deviation", "U (k=2)", "Decision",
+        "Nominal", "Tolerance", "Deviation", "U (k = 2)", "Decision",
     ]
     table = body_rows(rows, header)
     assert len(table) == 3
@@ -530,7 +533,7 @@ def test_html_table3_lengths(report, page):
         assert row["Characteristic"].startswith(c["name"])
         assert float(row["Measured"]) == round(c["measured_mm"], 4)
         assert float(row["u"]) == round(c["uncertainty_mm"], 4)
-        assert float(row["U (k=2)"]) == round(c["expanded_uncertainty_mm"], 4)
+        assert float(row["U (k = 2)"]) == round(c["expanded_uncertainty_mm"], 4)
         assert float(row["Nominal"]) == round(c["nominal_mm"], 4)
         assert row["Tolerance"] == f"\u00b1{c['tolerance_mm']:.4f}"
         assert float(row["Deviation"]) == round(c["deviation_mm"], 4)
@@ -582,7 +585,7 @@ def test_summary_text(summary, written, report):
             assert f"{c['actual_mm']:.4f}" in line and f"{c['error_mm']:+.4f}" in line
         assert line.rstrip().endswith("conforms" if c["passed"] else "does not conform")
         assert f"{c['expanded_uncertainty_mm']:.4f}" in line and f"\u00b1{c['tolerance_mm']:.4f}" in line
-    assert "Lengths in mm" in text and "U(k=2)" in text
+    assert "Characteristics (mm;" in text and "U (k = 2)" in text
     assert f"RMS error vs ground truth: {report['rms_error_mm']:.4f} mm" in text
     assert text.splitlines()[-1] == "Result: FAIL"
     assert "4 processed, 1 failed" in text

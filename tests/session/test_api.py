@@ -69,9 +69,10 @@ def test_defaults_are_the_clis():
 
 
 def _table_rows(text: str) -> dict[str, list[str]]:
+    """name -> cells of the characteristics table (columns two spaces apart, cells may hold one)."""
     rows = {}
     for line in text.splitlines():
-        cells = line.split()
+        cells = re.split(r"\s{2,}", line.strip())
         if len(cells) > 3 and re.fullmatch(r"\d+", cells[0]):
             rows[cells[1]] = cells
     return rows
@@ -80,9 +81,10 @@ def _table_rows(text: str) -> dict[str, list[str]]:
 def test_summary_prints_as_a_table(table3):
     text = str(table3)
     lines = text.splitlines()
-    header = next(line.split() for line in lines if line.startswith("No."))
+    header = next(re.split(r"\s{2,}", line.strip()) for line in lines if line.startswith("No."))
     assert header == [
-        "No.", "Characteristic", "n", "Measured", "u", "Actual", "Error", "Nominal", "Tol", "Dev", "Result"
+        "No.", "Characteristic", "n", "Measured", "u", "U (k = 2)", "Actual", "Error", "Nominal", "Tol", "Dev",
+        "Decision",
     ]
     rows = _table_rows(text)
     assert list(rows) == [c.name for c in table3.characteristics]
@@ -93,7 +95,8 @@ def test_summary_prints_as_a_table(table3):
         assert float(cells["Actual"]) == pytest.approx(c.actual_mm, abs=5e-5)
         assert float(cells["Error"]) == pytest.approx(c.error_mm, abs=5e-5)
         assert float(cells["u"]) == pytest.approx(c.uncertainty_mm, abs=5e-5)
-        assert cells["Result"] == ("PASS" if c.passed else "FAIL")
+        assert float(cells["U (k = 2)"]) == pytest.approx(c.expanded_uncertainty_mm, abs=5e-5)
+        assert cells["Decision"] == {"conforms": "conforms", "does_not_conform": "does not conform"}[c.decision]
     assert lines[-1] == "Result: PASS"
     assert f"RMS error vs ground truth: {table3.rms_error_mm():.4f} mm" in text
     assert str(table3.info.out_dir) in lines[0]
