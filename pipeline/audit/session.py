@@ -181,6 +181,7 @@ def reproduction(path: Path, pm: pluggy.PluginManager, *, limit: int = 500) -> d
         finally:
             if not capture.closed:
                 capture.close()
+            shown.on_session_end(summary=None)  # the bar closed even if the replay failed
     rec = recorded.recording
     try:
         recorded_messages = [
