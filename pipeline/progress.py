@@ -151,8 +151,8 @@ class Progress:
         b = self._open()
         rms = result.registration.fit.rms_mm if result.registration is not None else float("nan")
         b.set_postfix_str(f"RMS {rms:.4f} mm" + (f", {self.failed} failed" if self.failed else ""), refresh=False)
-        b.update()
-        b.refresh()  # every pair drawn (pairs come at most a few per second)
+        if not b.update():  # tqdm draws at most every 0.2 s: every pair drawn all the same
+            b.refresh()
         if self.total is not None and self.done >= self.total:
             self._close()  # the pairs are done: the session end's steps (Monte Carlo check) show theirs
 
