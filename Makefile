@@ -1,8 +1,13 @@
-# Fresh clone -> `make demo` or `make test`. Each target installs what it needs.
+# Fresh clone -> `make demo` or `make test`. Each target installs what it needs:
+# `make demo` / `make install` the core only (what `crossfield` needs at run time),
+# `make test` adds the test and basler extras, `make bench` the bench extra, each
+# behind its own stamp, so that `make test` after `make demo` installs only the extras.
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
-STAMP  := $(VENV)/.installed
+STAMP  := $(VENV)/.installed-core
+STAMP_TEST  := $(VENV)/.installed-test
+STAMP_BENCH := $(VENV)/.installed-bench
 SUDO   := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 # Debian packages the tests need: Mesa's lavapipe Vulkan driver, so the real
 # Rerun viewer renders headless (screenshots, ViewerClient) with no GPU; chromium for
@@ -21,11 +26,26 @@ APT_PACKAGES := mesa-vulkan-drivers libvulkan1 chromium postgresql
 # and nothing else (there is no crossfield/ folder to take precedence).
 EDITABLE_NOTE := -W "ignore:Editable installation:UserWarning"
 
-$(STAMP): pyproject.toml
+# pip's own output is kept (what it downloads and installs), each step announced first.
+$(PY):
+	@echo "creating $(VENV)/ (python -m venv) and upgrading pip ..."
 	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install -q --upgrade pip
-	$(PY) $(EDITABLE_NOTE) -m pip install -q -e '.[test,bench,basler]'
+	$(PY) -m pip install --upgrade pip
+
+$(STAMP): pyproject.toml | $(PY)
+	@echo "installing crossfield and its run-time dependencies into $(VENV)/ (pip install -e .) ..."
+	$(PY) $(EDITABLE_NOTE) -m pip install -e .
 	touch $(STAMP)
+
+$(STAMP_TEST): pyproject.toml $(STAMP)
+	@echo "adding the test and basler extras (pytest, hypothesis, pypylon) ..."
+	$(PY) $(EDITABLE_NOTE) -m pip install -e '.[test,basler]'
+	touch $(STAMP_TEST)
+
+$(STAMP_BENCH): pyproject.toml $(STAMP_TEST)
+	@echo "adding the bench extra (pytest-benchmark) ..."
+	$(PY) $(EDITABLE_NOTE) -m pip install -e '.[test,bench]'
+	touch $(STAMP_BENCH)
 
 install: $(STAMP)
 
@@ -41,10 +61,10 @@ demo: $(STAMP)
 # calibration solves 20-30x slower (measured: 2.56 s against 0.13 s).
 test bench: export OPENBLAS_NUM_THREADS = 1
 
-test: $(STAMP) apt-packages
+test: $(STAMP_TEST) apt-packages
 	$(PY) -m pytest -q
 
-bench: $(STAMP)
+bench: $(STAMP_BENCH)
 	$(PY) bench/run.py
 
 clean:

@@ -125,8 +125,8 @@ def run(
       (``"session"`` sets ``[session]`` keys); after the plugins are chosen,
       so they belong to the implementation that runs.
     - observers: extra observer plugins for this session (hook
-      implementations, docs/stages.md); progress: show the progress display
-      on stderr.
+      implementations, docs/stages.md); progress: show the progress bar
+      on stderr when it is a terminal (crossfield.progress).
     - plugin_manager: the plugins to choose from (default: the built-in
       ones and the installed third-party ones, as the CLI).
 
@@ -163,7 +163,7 @@ def run(
         from crossfield.progress import Progress
 
         n = resolved.stages["acquire"].options.get("frames")
-        extra.append(Progress(total=n if isinstance(n, int) else None))
+        extra.append(Progress(total=n if isinstance(n, int) else None, enabled=True))
     logger.info("running a session: %s", resolved.source)
     summary = run_session(resolved, pm, observers=extra)
     logger.info("session written to %s", summary.info.out_dir)

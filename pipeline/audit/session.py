@@ -53,6 +53,7 @@ from crossfield.audit.report import (
 )
 from crossfield.chain.registry import STAGES, implementations
 from crossfield.errors import CrossfieldError, RecordingError
+from crossfield.progress import Progress
 from crossfield.recording import layout as L
 from crossfield.recording import seal
 from crossfield.recording.codec import decode_log
@@ -168,16 +169,19 @@ def reproduction(path: Path, pm: pluggy.PluginManager, *, limit: int = 500) -> d
         return {"passed": False, "error": f"the session cannot be replayed: {exc}", "differences": []}
     sink = MemorySink(skip_topics=RAW_TOPICS)
     capture = SessionRecorder(sink)
+    images = recorded.recording.topics().get(L.IMAGE_TOPICS[0]) if recorded.complete else None
+    shown = Progress(total=images.message_count if images else None, desc="audit: replaying", log=False)
     with tempfile.TemporaryDirectory(prefix="crossfield-audit-") as tmp:
         try:
             summary = replay_session(
-                path, pm, output_dir=tmp, record=False, rerun=False, observers=[capture], recorded=recorded
+                path, pm, output_dir=tmp, record=False, rerun=False, observers=[capture, shown], recorded=recorded
             )
         except CrossfieldError as exc:
             return {"passed": False, "error": f"the replay failed: {exc}", "differences": []}
         finally:
             if not capture.closed:
                 capture.close()
+            shown.on_session_end(summary=None)  # the bar closed even if the replay failed
     rec = recorded.recording
     try:
         recorded_messages = [

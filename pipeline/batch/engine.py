@@ -19,14 +19,13 @@ import argparse
 import contextlib
 import logging
 import os
-import sys
-import threading
 import uuid
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from crossfield.errors import ConfigError
+from crossfield.progress import bar
 
 if TYPE_CHECKING:
     from dask.distributed import Client
@@ -179,13 +178,6 @@ def task_error(exc: BaseException) -> str:
     return f"the task failed: {type(exc).__name__}: {exc}"
 
 
-def _progress(futures: Sequence[Any], scheduler: str) -> None:
-    from distributed.diagnostics.progressbar import TextProgressBar
-
-    with contextlib.suppress(Exception):  # the bar is a display: it never stops the batch
-        TextProgressBar(futures, scheduler=scheduler, complete=True)
-
-
 def run_each(
     c: "Client",
     function: Callable[..., Any],
@@ -194,11 +186,13 @@ def run_each(
     *,
     prefix: str = "crossfield",
     progress: bool = True,
+    desc: str = "tasks",
 ) -> None:
     """Submit ``function(*item)`` once per item (one task each, ``pure=False``: a task is
     never merged with another) and call ``on_result(position, result, error)`` as each
     completes, in completion order: ``error`` is None, or the reason the task failed
-    (:func:`task_error`). ``progress``: Dask's text progress bar on stdout."""
+    (:func:`task_error`). ``progress``: a bar of the tasks done, labelled ``desc``, on a
+    terminal (:func:`crossfield.progress.bar`: not on a pipe, not under ``-q``)."""
     from dask.distributed import as_completed
 
     run = uuid.uuid4().hex[:8]
@@ -208,22 +202,15 @@ def run_each(
     if not futures:
         return
     position = {f.key: i for i, f in enumerate(futures)}
-    bar = None
-    if progress:
-        bar = threading.Thread(target=_progress, args=(futures, c.scheduler.address), daemon=True)
-        bar.start()
-    try:
-        for future in as_completed(futures):
-            i = position[future.key]
-            if future.status == "error":
-                on_result(i, None, task_error(future.exception()))
-            else:
-                on_result(i, future.result(), None)
-    except BaseException:
-        c.cancel(futures)
-        raise
-    finally:
-        if bar is not None:
-            bar.join(timeout=2.0)
-            sys.stdout.write("\n")
-            sys.stdout.flush()
+    with bar(desc=desc, total=len(futures), unit="task", enabled=None if progress else False) as done:
+        try:
+            for future in as_completed(futures):
+                i = position[future.key]
+                if future.status == "error":
+                    on_result(i, None, task_error(future.exception()))
+                else:
+                    on_result(i, future.result(), None)
+                done.update()
+        except BaseException:
+            c.cancel(futures)
+            raise

@@ -108,6 +108,7 @@ def run_batch(
                     on_result,
                     prefix=f"crossfield-{kind}",
                     progress=progress,
+                    desc=f"batch {kind}",
                 )
             remove_attempts(out / "sessions")
         finished = True

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -49,6 +50,7 @@ from crossfield.calibration.detect import BoardDetection, BoardDetector
 from crossfield.calibration.refine import refine
 from crossfield.calibration.residuals import ResidualMap
 from crossfield.errors import CrossfieldError
+from crossfield.progress import bar
 from crossfield.types import CAMERAS, CameraIntrinsics, StereoCalibration
 
 DISTORTION_MODELS: dict[str, tuple[int, int]] = {
@@ -191,7 +193,10 @@ def detect_views(
 ) -> list[dict[str, BoardDetection | None]]:
     """Detect the board in every (upper, lower) image; None where not found."""
     detector = BoardDetector(board, min_points=min_points)
-    return [{cam: detector.detect(view[cam], bit_depth) for cam in CAMERAS} for view in images]
+    return [
+        {cam: detector.detect(view[cam], bit_depth) for cam in CAMERAS}
+        for view in bar(images, desc="calibrate: detecting the board", unit="pair")
+    ]
 
 
 def check_mirrored(
@@ -379,6 +384,21 @@ def solve_stereo(
     source: str = "crossfield calibrate",
 ) -> CalibrationResult:
     """Steps 2-5 of the module docstring on detected views; raises :class:`CalibrationError`."""
+    # the steps on a terminal (crossfield.progress): each camera, the stereo pair, the joint refinement
+    with bar(desc="calibrate: solving", total=3 + bool(settings.joint), unit="step") as steps:
+        return _solve_stereo(detections, image_sizes, board, settings, names=names, source=source, steps=steps)
+
+
+def _solve_stereo(
+    detections: Sequence[Mapping[str, BoardDetection | None]],
+    image_sizes: Mapping[str, tuple[int, int]],
+    board: Board,
+    settings: CalibrationSettings,
+    *,
+    names: Sequence[str] | None,
+    source: str,
+    steps: Any,
+) -> CalibrationResult:
     n = len(detections)
     names = [f"view {k}" for k in range(n)] if names is None else list(names)
     dropped: list[DroppedView] = []
@@ -400,9 +420,10 @@ def solve_stereo(
                 )
             elif k not in held_out:
                 usable[cam][k] = d
-    cameras = {
-        cam: calibrate_camera(cam, usable[cam], image_sizes[cam], settings, names, dropped) for cam in CAMERAS
-    }
+    cameras = {}
+    for cam in CAMERAS:
+        cameras[cam] = calibrate_camera(cam, usable[cam], image_sizes[cam], settings, names, dropped)
+        steps.update()
     # Step 4: stereo on the common points of the views both cameras kept.
     pairs: dict[int, tuple[BoardDetection, BoardDetection]] = {}
     for k in sorted(set(cameras["upper"].per_view_px) & set(cameras["lower"].per_view_px)):
@@ -470,6 +491,7 @@ def solve_stereo(
         T,
         source=source,
     )
+    steps.update()
     # Step 5: covariance at the solution (the board poses marginalised).
     obs = StereoObservations(
         tuple(pairs[k][0].object_points for k in keys),
@@ -503,6 +525,7 @@ def solve_stereo(
             jackknife_views=settings.jackknife,
         )
         calibration, params, cov, sigma = refined.calibration, refined.params, refined.covariance, refined.sigma_px
+        steps.update()
         K1s, D1s = np.asarray(calibration.upper.camera_matrix), np.asarray(calibration.upper.dist_coeffs)
         K2s, D2s = np.asarray(calibration.lower.camera_matrix), np.asarray(calibration.lower.dist_coeffs)
         rvec, T = params[-6:-3], params[-3:]

@@ -21,9 +21,10 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-from crossfield import __version__
+from crossfield import __version__, progress
 from crossfield.cli import batch, calibration, catalog, planning, session, simulator
 from crossfield.cli.common import Command, log_level, logging_to_stderr, stdout_gone, verbosity_flags
+from crossfield.compile_notice import announced
 from crossfield.errors import CrossfieldError
 
 __all__ = ["COMMANDS", "Command", "build_parser", "main"]
@@ -57,7 +58,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run one ``crossfield`` command; returns its exit status (2: an error, 130: interrupted)."""
     args = build_parser().parse_args(list(sys.argv[1:] if argv is None else argv))
     try:
-        with logging_to_stderr(log_level(args.verbose, args.quiet)):
+        # progress bars and the first-compile notice on a terminal, none under -q (crossfield.progress)
+        with (
+            logging_to_stderr(log_level(args.verbose, args.quiet)),
+            progress.shown(not args.quiet),
+            announced(),
+        ):
             status = COMMANDS[args.command].run(args)
             sys.stdout.flush()  # here, so that a closed pipe is caught below
             return status

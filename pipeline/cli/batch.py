@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 
 from crossfield.batch.engine import Engine, add_engine_flags, engine_from_args
 from crossfield.batch.run import run_batch
@@ -41,7 +40,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
         plugins=plugins,
         options=options,
         engine=engine_from_args(args) or Engine(memory_limit=args.memory_limit),
-        progress=not args.quiet and sys.stdout.isatty(),
+        progress=not args.quiet,  # on a terminal only (crossfield.progress)
         echo=(lambda text: None) if args.quiet else print,
     )
     doc = report.to_json()

@@ -53,7 +53,7 @@ def verbosity_flags(default: object = 0) -> argparse.ArgumentParser:
     )
     flags.add_argument(
         "-q", "--quiet", action="count", default=default,
-        help="log only errors (and no progress display for run and replay)",
+        help="log only errors, and no progress bars (they are drawn on a terminal only)",
     )
     return flags
 

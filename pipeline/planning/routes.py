@@ -62,6 +62,7 @@ from crossfield.precision.stereo import (
     project_stereo,
     triangulate_batch,
 )
+from crossfield.progress import bar
 from crossfield.rigid import kabsch
 from crossfield.simulator.render import SensorModel
 
@@ -411,9 +412,15 @@ def predict(
     """
     if route not in ("both", "analytic", "monte-carlo"):
         raise ValueError(f"route must be both, analytic or monte-carlo, got {route!r}")
-    model = camera_model(station)
-    an = analytic(station, model) if route != "monte-carlo" else None
-    mc = monte_carlo(station, sessions, seed, model) if route != "analytic" else None
+    with bar(desc="plan: rendered centroid bias", total=1 + (route != "monte-carlo") + (route != "analytic"),
+             unit="step") as steps:
+        model = camera_model(station)
+        steps.update()
+        steps.set_description_str("plan: analytic route")
+        an = analytic(station, model) if route != "monte-carlo" else None
+        steps.update(route != "monte-carlo")
+        steps.set_description_str(f"plan: Monte Carlo route ({sessions} sessions)")
+        mc = monte_carlo(station, sessions, seed, model) if route != "analytic" else None
     chars = []
     for k, c in enumerate(station.characteristics):
         entry: dict[str, Any] = {"name": c.name, "kind": c.kind, "a": c.a, "b": c.b,

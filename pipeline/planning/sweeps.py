@@ -21,6 +21,7 @@ from crossfield.planning.station import (
     with_focal_length,
     with_working_distance,
 )
+from crossfield.progress import bar
 
 #: name -> (variant, default values, axis label). Values in the parameter's unit.
 SWEEPS: dict[str, tuple[Callable[[Station, Any], Station], tuple[float, ...], str]] = {
@@ -51,10 +52,19 @@ def evaluate(station: Station, sessions: int, seed: int, route: str = "both") ->
 
 
 def _map(points: Sequence[Station], sessions: int, seed: int, route: str, client=None) -> list[dict[str, Any]]:
-    if client is None:
-        return [evaluate(s, sessions, seed, route) for s in points]
-    futures = client.map(evaluate, list(points), sessions=sessions, seed=seed, route=route, pure=False)
-    return client.gather(futures)
+    with bar(desc="plan: layout sweeps", total=len(points), unit="layout") as done:
+        if client is None:
+            out = []
+            for s in points:
+                out.append(evaluate(s, sessions, seed, route))
+                done.update()
+            return out
+        from dask.distributed import as_completed
+
+        futures = client.map(evaluate, list(points), sessions=sessions, seed=seed, route=route, pure=False)
+        for _ in as_completed(futures):
+            done.update()
+        return client.gather(futures)
 
 
 def run_sweeps(
@@ -111,8 +121,10 @@ def recommend(
         raise ValueError(f"--target-mm must be > 0, got {target_U_mm}")
     k = station.coverage_factor
     tried = []
-    for n in n_controls:
-        for f in focal_lengths_mm:
+    grid = [(n, f) for n in n_controls for f in focal_lengths_mm]
+    with bar(desc="plan: recommendation", total=len(grid), unit="layout") as layouts:
+        for n, f in grid:
+            layouts.update()  # counts the layout being tried
             variant = _layout(with_focal_length(with_controls(station, n), f))
             if not variant.in_view():
                 tried.append({"n_controls": n, "focal_length_mm": f, "in_view": False})

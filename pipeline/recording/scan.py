@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from crossfield.progress import bar
 from crossfield.recording.codec import utc_text
 from crossfield.recording.integrity import (
     INTEGRITY_FORMAT,
@@ -189,7 +190,7 @@ def scan_file(path: Path) -> FileScan:
 
     size = path.stat().st_size
     damage = (McapError, struct.error, EOFError, ValueError, UnicodeDecodeError, MemoryError)
-    with open(path, "rb") as f:
+    with open(path, "rb") as f, bar(desc="integrity check", total=size, unit="B", unit_scale=True) as read:
         offset = 8
         at_start = True
         while True:
@@ -242,6 +243,7 @@ def scan_file(path: Path) -> FileScan:
                         elif isinstance(record, Footer):
                             scan.complete = True
                     offset = f.tell()
+                    read.update(offset - read.n)
                 break
             except damage as exc:
                 reason = type(exc).__name__ + (f": {exc}" if str(exc) else "")

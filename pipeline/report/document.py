@@ -519,7 +519,13 @@ def load_schema() -> dict[str, Any]:
 
 
 def validate(report: Mapping[str, Any]) -> None:
-    """Raise ``jsonschema.ValidationError`` if ``report`` does not follow the schema."""
-    import jsonschema
+    """Raise ``jsonschema.ValidationError`` if ``report`` does not follow the schema. Needs the
+    ``jsonschema`` package, which crossfield does not install (its ``test`` extra does)."""
+    try:
+        import jsonschema
+    except ModuleNotFoundError:
+        raise ModuleNotFoundError(
+            "crossfield.report.document.validate needs the jsonschema package: pip install jsonschema"
+        ) from None
 
     jsonschema.Draft202012Validator(load_schema()).validate(report)

@@ -37,6 +37,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from crossfield.calibration.boards import Board
+from crossfield.progress import bar
 from crossfield.simulator.optics import project
 from crossfield.simulator.render import SensorModel, add_noise, background_image
 from crossfield.simulator.scenarios import SCENARIOS, VIEW_CENTRE, station_calibration
@@ -444,7 +445,7 @@ def render_calibration_views(
     rng = np.random.default_rng([seed, 3])
     images = []
     R_lu, t_lu = calibration.R_lower_upper, calibration.t_lower_upper
-    for pose in poses:
+    for pose in bar(poses, desc="simulating the board views", unit="pair"):
         height = None
         if any(pose.warp_mm):
             height = lambda bx, by, w=pose.warp_mm: board_height_mm(bx, by, board, w)

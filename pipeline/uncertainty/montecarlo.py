@@ -71,6 +71,7 @@ from crossfield.batch.engine import Engine, client
 from crossfield.errors import CrossfieldError
 from crossfield.geometry import element_probes, fit_reference_element
 from crossfield.plan import MeasurementPlan
+from crossfield.progress import bar
 from crossfield.session import MonteCarloResult
 from crossfield.types import CameraPoints, Correspondence, ReferenceData, Registration
 from crossfield.uncertainty.eccentricity import eccentricity_sigma_mm, off_axis_rad
@@ -339,7 +340,12 @@ def run_draws(
     bit for bit either way, whatever the number of workers."""
     chunks = _chunks(n_draws, seed, chunk_draws)
     if client is None:
-        return np.vstack([draw_chunk(problem, s, n) for s, n in chunks])
+        parts_here = []
+        with bar(desc="Monte Carlo check", total=n_draws, unit="draw") as drawn:
+            for s, n in chunks:
+                parts_here.append(draw_chunk(problem, s, n))
+                drawn.update(n)
+        return np.vstack(parts_here)
     from crossfield.batch.engine import run_each
 
     shared = client.scatter(problem, broadcast=True)  # sent once, not once per task
@@ -353,7 +359,7 @@ def run_draws(
             parts[i] = np.asarray(result, dtype=np.float64)
 
     run_each(client, draw_chunk, [(shared, s, n) for s, n in chunks], collect,
-             prefix="crossfield-monte-carlo", progress=False)
+             prefix="crossfield-monte-carlo", desc="Monte Carlo check (chunks)")
     if errors:  # e.g. a worker without the session's plugins, or lost too often
         raise CrossfieldError("the Monte Carlo check on Dask failed: " + "; ".join(errors))
     return np.vstack(parts)  # type: ignore[arg-type]

@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from crossfield.errors import CrossfieldError
+from crossfield.progress import bar
 from crossfield.types import StereoCalibration, StereoCentroids, StereoFrame
 
 MIN_POSITIONS = 7
@@ -120,7 +121,7 @@ def evaluate(
             f"{len(named_frames)} scale-bar positions; VDI/VDE 2634-1 needs at least {MIN_POSITIONS}"
         )
     results = []
-    for name, frames in named_frames:
+    for name, frames in bar(named_frames, desc="verify: measuring the bar", unit="position"):
         lengths = tuple(bar_length(f, centroid, triangulate, calibration) for f in frames)
         mean = float(np.mean(lengths))
         error = mean - certified_mm
@@ -136,7 +137,7 @@ def simulate_positions(
 
     out = []
     rng = np.random.default_rng([seed, 5])
-    for position in scale_bar_positions():
+    for position in bar(scale_bar_positions(), desc="simulating the bar positions", unit="position"):
         scene = bar_scene(position, length_mm, scenario)
         out.append((position.name, [scene.render_pair(k, rng) for k in range(frames)]))
     return out
