@@ -119,7 +119,7 @@ def interrupted(tmp_path_factory) -> tuple[Path, int, str, str]:
     child = Child(["run", "--scenario", "station", "--frames", str(PAIRS), "--seed", "3", "-o", str(out),
                    "--name", "s", "--no-rerun"])  # fmt: skip
     try:
-        child.expect(f"frame 2/{PAIRS}")
+        child.expect(f" 2/{PAIRS} [")  # the pairs bar (crossfield.progress): 2 pairs done
         child.process.send_signal(signal.SIGINT)
         code, stdout, stderr = child.finish()
     finally:
