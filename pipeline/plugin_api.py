@@ -31,7 +31,9 @@ from crossfield.camera.pairing import (
 )
 from crossfield.camera.stereo_model import (
     StereoGeometry,
+    epipolar_candidates,
     linear_triangulation,
+    point_covariance,
     refine_points,
     stereo_geometry,
     undistort,
@@ -256,6 +258,7 @@ __all__ = [
     "dumps",
     "eccentricity_sigma_mm",
     "edge_profile",
+    "epipolar_candidates",
     "finite",
     "fit_circles",
     "fit_discs",
@@ -271,6 +274,7 @@ __all__ = [
     "pair_skew_ns",
     "parse_float",
     "pattern_regex",
+    "point_covariance",
     "point_line_distance",
     "point_set_size",
     "quoted",
