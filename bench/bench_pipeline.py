@@ -13,7 +13,9 @@ Measures, in one run on this machine:
   shared machine make the write baseline swing 10x between runs, this one not;
   the guard's figures (``bench/run.py``) are the pipeline's rate against it and
   the recorded pipeline's against the unrecorded one;
-* the pipeline without recording (pairs/s, target >= 150);
+* the pipeline without recording (pairs/s, target >= 150), and that session split: the
+  frames alone (first frame to last, pairs/s) and the fixed time before the first frame
+  and after the last (the summary and the reports, ~0.5 s of matplotlib figures);
 * the pipeline with lossless MCAP recording (pairs/s, target >= 60);
 * peak RSS growth between a short and a 4x longer session (must not grow with
   length: the session aggregates frame by frame and keeps at most
@@ -82,6 +84,36 @@ class MemoryPlugin:
         register("memory", factory, "pre-rendered pairs in memory (benchmark)")
 
 
+class PhaseClock:
+    """Observer: when the session started, its first frame began, its last frame ended and
+    the session ended (after the summary and the report), perf_counter seconds."""
+
+    def __init__(self) -> None:
+        self.times: dict[str, float] = {}
+
+    @hookimpl
+    def on_session_start(self, session):
+        self.times = {"start": time.perf_counter()}
+
+    @hookimpl
+    def on_frame(self, frame):
+        self.times.setdefault("first_frame", time.perf_counter())
+
+    @hookimpl
+    def on_frame_done(self, result):
+        self.times["last_frame"] = time.perf_counter()
+
+    @hookimpl
+    def on_session_end(self, summary):
+        self.times["end"] = time.perf_counter()
+
+    def split(self, count: int) -> tuple[float, float, float]:
+        """(pairs/s from the first frame to the last, ms before the first frame, ms after the last)."""
+        t = self.times
+        return (count / (t["last_frame"] - t["first_frame"]), 1e3 * (t["first_frame"] - t["start"]),
+                1e3 * (t["end"] - t["last_frame"]))
+
+
 def write_reference_csv(scene, path: Path) -> None:
     probes = scene.arm_probes(np.random.default_rng(2))
     lines = ["id,x,y,z,sigma"]
@@ -147,7 +179,8 @@ def main() -> None:
     scene = build_scene(args.scenario)
     rng = np.random.default_rng(0)
     pairs = [scene.render_pair(k, rng, time.time_ns()) for k in range(8)]
-    pm = make_plugin_manager(extra=[MemoryPlugin(scene, pairs)])
+    clock = PhaseClock()
+    pm = make_plugin_manager(extra=[MemoryPlugin(scene, pairs), clock])
     with tempfile.TemporaryDirectory(dir=Path(__file__).resolve().parents[1] / "recordings") as tmp:
         tmp = Path(tmp)
         csv = tmp / "reference.csv"
@@ -159,12 +192,18 @@ def main() -> None:
             base = baseline_write(pairs, args.frames, tmp / "plain.bin")
             cpu = baseline_opencv(pairs, args.frames)
             plain, summary = pipeline_rate(pm, csv, tmp, args.frames, False, f"norec{r}")
+            per_pair, before_ms, after_ms = clock.split(args.frames)
             rec, _ = pipeline_rate(pm, csv, tmp, args.frames, True, f"rec{r}")
             rows.append((base, plain, rec, cpu))
             print(
                 f"run {r + 1}: baseline write {base:7.1f} pairs/s | OpenCV {cpu:6.1f} pairs/s | pipeline "
                 f"{plain:6.1f} pairs/s (x{plain / base:.3f}, x{plain / cpu:.3f} OpenCV) | pipeline+MCAP "
                 f"{rec:6.1f} pairs/s (x{rec / base:.3f}, x{rec / plain:.3f} unrecorded)"
+            )
+            print(
+                f"       unrecorded, split: frames {per_pair:6.1f} pairs/s (x{per_pair / cpu:.3f} OpenCV), "
+                f"{before_ms:.0f} ms before the first frame (reference import), {after_ms:.0f} ms after "
+                f"the last (summary, report.json + report.html with its figures)"
             )
         base, plain, rec, cpu = np.median(np.array(rows), axis=0)
         record("pipeline.unrecorded_vs_opencv", plain / cpu, "higher")

@@ -31,7 +31,9 @@ from crossfield.camera.pairing import (
 )
 from crossfield.camera.stereo_model import (
     StereoGeometry,
+    epipolar_candidates,
     linear_triangulation,
+    point_covariance,
     refine_points,
     stereo_geometry,
     undistort,
@@ -272,6 +274,7 @@ __all__ = [
     "eccentricity_sigma_mm",
     "edge_profile",
     "expanded_heading",
+    "epipolar_candidates",
     "finite",
     "fit_circles",
     "fit_discs",
@@ -288,6 +291,7 @@ __all__ = [
     "pair_skew_ns",
     "parse_float",
     "pattern_regex",
+    "point_covariance",
     "point_line_distance",
     "point_set_size",
     "quoted",

@@ -67,9 +67,12 @@ def frozen_array(values, dtype=np.float64, shape: tuple[int | None, ...] | None 
     """
     array = np.array(values, dtype=dtype, copy=True)
     if shape is not None:
-        if array.ndim != len(shape) or any(
-            want is not None and have != want for have, want in zip(array.shape, shape)
-        ):
+        have = array.shape
+        ok = len(have) == len(shape)
+        for k, want in enumerate(shape if ok else ()):  # a loop, not any(<generator>): on every stage result
+            if want is not None and have[k] != want:
+                ok = False
+        if not ok:
             raise ValueError(f"expected an array of shape {shape}, got {array.shape}")
     array.flags.writeable = False
     return array

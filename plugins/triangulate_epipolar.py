@@ -27,8 +27,9 @@ Method (``docs/triangulation.md``):
    offsets' covariance, propagated through the triangulation
    ``G = (J^T W J)^-1 J^T W``, to cov(X) (:mod:`crossfield.imaging.eccentricity`).
 
-The camera model, the undistortion, the linear triangulation and the
-Gauss-Newton refinement are the core's (:mod:`crossfield.camera.stereo_model`).
+The camera model, the undistortion, the epipolar distances, the linear
+triangulation, the Gauss-Newton refinement and the covariance are the core's
+(:mod:`crossfield.camera.stereo_model`, compiled kernels).
 
 Units: pixels in the images (OpenCV convention), mm in the upper camera frame.
 """
@@ -47,10 +48,11 @@ from crossfield.plugin_api import (
     StereoGeometry,
     View,
     centre_offsets,
+    epipolar_candidates,
     fit_circles,
     hookimpl,
-    linear_triangulation,
     offset_covariance,
+    point_covariance,
     refine_points,
     stereo_geometry,
     undistort,
@@ -58,10 +60,10 @@ from crossfield.plugin_api import (
 
 
 def _sigmas(centroids: CentroidSet, default_px: float) -> np.ndarray:
-    sigma = np.array(centroids.sigma_uv, dtype=np.float64)
-    bad = ~np.isfinite(sigma) | (sigma <= 0)
-    sigma[bad] = default_px
-    return sigma
+    """(N, 2) px: the centroids' sigma_uv, ``default_px`` where one is not a positive number."""
+    sigma = centroids.sigma_uv
+    valid = (sigma > 0) & (sigma < np.inf)  # False for nan
+    return sigma if valid.all() else np.where(valid, sigma, default_px)
 
 
 def _names(camera: str, indices) -> str:
@@ -143,23 +145,6 @@ class EpipolarTriangulator:
             self._cached_calibration = calibration
         return self._cached_geometry
 
-    # ---- matching ------------------------------------------------------------------------------
-
-    def _limits(self, grad_lower, grad_upper, sigma_upper, sigma_lower) -> np.ndarray:
-        """(N, M) limit on the epipolar distance (px) of each pair.
-
-        grad_lower: (N, 2) de/dq_lower = (F q_upper)[:2] for each upper point;
-        grad_upper: (M, 2) de/dq_upper = (F^T q_lower)[:2] for each lower point.
-        """
-        n, m = len(grad_lower), len(grad_upper)
-        if self.max_epipolar_px > 0:
-            return np.full((n, m), self.max_epipolar_px)
-        # e = q_l^T F q_u, var(e) = grad_u^T S_u grad_u + grad_l^T S_l grad_l to first order (as in the
-        # Sampson error, H&Z 4.2.6, 11.4.3); the distance to the epipolar line is |e| / |grad_l|.
-        var_e = (sigma_upper**2) @ (grad_upper**2).T + (grad_lower**2) @ (sigma_lower**2).T
-        var_d = var_e / np.sum(grad_lower**2, axis=1)[:, None]
-        return self.epipolar_k * np.sqrt(var_d + self.calibration_px**2)
-
     def triangulate(self, centroids: StereoCentroids, calibration: StereoCalibration) -> CameraPoints:
         """Match and triangulate one stereo pair's centroids.
 
@@ -175,42 +160,25 @@ class EpipolarTriangulator:
         xn_u = undistort(upper.uv, geometry.upper)
         xn_l = undistort(lower.uv, geometry.lower)
 
-        # Epipolar distances on undistorted pixels (H&Z 9.2): lines l_lower = F q_upper.
-        q_u = np.hstack([xn_u, np.ones((n, 1))]) @ geometry.upper.K.T
-        q_l = np.hstack([xn_l, np.ones((m, 1))]) @ geometry.lower.K.T
-        lines_in_lower = q_u @ geometry.F.T  # (N, 3)
-        lines_in_upper = q_l @ geometry.F  # (M, 3)
-        algebraic = lines_in_lower @ q_l.T  # (N, M), e_ij = q_l[j]^T F q_u[i]
-        grad_lower = lines_in_lower[:, :2]  # de/dq_lower, per upper point
-        grad_upper = lines_in_upper[:, :2]  # de/dq_upper, per lower point
-        # |F q| > 0 for any finite image point of a rig with a baseline (the epipole is never at q).
-        distance = np.abs(algebraic) / np.sqrt(np.sum(grad_lower**2, axis=1))[:, None]
-        limit = self._limits(grad_lower, grad_upper, sigma_u, sigma_l)
-        on_line = distance <= limit
-
-        # Working-range pruning: triangulate the epipolar-compatible pairs, keep those in range.
-        pi, pj = np.nonzero(on_line)
-        X_pairs = linear_triangulation(xn_u[pi], xn_l[pj], geometry)
-        z_upper = X_pairs[:, 2]
-        z_lower = X_pairs @ geometry.lower.R[2] + geometry.lower.t[2]
-        in_range = (
-            np.isfinite(z_upper) & (z_upper >= self.z_min_mm) & (z_upper <= self.z_max_mm) & (z_lower > 0)
+        # Epipolar distances on undistorted pixels (H&Z 9.2), each pair's limit from both centroids'
+        # sigmas (Sampson, H&Z 4.2.6), and working-range pruning: the pairs on the line are
+        # triangulated and kept when in range. All (N, M); X_pairs (N, M, 3) mm, nan off the line.
+        distance, limit, X_pairs, candidate = epipolar_candidates(
+            xn_u, xn_l, sigma_u, sigma_l, geometry, max_epipolar_px=self.max_epipolar_px,
+            epipolar_k=self.epipolar_k, calibration_px=self.calibration_px,
+            z_min_mm=self.z_min_mm, z_max_mm=self.z_max_mm,
         )
-        candidate = np.zeros((n, m), dtype=bool)
-        candidate[pi[in_range], pj[in_range]] = True
         n_upper = candidate.sum(axis=1)
         n_lower = candidate.sum(axis=0)
         accepted = candidate & (n_upper == 1)[:, None] & (n_lower == 1)[None, :]
         ai, aj = np.nonzero(accepted)  # row-major: sorted by upper index
 
-        rejected = self._reasons(candidate, n_upper, n_lower, distance, limit, pi, pj, z_upper, in_range)
+        rejected = self._reasons(candidate, n_upper, n_lower, distance, limit, X_pairs[:, :, 2])
 
         # Initial points from the linear triangulation already done for the candidates.
-        pair_index = np.full((n, m), -1)
-        pair_index[pi, pj] = np.arange(len(pi))
-        X = X_pairs[pair_index[ai, aj]]
-        uv_obs = np.hstack([upper.uv[ai], lower.uv[aj]])  # (K, 4) px
-        weights = 1.0 / np.hstack([sigma_u[ai], sigma_l[aj]]) ** 2
+        X = X_pairs[ai, aj]
+        uv_obs = np.concatenate((upper.uv[ai], lower.uv[aj]), axis=1)  # (K, 4) px
+        weights = 1.0 / np.concatenate((sigma_u[ai], sigma_l[aj]), axis=1) ** 2
         X, residual, J, information = self._refine(X, uv_obs, weights, geometry)
         offset_cov = None
         if self.eccentricity and len(X) and upper.ellipse is not None and lower.ellipse is not None:
@@ -218,17 +186,14 @@ class EpipolarTriangulator:
                 X, uv_obs, weights, geometry, calibration, upper, lower, ai, aj
             )
 
-        # First-order propagation: cov(X) = (J^T W J)^-1 (ML estimate, H&Z 5.2.2).
+        # First-order propagation: cov(X) = (J^T W J)^-1 (ML estimate, H&Z 5.2.2), plus the
+        # eccentricity offsets' own uncertainty G C G^T, G = (J^T W J)^-1 J^T W (3 x 4).
         if information is None:
             information = np.matmul(np.swapaxes(J, 1, 2) * weights[:, None, :], J)
-        covariance = np.linalg.inv(information) if len(X) else np.zeros((0, 3, 3))
-        if offset_cov is not None:
-            # the eccentricity offsets' own uncertainty: G cov G^T, G = (J^T W J)^-1 J^T W (3 x 4)
-            G = np.matmul(covariance, np.swapaxes(J, 1, 2) * weights[:, None, :])
-            covariance = covariance + np.matmul(np.matmul(G, offset_cov), np.swapaxes(G, 1, 2))
-        sigma_xyz = np.sqrt(np.abs(np.diagonal(covariance, axis1=1, axis2=2)))
-        residual_px = np.sqrt(0.5 * np.sum(residual**2, axis=1))
-        chi2 = np.sum(weights * residual**2, axis=1)  # 4 coordinates - 3 unknowns: 1 dof (H&Z 4.2.6)
+        covariance, sigma_xyz = point_covariance(information, J, weights, offset_cov)
+        squared = residual * residual
+        residual_px = np.sqrt(0.5 * squared.sum(axis=1))
+        chi2 = (weights * squared).sum(axis=1)  # 4 coordinates - 3 unknowns: 1 dof (H&Z 4.2.6)
         return CameraPoints(
             sequence=centroids.sequence,
             xyz=X,
@@ -282,11 +247,14 @@ class EpipolarTriangulator:
 
     # ---- reasons -------------------------------------------------------------------------------
 
-    def _reasons(self, candidate, n_upper, n_lower, distance, limit, pi, pj, z_upper, in_range) -> list[str]:
+    def _reasons(self, candidate, n_upper, n_lower, distance, limit, z_upper) -> list[str]:
         n, m = candidate.shape
+        if n == m == int(np.count_nonzero(candidate)) and n_upper.all() and n_lower.all():
+            return []  # a one-to-one match: every centroid accepted
         z_range = f"{self.z_min_mm:g}..{self.z_max_mm:g} mm"
         out_of_range: dict[tuple[str, int], tuple[int, float]] = {}
-        for i, j, z in zip(pi[~in_range].tolist(), pj[~in_range].tolist(), z_upper[~in_range].tolist()):
+        pi, pj = np.nonzero((distance <= limit) & ~candidate)  # on the line, out of range (row-major)
+        for i, j, z in zip(pi.tolist(), pj.tolist(), z_upper[pi, pj].tolist()):
             out_of_range.setdefault(("upper", i), (j, z))
             out_of_range.setdefault(("lower", j), (i, z))
         reasons: list[str] = []

@@ -10,11 +10,19 @@ describes the estimator the pipeline runs.
 * :func:`project_pair` projects upper-frame points into both cameras with
   distortion (rational + thin-prism model) and gives d(uv)/dX;
 * :func:`undistort` maps distorted pixels to normalised image coordinates;
+* :func:`epipolar_candidates`: each lower point's distance to each upper point's
+  epipolar line, its limit from both centroids' sigmas (H&Z 9.2, 4.2.6), and the pairs
+  within it triangulated and checked against the working range;
 * :func:`linear_triangulation`: the linear method (Hartley & Zisserman 12.2,
   inhomogeneous form) in normalised coordinates;
 * :func:`refine_points`: Gauss-Newton on the weighted reprojection error in both
   distorted images, the maximum-likelihood point for Gaussian centroid errors
-  (H&Z 12.3, with OpenCV's lens model).
+  (H&Z 12.3, with OpenCV's lens model);
+* :func:`point_covariance`: first-order covariance of the refined points (H&Z 5.2.2),
+  plus that of offsets taken off the observations.
+
+The arithmetic is compiled (numba, :mod:`crossfield.camera.stereo_kernels`): ~20
+targets per frame are too few for NumPy's per-call overhead.
 
 Units and frames: pixels in the images (OpenCV convention), mm in the upper
 camera frame; a camera's pose is ``p_cam = R @ p_upper + t``.
@@ -27,16 +35,20 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from crossfield.camera import stereo_kernels
 from crossfield.errors import ConfigError
 from crossfield.types import StereoCalibration
 
 __all__ = [
     "STEP_TOLERANCE_MM",
     "UNDISTORT_CRITERIA",
+    "UNDISTORT_TOLERANCE",
     "CameraModel",
     "StereoGeometry",
     "camera_model",
+    "epipolar_candidates",
     "linear_triangulation",
+    "point_covariance",
     "project_pair",
     "refine_points",
     "stereo_geometry",
@@ -45,6 +57,8 @@ __all__ = [
 
 #: Termination of cv2.undistortPoints' fixed-point iteration (its default is only 5 iterations).
 UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-14)
+#: Newton's undistortion stops when its step is below this (normalised image coordinates).
+UNDISTORT_TOLERANCE = 1e-15
 #: Gauss-Newton stops when no point moves by more than this (mm).
 STEP_TOLERANCE_MM = 1e-10
 
@@ -68,6 +82,7 @@ class CameraModel:
     coeffs: tuple[float, ...]  # k1 k2 p1 p2 k3 k4 k5 k6 s1 s2 s3 s4, zero-padded
     R: np.ndarray  # (3, 3)
     t: np.ndarray  # (3,) mm
+    coeff_array: np.ndarray  # (12,) the coefficients as an array (for the compiled kernels)
 
 
 @dataclass(frozen=True)
@@ -76,22 +91,20 @@ class StereoGeometry:
 
     upper, lower: the two cameras (the upper one at the origin, R = I, t = 0);
     F: (3, 3) fundamental matrix on undistorted pixels, ``q_lower^T F q_upper = 0``
-    (H&Z 9.6); baseline_mm: |t_lower_upper|; R (2, 3, 3), t (2, 1, 3) mm, K (2, 3, 3) px,
-    coeffs (12, 2, 1): both cameras stacked (0 = upper, 1 = lower) for one vectorised
-    projection; rational / prism: whether any k4 k5 k6 / s1..s4 is non-zero.
+    (H&Z 9.6); baseline_mm: |t_lower_upper|; R (2, 3, 3), t (2, 3) mm, K (2, 3, 3) px,
+    coeffs (2, 12): both cameras stacked (0 = upper, 1 = lower) for the compiled kernels
+    (:mod:`crossfield.camera.stereo_kernels`).
     """
 
     upper: CameraModel
     lower: CameraModel
     F: np.ndarray  # (3, 3) fundamental matrix on undistorted pixels, q_lower^T F q_upper = 0
     baseline_mm: float  # |t|, used to scale the DLT (H&Z 4.4 normalisation)
-    # Both cameras stacked (index 0 = upper, 1 = lower) for one vectorised projection:
+    # Both cameras stacked (index 0 = upper, 1 = lower) for the compiled kernels:
     R: np.ndarray  # (2, 3, 3)
-    t: np.ndarray  # (2, 1, 3) mm
+    t: np.ndarray  # (2, 3) mm
     K: np.ndarray  # (2, 3, 3) px
-    coeffs: np.ndarray  # (12, 2, 1) k1 k2 p1 p2 k3 k4 k5 k6 s1 s2 s3 s4 per camera
-    rational: bool  # any of k4 k5 k6 non-zero (else those terms are skipped)
-    prism: bool  # any of s1..s4 non-zero
+    coeffs: np.ndarray  # (2, 12) k1 k2 p1 p2 k3 k4 k5 k6 s1 s2 s3 s4 per camera
 
 
 def camera_model(intrinsics, R: np.ndarray, t: np.ndarray, source: str, name: str) -> CameraModel:
@@ -113,6 +126,7 @@ def camera_model(intrinsics, R: np.ndarray, t: np.ndarray, source: str, name: st
         coeffs=tuple(float(c) for c in padded[:12]),
         R=np.asarray(R, dtype=np.float64),
         t=np.asarray(t, dtype=np.float64),
+        coeff_array=padded[:12].copy(),
     )
 
 
@@ -132,11 +146,9 @@ def stereo_geometry(calibration: StereoCalibration) -> StereoGeometry:
     return StereoGeometry(
         upper, lower, F, baseline,
         R=np.stack([upper.R, lower.R]),
-        t=np.stack([upper.t, lower.t])[:, None, :],
-        K=np.stack([upper.K, lower.K]),
-        coeffs=np.array([upper.coeffs, lower.coeffs]).T[:, :, None],
-        rational=any(c != 0.0 for cam in (upper, lower) for c in cam.coeffs[5:8]),
-        prism=any(c != 0.0 for cam in (upper, lower) for c in cam.coeffs[8:12]),
+        t=np.stack([upper.t, lower.t]),
+        K=np.ascontiguousarray(np.stack([upper.K, lower.K])),
+        coeffs=np.array([upper.coeffs, lower.coeffs]),
     )
 
 
@@ -151,73 +163,76 @@ def project_pair(geometry: StereoGeometry, X: np.ndarray) -> tuple[np.ndarray, n
     X: (N, 3) mm, upper camera frame. Returns uv (N, 4) pixels
     ``[u_upper, v_upper, u_lower, v_lower]`` (as ``cv2.projectPoints`` gives
     them) and J (N, 4, 3) = d(uv)/dX in px/mm. Lens model: OpenCV's rational
-    + thin-prism distortion (k1 k2 p1 p2 k3 k4 k5 k6 s1 s2 s3 s4); both
-    cameras are computed at once (leading axis 2) to keep the per-frame cost low.
+    + thin-prism distortion (k1 k2 p1 p2 k3 k4 k5 k6 s1 s2 s3 s4), compiled
+    (:func:`crossfield.camera.stereo_kernels.project_into`).
     """
-    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = geometry.coeffs  # each (2, 1)
-    n = len(X)
-    Xc = np.matmul(X, np.swapaxes(geometry.R, 1, 2)) + geometry.t  # (2, N, 3)
-    inv_z = 1.0 / Xc[:, :, 2]
-    x = Xc[:, :, 0] * inv_z
-    y = Xc[:, :, 1] * inv_z
-    xx, yy, xy = x * x, y * y, x * y
-    r2 = xx + yy
-    num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    d_num = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
-    if geometry.rational:
-        den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
-        radial = num / den
-        d_radial = (d_num * den - num * (k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2))) / (den * den)  # d/d(r2)
-    else:
-        radial, d_radial = num, d_num
-    xd = x * radial + 2.0 * p1 * xy + p2 * (r2 + 2.0 * xx)
-    yd = y * radial + p1 * (r2 + 2.0 * yy) + 2.0 * p2 * xy
-    if geometry.prism:
-        xd = xd + s1 * r2 + s2 * r2 * r2
-        yd = yd + s3 * r2 + s4 * r2 * r2
-    K = geometry.K
-    fx, skew, cx = K[:, 0, 0:1], K[:, 0, 1:2], K[:, 0, 2:3]
-    fy, cy = K[:, 1, 1:2], K[:, 1, 2:3]
-    uv = np.empty((n, 2, 2))  # (N, camera, axis)
-    uv[:, :, 0] = (fx * xd + skew * yd + cx).T
-    uv[:, :, 1] = (fy * yd + cy).T
-    # d(xd, yd)/d(x, y)
-    a = 2.0 * d_radial
-    cross = a * xy + 2.0 * p1 * x + 2.0 * p2 * y
-    dxd_dx = radial + a * xx + 2.0 * p1 * y + 6.0 * p2 * x
-    dxd_dy = cross
-    dyd_dx = cross
-    dyd_dy = radial + a * yy + 6.0 * p1 * y + 2.0 * p2 * x
-    if geometry.prism:
-        prism_x = 2.0 * (s1 + 2.0 * s2 * r2)
-        prism_y = 2.0 * (s3 + 2.0 * s4 * r2)
-        dxd_dx = dxd_dx + prism_x * x
-        dxd_dy = dxd_dy + prism_x * y
-        dyd_dx = dyd_dx + prism_y * x
-        dyd_dy = dyd_dy + prism_y * y
-    # d(u, v)/d(x, y) = K[:2, :2] @ d(xd, yd)/d(x, y), then d(x, y)/d(Xc) = [[1, 0, -x], [0, 1, -y]] / z
-    du_dx = (fx * dxd_dx + skew * dyd_dx) * inv_z
-    du_dy = (fx * dxd_dy + skew * dyd_dy) * inv_z
-    dv_dx = fy * dyd_dx * inv_z
-    dv_dy = fy * dyd_dy * inv_z
-    J_c = np.empty((2, n, 2, 3))
-    J_c[:, :, 0, 0] = du_dx
-    J_c[:, :, 0, 1] = du_dy
-    J_c[:, :, 0, 2] = -(du_dx * x + du_dy * y)
-    J_c[:, :, 1, 0] = dv_dx
-    J_c[:, :, 1, 1] = dv_dy
-    J_c[:, :, 1, 2] = -(dv_dx * x + dv_dy * y)
-    J = np.matmul(J_c, geometry.R[:, None, :, :])  # d(Xc)/dX = R, (2, N, 2, 3)
-    return uv.reshape(n, 4), np.swapaxes(J, 0, 1).reshape(n, 4, 3)
+    X = np.ascontiguousarray(X, dtype=np.float64).reshape(-1, 3)
+    uv, J = np.empty((len(X), 4)), np.empty((len(X), 4, 3))
+    stereo_kernels.project_into(X, geometry.R, geometry.t, geometry.K, geometry.coeffs, uv, J)
+    return uv, J
 
 
 def undistort(uv: np.ndarray, camera: CameraModel) -> np.ndarray:
-    """Distorted pixels (N, 2) of ``camera`` -> normalised undistorted image coordinates (N, 2)
-    (``cv2.undistortPoints`` with :data:`UNDISTORT_CRITERIA`)."""
+    """Distorted pixels (N, 2) of ``camera`` -> normalised undistorted image coordinates (N, 2).
+
+    The inverse of OpenCV's lens model by Newton's method (compiled:
+    :func:`crossfield.camera.stereo_kernels.undistort_points`, to a step below
+    :data:`UNDISTORT_TOLERANCE`); the same points as ``cv2.undistortPoints`` with
+    :data:`UNDISTORT_CRITERIA` (to ~1e-15, tests/triangulate/test_stereo_kernels.py) at a
+    fraction of its cost. ``cv2.undistortPoints`` itself where Newton does not converge
+    and for a camera matrix with skew (which OpenCV's undistortion ignores).
+    """
     if len(uv) == 0:
         return np.zeros((0, 2))
-    points = np.ascontiguousarray(uv, dtype=np.float64).reshape(-1, 1, 2)
-    return cv2.undistortPoints(points, camera.K, camera.dist, criteria=UNDISTORT_CRITERIA).reshape(-1, 2)
+    points = np.ascontiguousarray(uv, dtype=np.float64).reshape(-1, 2)
+    K = camera.K
+    if K[0, 1] == 0.0:
+        xn, converged = stereo_kernels.undistort_points(
+            points, K[0, 0], K[1, 1], K[0, 2], K[1, 2], camera.coeff_array, 20, UNDISTORT_TOLERANCE
+        )
+        if converged:
+            return xn
+    return cv2.undistortPoints(points.reshape(-1, 1, 2), K, camera.dist, criteria=UNDISTORT_CRITERIA).reshape(-1, 2)
+
+
+def epipolar_candidates(
+    xn_upper: np.ndarray,
+    xn_lower: np.ndarray,
+    sigma_upper: np.ndarray,
+    sigma_lower: np.ndarray,
+    geometry: StereoGeometry,
+    *,
+    max_epipolar_px: float,
+    epipolar_k: float,
+    calibration_px: float,
+    z_min_mm: float,
+    z_max_mm: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The candidate pairs of epipolar matching: each pair's distance to the epipolar line, its
+    limit, its linear triangulation and whether it triangulates into the working range.
+
+    xn_upper (N, 2), xn_lower (M, 2): normalised undistorted coordinates; sigma_upper (N, 2),
+    sigma_lower (M, 2): the centroids' standard uncertainties (px). On undistorted pixels
+    ``q = K [x, y, 1]`` the lines are ``l = F q_upper`` (H&Z 9.2) and the distance of
+    lower point j to line i is ``|q_lower[j]^T l_i| / |l_i[:2]|``, with variance
+    ``sigma_line^2 = (grad_u^T S_u grad_u + grad_l^T S_l grad_l) / |l_i[:2]|^2`` to first order (as in
+    the Sampson error, H&Z 4.2.6, 11.4.3). The limit is ``max_epipolar_px`` when > 0, else
+    ``epipolar_k * sqrt(sigma_line^2 + calibration_px^2)``. A pair within its limit is
+    triangulated (:func:`linear_triangulation`, the same arithmetic) and is a candidate when
+    ``z_min_mm <= z_upper <= z_max_mm`` and it lies in front of the lower camera.
+
+    Returns distance (N, M) px, limit (N, M) px, X (N, M, 3) mm (upper frame; nan off the line)
+    and candidate (N, M) bool. |F q| > 0 for any finite image point of a rig with a baseline.
+    """
+    return stereo_kernels.epipolar_candidates(
+        np.ascontiguousarray(xn_upper, dtype=np.float64).reshape(-1, 2),
+        np.ascontiguousarray(xn_lower, dtype=np.float64).reshape(-1, 2),
+        geometry.upper.K, geometry.lower.K, geometry.F,
+        np.ascontiguousarray(sigma_upper, dtype=np.float64).reshape(-1, 2),
+        np.ascontiguousarray(sigma_lower, dtype=np.float64).reshape(-1, 2),
+        geometry.lower.R, geometry.lower.t, geometry.baseline_mm,
+        float(max_epipolar_px), float(epipolar_k), float(calibration_px), float(z_min_mm), float(z_max_mm),
+    )
 
 
 def linear_triangulation(xn_upper: np.ndarray, xn_lower: np.ndarray, geometry: StereoGeometry) -> np.ndarray:
@@ -227,26 +242,16 @@ def linear_triangulation(xn_upper: np.ndarray, xn_lower: np.ndarray, geometry: S
     points. With camera matrices ``[I | 0]`` and ``[R | t/|t|]`` (translation
     scaled to unit length, H&Z 4.4) each pair gives four equations
     ``x P^3 - P^1 = 0``, ``y P^3 - P^2 = 0``; with ``X = (X, Y, Z, 1)`` they
-    are solved in the least-squares sense. Returns (N, 3) mm, upper frame
+    are solved in the least-squares sense (normal equations, compiled:
+    :func:`crossfield.camera.stereo_kernels.linear_points`). Returns (N, 3) mm, upper frame
     (non-finite or huge for rays that do not converge, i.e. points at infinity).
     """
-    n = len(xn_upper)
-    P2 = np.hstack([geometry.lower.R, geometry.lower.t[:, None] / geometry.baseline_mm])
-    A = np.zeros((n, 4, 4))
-    A[:, 0, 0] = -1.0
-    A[:, 0, 2] = xn_upper[:, 0]
-    A[:, 1, 1] = -1.0
-    A[:, 1, 2] = xn_upper[:, 1]
-    A[:, 2, :] = xn_lower[:, 0:1] * P2[2] - P2[0]
-    A[:, 3, :] = xn_lower[:, 1:2] * P2[2] - P2[1]
-    M = A[:, :, :3]
-    MtM = np.matmul(np.swapaxes(M, 1, 2), M)
-    rhs = -np.matmul(np.swapaxes(M, 1, 2), A[:, :, 3:4])
-    try:
-        X = np.linalg.solve(MtM, rhs)[:, :, 0]
-    except np.linalg.LinAlgError:  # an exactly degenerate pair (parallel rays)
-        X = np.matmul(np.linalg.pinv(MtM), rhs)[:, :, 0]
-    return X * geometry.baseline_mm
+    t_unit = geometry.lower.t / geometry.baseline_mm
+    return stereo_kernels.linear_points(
+        np.ascontiguousarray(xn_upper, dtype=np.float64).reshape(-1, 2),
+        np.ascontiguousarray(xn_lower, dtype=np.float64).reshape(-1, 2),
+        geometry.lower.R, t_unit, geometry.baseline_mm,
+    )
 
 
 def refine_points(
@@ -264,26 +269,37 @@ def refine_points(
     ``[u_upper, v_upper, u_lower, v_lower]`` (distorted pixels); weights: (K, 4) px^-2.
     Returns the refined X (K, 3) mm, the residuals (K, 4) px and the Jacobian (K, 4, 3) px/mm
     at X, and the normal matrix J^T W J (K, 3, 3) at X when the iteration converged (else None).
-    ``refine=False``: X unchanged, its residuals and Jacobian.
+    ``refine=False``: X unchanged, its residuals and Jacobian. Compiled
+    (:func:`crossfield.camera.stereo_kernels.refine`): converged when no point moves by more than
+    :data:`STEP_TOLERANCE_MM`; the residual is then linearised over the last step (exact to
+    ~1e-15 px) and J and J^T W J are those of the last projection, one projection saved.
     """
-    uv, J = project_pair(geometry, X)
-    residual = uv - uv_obs
-    if not refine or len(X) == 0:
-        return X, residual, J, None
-    for _ in range(max_iterations):
-        JtW = np.swapaxes(J, 1, 2) * weights[:, None, :]  # (K, 3, 4)
-        normal = np.matmul(JtW, J)
-        gradient = np.matmul(JtW, residual[:, :, None])
-        try:
-            step = -np.linalg.solve(normal, gradient)[:, :, 0]
-        except np.linalg.LinAlgError:
-            step = -np.matmul(np.linalg.pinv(normal), gradient)[:, :, 0]
-        X = X + step
-        if np.max(np.abs(step)) < STEP_TOLERANCE_MM:
-            # Converged: the last step is below 1e-10 mm, so the linearised residual is exact to
-            # ~1e-15 px and J (hence J^T W J) is unchanged to that order; skip one more projection.
-            residual = residual + np.matmul(J, step[:, :, None])[:, :, 0]
-            return X, residual, J, normal
-        uv, J = project_pair(geometry, X)
-        residual = uv - uv_obs
-    return X, residual, J, None
+    X, residual, J, normal, converged = stereo_kernels.refine(
+        np.ascontiguousarray(X, dtype=np.float64).reshape(-1, 3),
+        np.ascontiguousarray(uv_obs, dtype=np.float64).reshape(-1, 4),
+        np.ascontiguousarray(weights, dtype=np.float64).reshape(-1, 4),
+        geometry.R, geometry.t, geometry.K, geometry.coeffs, max_iterations, STEP_TOLERANCE_MM, refine,
+    )
+    return X, residual, J, (normal if converged else None)
+
+
+def point_covariance(
+    information: np.ndarray, J: np.ndarray, weights: np.ndarray, offset_cov: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """First-order covariance of ML-triangulated points: ``cov(X) = (J^T W J)^-1`` (H&Z 5.2.2).
+
+    information: (K, 3, 3) J^T W J (px^-2 px^2/mm^2 = mm^-2); J: (K, 4, 3) px/mm; weights:
+    (K, 4) px^-2. ``offset_cov`` (K, 4, 4) px^2: the covariance of offsets taken off the
+    observations [u_upper, v_upper, u_lower, v_lower], added as ``G C G^T`` with
+    ``G = (J^T W J)^-1 J^T W`` (3 x 4). Returns cov (K, 3, 3) mm^2 and sigma (K, 3) mm,
+    the square roots of its diagonal.
+    """
+    information = np.ascontiguousarray(information, dtype=np.float64).reshape(-1, 3, 3)
+    with_offsets = offset_cov is not None
+    offsets = np.ascontiguousarray(offset_cov, dtype=np.float64) if with_offsets else np.zeros((0, 4, 4))
+    return stereo_kernels.point_covariances(
+        information,
+        np.ascontiguousarray(J, dtype=np.float64).reshape(-1, 4, 3),
+        np.ascontiguousarray(weights, dtype=np.float64).reshape(-1, 4),
+        offsets, with_offsets,
+    )

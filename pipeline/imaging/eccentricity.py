@@ -37,8 +37,8 @@ starts from both signs in both views and keeps the best. Its covariance
 Speed: the circle fit's Gauss-Newton loop (:func:`_gauss_newton`) and the
 per-target arithmetic of :func:`centre_offsets` are compiled (numba, scalar
 3 x 3 algebra per target, the same formulas as :func:`predicted_shape` and
-:func:`ellipse_centre_point`); the lens goes through one ``cv2.projectPoints``
-call per view. Against the NumPy formulas the points move by < 1e-9 mm and the
+:func:`ellipse_centre_point`); the lens goes through one compiled projection per
+view (:func:`project`, ``cv2.projectPoints``' model without its Jacobian). Against the NumPy formulas the points move by < 1e-9 mm and the
 offsets by < 1e-9 px (rounding of the finite differences); tests/centroid/test_eccentricity.py.
 
 Units: mm in the camera frames, pixels in the images, normalised image
@@ -53,6 +53,8 @@ from dataclasses import dataclass
 import cv2
 import numba
 import numpy as np
+
+from crossfield.camera import stereo_kernels
 
 __all__ = [
     "CircleFit",
@@ -113,11 +115,20 @@ def ellipse_centre_point(C: np.ndarray, n: np.ndarray, r: np.ndarray) -> np.ndar
 
 
 def project(view: View, X_view: np.ndarray) -> np.ndarray:
-    """(N, 3) view-frame points (mm) -> (N, 2) distorted pixels (cv2.projectPoints)."""
+    """(N, 3) view-frame points (mm) -> (N, 2) distorted pixels: ``cv2.projectPoints``' model
+    (rvec = tvec = 0), compiled (:func:`crossfield.camera.stereo_kernels.project_view`: the same
+    pixels to ~1e-13, without the Jacobian cv2 always computes); cv2 itself for the tilted-sensor
+    model (more than 12 coefficients, tauX or tauY non-zero)."""
     if len(X_view) == 0:
         return np.zeros((0, 2))
-    uv, _ = cv2.projectPoints(np.ascontiguousarray(X_view, dtype=np.float64).reshape(-1, 1, 3),
-                              np.zeros(3), np.zeros(3), view.K, view.dist)
+    X_view = np.ascontiguousarray(X_view, dtype=np.float64).reshape(-1, 3)
+    dist = np.asarray(view.dist, dtype=np.float64).ravel()
+    if dist.size <= 12 or not np.any(dist[12:]):
+        coeffs = np.zeros(12)
+        coeffs[: min(dist.size, 12)] = dist[:12]
+        K = view.K
+        return stereo_kernels.project_view(X_view, K[0, 0], K[1, 1], K[0, 2], K[1, 2], coeffs)
+    uv, _ = cv2.projectPoints(X_view.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), view.K, view.dist)
     return uv.reshape(-1, 2)
 
 
