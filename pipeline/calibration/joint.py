@@ -157,7 +157,10 @@ def residuals_jacobian(
     for i, v in enumerate(views):
         cols = slice(n_cam + 6 * i, n_cam + 6 * i + 6)
         for c, (X, u, w) in enumerate(
-            ((v.object_upper, v.pixels_upper, v.weight_upper), (v.object_lower, v.pixels_lower, v.weight_lower))
+            (
+                (v.object_upper, v.pixels_upper, v.weight_upper),
+                (v.object_lower, v.pixels_lower, v.weight_lower),
+            )
         ):
             if len(X) == 0:
                 continue
@@ -246,7 +249,10 @@ def camera_residuals(
     out: dict[str, tuple[list, list]] = {"upper": ([], []), "lower": ([], [])}
     row = 0
     for v in views:
-        for cam, u, w in (("upper", v.pixels_upper, v.weight_upper), ("lower", v.pixels_lower, v.weight_lower)):
+        for cam, u, w in (
+            ("upper", v.pixels_upper, v.weight_upper),
+            ("lower", v.pixels_lower, v.weight_lower),
+        ):
             k = 2 * len(u)
             if k:
                 out[cam][0].append(np.asarray(u, float))
@@ -293,5 +299,13 @@ def without_corners(views: Sequence[ViewPoints], bad: np.ndarray) -> list[ViewPo
             b = bad[row : row + len(X)]
             row += len(X)
             keep.append((np.asarray(X)[~b], np.asarray(u)[~b]))
-        out.append(replace(v, object_upper=keep[0][0], pixels_upper=keep[0][1], object_lower=keep[1][0], pixels_lower=keep[1][1]))
+        out.append(
+            replace(
+                v,
+                object_upper=keep[0][0],
+                pixels_upper=keep[0][1],
+                object_lower=keep[1][0],
+                pixels_lower=keep[1][1],
+            )
+        )
     return out

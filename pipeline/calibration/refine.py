@@ -75,7 +75,9 @@ def board_grid(object_points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return object_points[:, :2].min(axis=0), object_points[:, :2].max(axis=0)
 
 
-def view_weights(views: list[ViewPoints], solution: JointSolution, prior_dof: float = 20.0) -> list[ViewPoints]:
+def view_weights(
+    views: list[ViewPoints], solution: JointSolution, prior_dof: float = 20.0
+) -> list[ViewPoints]:
     """The views with per view and camera weights w = sigma_ref / sigma_view from the residuals.
 
     A view's corners are as noisy as its blur, tilt and distance make them
@@ -144,7 +146,13 @@ def refine(
     warp = estimate_warp and len(views) >= WARP_MIN_VIEWS
     sol = refine_joint(views, params0, poses0, n_dist, warp=warp, grid=grid)
     resolve = lambda views, sol: refine_joint(
-        views, sol.theta[: sol.n_camera_params], sol.poses, n_dist, warp=warp, grid=grid, warp_start=sol.warp_mm
+        views,
+        sol.theta[: sol.n_camera_params],
+        sol.poses,
+        n_dist,
+        warp=warp,
+        grid=grid,
+        warp_start=sol.warp_mm,
     )
     n_outliers = 0
     for stage in ("unweighted", "weighted") if weight_views else ("unweighted",):
