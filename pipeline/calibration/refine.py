@@ -8,7 +8,9 @@ After OpenCV's stereo solution (``calibrate.solve_stereo`` steps 2-5):
    and at least ``WARP_MIN_VIEWS`` views; then, as mrcal does, the outlier
    corners (``joint.outlier_corners``: a coordinate beyond 5 sigma starts a
    round that drops those beyond 4 sigma) are dropped and the problem solved
-   again, until a solve marks none (``MAX_REJECTION_ROUNDS`` at most);
+   again, until a solve marks none (``MAX_REJECTION_ROUNDS`` at most); then
+   (``weight_views``) each view and camera weighted by its own corner noise
+   (:func:`view_weights`), solved again, and the rejection once more;
 2. the Jacobian covariance sigma^2 (J^T J)^-1 (Hartley & Zisserman 5.2.3),
    the board poses marginalised;
 3. the jackknife over views (:mod:`crossfield.calibration.jackknife`) when
