@@ -226,6 +226,7 @@ def crossfield_solve(dets, size, distortion: str) -> dict:
         "warp_mm": None if res.warp_mm is None else np.asarray(res.warp_mm).tolist(),
         "solve_s": elapsed,
         "dropped": sum(d.stage in ("upper", "lower", "stereo") for d in res.dropped),
+        "masked": res.outlier_corners,
     }
 
 
@@ -264,8 +265,9 @@ def mrcal_problem(dets, ocv: dict, n_dist: int) -> dict[str, np.ndarray]:
     }
 
 
-def run_mrcal(problems: list[dict], size, lensmodel: str) -> list[dict]:
-    """Solve all problems in one mrcal subprocess (npz in, JSON out; never pickle)."""
+def run_mrcal(problems: list[dict], size, lensmodel: str, flags: tuple[str, ...] = ("--warp",)) -> list[dict]:
+    """Solve all problems in one mrcal subprocess (npz in, JSON out; never pickle);
+    flags: ``mrcal_peer.py``'s (``--warp``, ``--no-regularization``, ``--no-outliers``)."""
     with tempfile.TemporaryDirectory() as tmp:
         arrays = {f"p{i}_{k}": v for i, p in enumerate(problems) for k, v in p.items()}
         arrays.update(
@@ -278,7 +280,7 @@ def run_mrcal(problems: list[dict], size, lensmodel: str) -> list[dict]:
         out = Path(tmp) / "results.json"
         here = Path(__file__).resolve().parent
         proc = subprocess.run(
-            [MRCAL_PYTHON, str(here / "mrcal_peer.py"), str(Path(tmp) / "problems.npz"), str(out), "--warp"],
+            [MRCAL_PYTHON, str(here / "mrcal_peer.py"), str(Path(tmp) / "problems.npz"), str(out), *flags],
             capture_output=True,
             text=True,
             check=False,
@@ -302,6 +304,8 @@ def run_mrcal(problems: list[dict], size, lensmodel: str) -> list[dict]:
                 "std": np.concatenate([s1, s2, r["std_extrinsics"]]),
                 "solve_s": r["solve_s"],
                 "masked": r["masked_corners"],
+                "cost_board_px2": r["cost_board_px2"],
+                "warp_mm": r["calobject_warp"],
             }
         )
     return solved
@@ -420,6 +424,7 @@ def main(argv: list[str] | None = None) -> int:
                         "pairs": n,
                         "tool": "crossfield",
                         "dropped": cf["dropped"],
+                        "masked": cf["masked"],
                         **errors(cf, truth),
                     }
                 )

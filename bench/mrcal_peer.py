@@ -27,6 +27,8 @@ calobject_warp (2,), the RMS reprojection error (px), the number of outlier
 corners and the solve time (s, ``mrcal.optimize`` calls only).
 
 Usage: /usr/bin/python3 bench/mrcal_peer.py problems.npz results.json [--warp]
+[--no-regularization] [--no-outliers] (the last two switch off mrcal's
+regularisation and its outlier rejection, for comparing the bare solve).
 """
 
 from __future__ import annotations
@@ -39,8 +41,9 @@ import mrcal
 import numpy as np
 
 
-def _covariance(inputs: dict) -> tuple[np.ndarray, float]:
-    """Covariance of the unpacked state, sigma^2 (J^T J)^-1 over the board measurement rows."""
+def _covariance(inputs: dict) -> tuple[np.ndarray, float, float]:
+    """Covariance of the unpacked state, sigma^2 (J^T J)^-1 over the board measurement rows;
+    sigma (px) and the board rows' cost sum r^2 (px^2; outliers have r = 0)."""
     _, x, J, _ = mrcal.optimizer_callback(**inputs, no_factorization=True)
     J = J.toarray()
     n_board = mrcal.num_measurements_boards(**inputs)
@@ -54,10 +57,12 @@ def _covariance(inputs: dict) -> tuple[np.ndarray, float]:
     # unpack_state scales each state element (in place): p = s * p_packed, so cov = S cov_packed S.
     scale = np.ones(p)
     mrcal.unpack_state(scale, **inputs)
-    return cov_packed * np.outer(scale, scale), float(np.sqrt(sigma2))
+    return cov_packed * np.outer(scale, scale), float(np.sqrt(sigma2)), float(xb @ xb)
 
 
-def solve(data: np.lib.npyio.NpzFile, i: int, warp: bool) -> dict:
+def solve(
+    data: np.lib.npyio.NpzFile, i: int, warp: bool, regularization: bool = True, outliers: bool = True
+) -> dict:
     """One stereo problem: mrcal.optimize as mrcal-calibrate-cameras runs it (core first, then all)."""
     get = lambda key: np.ascontiguousarray(data[f"p{i}_{key}"])
     inputs = dict(
@@ -78,8 +83,8 @@ def solve(data: np.lib.npyio.NpzFile, i: int, warp: bool) -> dict:
         do_optimize_extrinsics=True,
         do_optimize_frames=True,
         do_optimize_calobject_warp=False,
-        do_apply_outlier_rejection=True,
-        do_apply_regularization=True,
+        do_apply_outlier_rejection=outliers,
+        do_apply_regularization=regularization,
     )
     t0 = time.perf_counter()
     # mrcal-calibrate-cameras solves in stages: the core and poses without distortion first.
@@ -87,7 +92,7 @@ def solve(data: np.lib.npyio.NpzFile, i: int, warp: bool) -> dict:
     inputs["do_optimize_calobject_warp"] = warp
     stats = mrcal.optimize(**inputs)
     elapsed = time.perf_counter() - t0
-    cov, sigma = _covariance(inputs)
+    cov, sigma, cost = _covariance(inputs)
     std = np.sqrt(np.maximum(np.diag(cov), 0.0))
     ni = inputs["intrinsics"].shape[1]
     std_intr = [std[(s := mrcal.state_index_intrinsics(c, **inputs)) : s + ni].tolist() for c in range(2)]
@@ -101,6 +106,7 @@ def solve(data: np.lib.npyio.NpzFile, i: int, warp: bool) -> dict:
         "calobject_warp": inputs["calobject_warp"].tolist(),
         "rms_px": float(stats["rms_reproj_error__pixels"]),
         "sigma_px": sigma,
+        "cost_board_px2": cost,
         "masked_corners": outliers,
         "solve_s": elapsed,
     }
@@ -108,11 +114,16 @@ def solve(data: np.lib.npyio.NpzFile, i: int, warp: bool) -> dict:
 
 def main(argv: list[str]) -> int:
     if len(argv) < 2:
-        print("usage: mrcal_peer.py problems.npz results.json [--warp]", file=sys.stderr)
+        print(
+            "usage: mrcal_peer.py problems.npz results.json [--warp] [--no-regularization] [--no-outliers]",
+            file=sys.stderr,
+        )
         return 2
     warp = "--warp" in argv[2:]
+    regularization = "--no-regularization" not in argv[2:]
+    outliers = "--no-outliers" not in argv[2:]
     with np.load(argv[0], allow_pickle=False) as data:
-        results = [solve(data, i, warp) for i in range(int(data["n_problems"]))]
+        results = [solve(data, i, warp, regularization, outliers) for i in range(int(data["n_problems"]))]
     with open(argv[1], "w") as f:
         json.dump({"mrcal_version": getattr(mrcal, "__version__", "2.x"), "results": results}, f)
     return 0

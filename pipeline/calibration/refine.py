@@ -5,10 +5,12 @@ After OpenCV's stereo solution (``calibrate.solve_stereo`` steps 2-5):
 1. :func:`crossfield.calibration.joint.refine_joint` over every corner each
    camera saw in the stereo views (not only the common ones), with the
    board's bow (mrcal's ``calobject_warp``) when ``settings.estimate_warp``
-   and at least ``WARP_MIN_VIEWS`` views; with ``reject_corners`` (off by
-   default: it cost rotation accuracy in bench_calibrate_peers) corners
-   beyond 3 sigma are dropped and the problem solved again
-   (``joint.without_outlier_corners``);
+   and at least ``WARP_MIN_VIEWS`` views; then, as mrcal does, the outlier
+   corners (``joint.outlier_corners``: a coordinate beyond 5 sigma starts a
+   round that drops those beyond 4 sigma) are dropped and the problem solved
+   again, until a solve marks none (``MAX_REJECTION_ROUNDS`` at most); then
+   (``weight_views``) each view and camera weighted by its own corner noise
+   (:func:`view_weights`), solved again, and the rejection once more;
 2. the Jacobian covariance sigma^2 (J^T J)^-1 (Hartley & Zisserman 5.2.3),
    the board poses marginalised;
 3. the jackknife over views (:mod:`crossfield.calibration.jackknife`) when
@@ -19,7 +21,7 @@ After OpenCV's stereo solution (``calibrate.solve_stereo`` steps 2-5):
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -31,14 +33,16 @@ from crossfield.calibration.joint import (
     JointSolution,
     ViewPoints,
     camera_residuals,
+    outlier_corners,
     refine_joint,
-    without_outlier_corners,
+    without_corners,
 )
 from crossfield.calibration.residuals import ResidualMap, residual_map
 from crossfield.types import CAMERAS, CameraIntrinsics, StereoCalibration
 
 WARP_MIN_VIEWS = 8
 JACKKNIFE_MIN_VIEWS = 6
+MAX_REJECTION_ROUNDS = 10
 
 
 @dataclass(frozen=True)
@@ -50,7 +54,8 @@ class Refinement:
     (std = max(Jacobian, jackknife)); std_jacobian, std_jackknife (p,) (the
     latter NaN without a jackknife); warp_mm (2,) and warp_std_mm (2,) (NaN
     when not estimated); sigma_px: corner noise from the residuals;
-    rms_px: per camera over all its corners; residual_maps per camera.
+    rms_px: per camera over all its corners; residual_maps per camera;
+    outlier_corners: corners dropped by the rejection (step 1).
     """
 
     calibration: StereoCalibration
@@ -64,11 +69,43 @@ class Refinement:
     rms_px: dict[str, float]
     residual_maps: dict[str, ResidualMap]
     solution: JointSolution
+    outlier_corners: int = 0
 
 
 def board_grid(object_points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(lo, hi) board-frame (x, y) mm of the corner grid: the bow's [-1, 1] span."""
     return object_points[:, :2].min(axis=0), object_points[:, :2].max(axis=0)
+
+
+def view_weights(
+    views: list[ViewPoints], solution: JointSolution, prior_dof: float = 20.0
+) -> list[ViewPoints]:
+    """The views with per view and camera weights w = sigma_ref / sigma_view from the residuals.
+
+    A view's corners are as noisy as its blur, tilt and distance make them
+    (on the model renderer one view's RMS reaches 4x the median): weighted
+    least squares with w = 1 / sigma is the minimum-variance estimate
+    (Gauss-Markov; Hartley & Zisserman A6.8). sigma_view^2 = (SSR_view +
+    prior_dof sigma_all^2) / (dof_view + prior_dof), dof_view = 2 n - 3 (the
+    view's 6 pose parameters shared by two cameras), shrunk towards the
+    pooled sigma_all^2 so that a view of a few corners does not get an
+    extreme weight; sigma_ref^2 = the corners' mean sigma_view^2, so the
+    weighted residuals stay in px on average. Residuals are taken unweighted.
+    """
+    per_cam = []
+    row = 0
+    for v in views:
+        for u, w in ((v.pixels_upper, v.weight_upper), (v.pixels_lower, v.weight_lower)):
+            k = 2 * len(u)
+            r = solution.residuals[row : row + k] / w
+            per_cam.append((float(r @ r), max(k - 3, 1), len(u)))
+            row += k
+    ssr, dof, n = map(np.array, zip(*per_cam))
+    s2_all = ssr.sum() / dof.sum()
+    s2 = (ssr + prior_dof * s2_all) / (dof + prior_dof)
+    s2_ref = float(np.sum(n * s2) / max(n.sum(), 1))
+    w = np.sqrt(s2_ref / s2).reshape(-1, 2)
+    return [replace(v, weight_upper=float(a), weight_lower=float(b)) for v, (a, b) in zip(views, w)]
 
 
 def initial_poses(views: list[ViewPoints], K: np.ndarray, D: np.ndarray) -> np.ndarray:
@@ -88,7 +125,8 @@ def refine(
     *,
     estimate_warp: bool = True,
     jackknife_views: bool = True,
-    reject_corners: bool = False,
+    reject_corners: bool = True,
+    weight_views: bool = True,
 ) -> Refinement:
     """Steps 1-4 of the module docstring.
 
@@ -109,21 +147,27 @@ def refine(
     poses0 = initial_poses(views, K1, params0[4:n])
     warp = estimate_warp and len(views) >= WARP_MIN_VIEWS
     sol = refine_joint(views, params0, poses0, n_dist, warp=warp, grid=grid)
-    if reject_corners:
-        # as mrcal: drop the corners beyond 3 sigma and solve again, until none are (5 rounds at most).
-        for _ in range(5):
-            views, dropped = without_outlier_corners(views, sol, 3.0)
-            if not dropped:
+    resolve = lambda views, sol: refine_joint(
+        views,
+        sol.theta[: sol.n_camera_params],
+        sol.poses,
+        n_dist,
+        warp=warp,
+        grid=grid,
+        warp_start=sol.warp_mm,
+    )
+    n_outliers = 0
+    for stage in ("unweighted", "weighted") if weight_views else ("unweighted",):
+        if stage == "weighted":
+            views = view_weights(views, sol)
+            sol = resolve(views, sol)
+        for _ in range(MAX_REJECTION_ROUNDS if reject_corners else 0):
+            bad = outlier_corners(sol.residuals)
+            if not bad.any():
                 break
-            sol = refine_joint(
-                views,
-                sol.theta[: sol.n_camera_params],
-                sol.poses,
-                n_dist,
-                warp=warp,
-                grid=grid,
-                warp_start=sol.warp_mm,
-            )
+            n_outliers += int(bad.sum())
+            views = without_corners(views, bad)
+            sol = resolve(views, sol)
     n_cam = sol.n_camera_params
     n_block = n_cam + (2 if warp else 0)
     cov_full, sigma = covariance_from_jacobian(sol.residuals, sol.jacobian)
@@ -161,4 +205,5 @@ def refine(
         rms_px=rms,
         residual_maps=maps,
         solution=sol,
+        outlier_corners=n_outliers,
     )
