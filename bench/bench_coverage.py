@@ -142,7 +142,10 @@ def one_session(out: Path, scenario: str, seed: int, frames: int, arm_sigma: flo
         {"name": c.name, "error_mm": c.error_mm, "u_mm": c.uncertainty_mm, "U_mm": c.expanded_uncertainty_mm,
          "u_ecc_mm": next((t.u_mm for t in c.budget if t.source == "eccentricity"), 0.0),
          "u_cam_mm": next((t.u_mm for t in c.budget if t.source == "camera"), 0.0),
-         "u_cam_sys_mm": next((t.u_mm for t in c.budget if t.source == "camera_systematic"), 0.0)}
+         "u_cam_sys_mm": next((t.u_mm for t in c.budget if t.source == "camera_systematic"), 0.0),
+         "k": c.coverage_factor, "budget": {t.source: t.u_mm for t in c.budget if t.u_mm > 0},
+         "budget_u": {t.source: t.u for t in c.budget if t.u_mm > 0},
+         "nu_eff": getattr(c, "effective_dof", None)}
         for c in summary.characteristics
         if c.error_mm is not None and c.expanded_uncertainty_mm is not None
     ]
@@ -150,6 +153,8 @@ def one_session(out: Path, scenario: str, seed: int, frames: int, arm_sigma: flo
             "inflation": None if check is None else check.cmm_inflation,
             "epipolar_chi2_per_point": None if check is None else getattr(check, "epipolar_chi2_per_point", None),
             "camera_ratio": None if check is None else getattr(check, "camera_ratio", None),
+            "registration_dof": None if check is None else check.dof,
+            "epipolar_points": None if check is None else getattr(check, "epipolar_points", None),
             "rows": rows}
 
 

@@ -143,6 +143,9 @@ class _SessionContext:
     cmm_inflation: float
     calibration_ratio: float  # session calibration u / the per-frame one
     camera_excess: float = 0.0  # Type A: the camera variance the epipolar residuals add (crossfield.uncertainty.type_a)
+    #: characteristic -> the calibration's parameters propagated (mm; crossfield.uncertainty.calibration
+    #: .calibration_contributions), replacing the relative-scale term; None: the scale term
+    calibration_mm: dict[str, float] | None = None
 
 
 class _CharacteristicRun:
@@ -182,7 +185,12 @@ class _CharacteristicRun:
             if source in ("control_cmm", "reference_cmm"):
                 t = _budget.scaled(t, ctx.cmm_inflation)
             elif source == "calibration":
-                t = _budget.scaled(t, ctx.calibration_ratio)
+                if ctx.calibration_mm is not None and spec.name in ctx.calibration_mm:
+                    # the file's parameters propagated: one error for the session, not divided
+                    u_cal = ctx.calibration_mm[spec.name]
+                    t = _budget.term(source, u_cal, "mm", u_cal)
+                else:
+                    t = _budget.scaled(t, ctx.calibration_ratio)
             terms.append(t)
         if terms:
             # The camera term is the centroid noise of one frame, drawn anew in every
@@ -383,6 +391,7 @@ class SessionAccumulator:
         errors_kept: int = FRAME_ERRORS_KEPT,
         calibration_source: str = "",
         reference_source: str = "",
+        calibration_propagation=None,
     ) -> None:
         if rows_kept < 0 or errors_kept < 0:
             raise ValueError(f"rows_kept and errors_kept must be >= 0, got {rows_kept}, {errors_kept}")
@@ -405,6 +414,10 @@ class SessionAccumulator:
         self._calibration = calibration_uncertainty(
             calibration_source, DEFAULT_SCALE_U if stated is None else stated
         )
+        #: frame -> {characteristic: calibration u (mm)} (crossfield.uncertainty.calibration.session_propagation)
+        #: or None; evaluated once, on the first measured frame
+        self._calibration_propagation = calibration_propagation
+        self._calibration_mm: dict[str, float] | None = None
 
     @property
     def rows(self) -> tuple[FrameResult, ...]:
@@ -449,7 +462,13 @@ class SessionAccumulator:
         stated = self.plan.uncertainty.calibration_scale_u
         per_frame = DEFAULT_SCALE_U if stated is None else stated  # what the measurer used
         ratio = self._calibration.scale_u / per_frame if per_frame > 0 else 1.0
-        ctx = _SessionContext(self.plan, inflation, ratio, 0.0 if check is None else check.camera_excess)
+        calibration_source = self._calibration.source
+        if self._calibration_propagation is not None and self._mc_frames:
+            if self._calibration_mm is None:
+                self._calibration_mm = self._calibration_propagation(self._mc_frames[0])
+            calibration_source = f"propagated parameters ({getattr(self._calibration_propagation, 'source', '')})"
+        ctx = _SessionContext(self.plan, inflation, ratio, 0.0 if check is None else check.camera_excess,
+                              self._calibration_mm)
         return SessionAggregate(
             frames_processed=self.frames_processed,
             frames_failed=self.frames_failed,
@@ -461,7 +480,7 @@ class SessionAccumulator:
             missing_targets=tuple(self._missing.items()),
             consistency=check,
             calibration_scale_u=self._calibration.scale_u,
-            calibration_uncertainty_source=self._calibration.source,
+            calibration_uncertainty_source=calibration_source,
             monte_carlo_frames=tuple(self._mc_frames),
             frames_measured=self._frames_measured,
         )
