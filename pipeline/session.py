@@ -109,7 +109,9 @@ class CharacteristicSummary:
     terms inflated when the registration residuals contradict the stated sigma,
     a repeatability term for scatter over the frames beyond the modelled camera
     part, the temperature term.
-    expanded_uncertainty_mm: U = k u_c, k = coverage_factor. decision: ISO
+    expanded_uncertainty_mm: U = k u_c, k = coverage_factor: the plan's k for a
+    normal output turned into the Student-t factor of the budget's Welch-Satterthwaite
+    effective_dof (the plan's k when every term is stated; ``crossfield.uncertainty.dof``). decision: ISO
     14253-1 verdict under ``decision_rule`` (conforms / does_not_conform /
     not_proven); passed: accepted under that rule. Zone: ``[nominal -
     lower_tol_mm, nominal + upper_tol_mm]``.
@@ -137,6 +139,7 @@ class CharacteristicSummary:
     lower_tol_mm: float | None = None
     measured_raw_mm: float | None = None
     temperature_correction_mm: float = 0.0
+    effective_dof: float = math.inf
 
 
 @dataclass(frozen=True)

@@ -45,7 +45,7 @@ correlations of the shared registration, and the squares add up to
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -304,6 +304,7 @@ class PlanMeasurer:
         actual = None
         line_var = 0.0
         line_sigma = 0.0
+        line_dof = float("inf")
         if spec.kind == "point_point":
             b = elements[spec.b]
             diff = a.xyz - b.xyz
@@ -318,6 +319,7 @@ class PlanMeasurer:
             measured, line_sd, g_p = point_line_distance(a.xyz, line, None)
             line_var = line_sd**2  # the axis fit's own covariance (its CMM probes, posterior sigma)
             line_sigma = line.sigma_mm  # max(stated, observed): geometry.fit_cylinder_axis
+            line_dof = _fit_dof(line)
             gradients = [(a, g_p)]
             if truth is not None and spec.a in truth.points_global and spec.b in truth.lines_global:
                 actual = truth.lines_global[spec.b].distance(truth.points_global[spec.a])
@@ -327,6 +329,8 @@ class PlanMeasurer:
             if truth is not None and spec.a in truth.points_global:
                 actual = float(truth.points_global[spec.a][2])
         budget = self._budget(spec, gradients, C_reg, inputs, line_var, line_sigma, elements)
+        if spec.kind == "point_line":  # the fit's own residuals set its sigma: Type A with the fit's dof
+            budget = tuple(replace(t, dof=line_dof) if t.source == "reference_line" else t for t in budget)
         deviation = measured - spec.nominal_mm
         return CharacteristicResult(
             name=spec.name,
@@ -380,6 +384,18 @@ class PlanMeasurer:
         if spec.kind == "point_line":  # the axis fit's own covariance, its sigma data-supported
             table["reference_line"] = (line_sigma, "mm", line_var)
         return merge(table)
+
+
+def _fit_dof(fit: AxisFit) -> float:
+    """The degrees of freedom of a line fit's sigma (crossfield.uncertainty.dof): the fit's
+    (a cylinder of N probes N - 5, a line 2N - 4) when its a-posteriori sigma
+    sqrt(SSE / dof) set ``fit.sigma_mm`` (above the stated), else infinite (the stated value)."""
+    n = len(fit.residuals_mm)
+    dof = n - 5 if fit.kind == "cylinder" else 2 * n - 4
+    if dof <= 0:
+        return float("inf")
+    observed = float(np.sqrt(np.sum(np.square(fit.residuals_mm)) / dof))
+    return float(dof) if observed >= fit.sigma_mm else float("inf")
 
 
 def _epipolar_evidence(points: CameraPoints) -> dict[str, float | int]:

@@ -59,6 +59,8 @@ from crossfield.uncertainty import budget as _budget
 from crossfield.uncertainty.calibration import DEFAULT_SCALE_U, calibration_uncertainty
 from crossfield.uncertainty.consistency import ConsistencyRun
 from crossfield.uncertainty.decision import decide
+from crossfield.uncertainty.dof import coverage_factor, effective_dof
+from crossfield.uncertainty.type_a import PRIOR_DOF
 from crossfield.uncertainty.temperature import LENGTH_KINDS, correction
 
 #: Per-frame result rows a session keeps for its report: the first ones (about
@@ -146,17 +148,22 @@ class _SessionContext:
     #: characteristic -> the calibration's parameters propagated (mm; crossfield.uncertainty.calibration
     #: .calibration_contributions), replacing the relative-scale term; None: the scale term
     calibration_mm: dict[str, float] | None = None
+    #: degrees of freedom of the Type A-set terms (crossfield.uncertainty.dof): camera_systematic
+    #: (PRIOR_DOF + m epipolar points) and the CMM terms (PRIOR_DOF + 3n - 6)
+    camera_dof: float = math.inf
+    cmm_dof: float = math.inf
 
 
 class _CharacteristicRun:
     """Running values of one characteristic (finite per-frame values only)."""
 
-    __slots__ = ("actual_mm", "budget", "elements", "uncertainty", "values")
+    __slots__ = ("actual_mm", "budget", "dof", "elements", "uncertainty", "values")
 
     def __init__(self) -> None:
         self.values = RunningStats()
         self.uncertainty = RunningStats()
         self.budget: dict[str, tuple[RunningStats, RunningStats, str]] = {}
+        self.dof: dict[str, float] = {}  # the smallest per-frame dof a term stated (a fitted line's)
         self.elements: tuple[str, ...] = ()
         self.actual_mm: float | None = None
 
@@ -172,6 +179,9 @@ class _CharacteristicRun:
                 run = self.budget[t.source] = (RunningStats(), RunningStats(), t.unit)
             run[0].add(t.u)
             run[1].add(t.u_mm * t.u_mm)
+            dof = getattr(t, "dof", math.inf)
+            if math.isfinite(dof):
+                self.dof[t.source] = min(dof, self.dof.get(t.source, math.inf))
 
     def _budget(self, spec: CharacteristicSpec, mean: float, std: float, ctx: _SessionContext):
         """The session budget (see :class:`CharacteristicSummary`) and the temperature correction."""
@@ -247,6 +257,13 @@ class _CharacteristicRun:
         budget, dL = self._budget(spec, raw, std, ctx)
         mean = raw + dL
         u_c = _budget.combined(budget)
+        # Welch-Satterthwaite over the terms the session's data estimated (GUM G.4;
+        # crossfield.uncertainty.dof): k for a normal output becomes t_p(nu_eff)
+        dofs = {"camera_systematic": ctx.camera_dof, "control_cmm": ctx.cmm_dof, "reference_cmm": ctx.cmm_dof,
+                "repeatability": float(n - 1) if n > 1 else math.inf, **self.dof}
+        budget = tuple(dataclasses.replace(t, dof=dofs.get(t.source, math.inf)) for t in budget)
+        nu_eff = effective_dof((t.u_mm, t.dof) for t in budget)
+        k = coverage_factor(k, nu_eff)
         U = _budget.expanded(u_c, k)
         deviation = mean - spec.nominal_mm
         verdict = decide(deviation, spec.lower_tol_mm, spec.upper_tol_mm, U, rule)
@@ -274,6 +291,7 @@ class _CharacteristicRun:
             lower_tol_mm=spec.lower_tol_mm,
             measured_raw_mm=raw,
             temperature_correction_mm=dL,
+            effective_dof=nu_eff,
         )
 
 
@@ -467,8 +485,13 @@ class SessionAccumulator:
             if self._calibration_mm is None:
                 self._calibration_mm = self._calibration_propagation(self._mc_frames[0])
             calibration_source = f"propagated parameters ({getattr(self._calibration_propagation, 'source', '')})"
+        camera_dof = cmm_dof = math.inf
+        if check is not None:
+            cmm_dof = PRIOR_DOF + check.dof
+            if getattr(check, "epipolar_points", 0) > 0:
+                camera_dof = PRIOR_DOF + float(check.epipolar_points)
         ctx = _SessionContext(self.plan, inflation, ratio, 0.0 if check is None else check.camera_excess,
-                              self._calibration_mm)
+                              self._calibration_mm, camera_dof, cmm_dof)
         return SessionAggregate(
             frames_processed=self.frames_processed,
             frames_failed=self.frames_failed,
