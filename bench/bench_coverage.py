@@ -165,14 +165,14 @@ def _key(line: dict) -> tuple:
             line.get("target_radius", 0.0), line.get("max_tilt", 20.0) if line.get("target_radius") else 0.0)
 
 
-def u_spread(per_session: list[list[dict]]) -> float:
+def u_spread(per_session: list[list[dict]], key: str = "U_mm") -> float:
     """The spread of U between the sessions of one design point: per characteristic, the ratio
-    of the 90th to the 10th percentile of its U over the sessions; the median over the
-    characteristics."""
+    of the 90th to the 10th percentile of its U (``key``: ``U_mm``, or ``u_mm`` for 2u) over the
+    sessions; the median over the characteristics."""
     by_name: dict[str, list[float]] = {}
     for rows in per_session:
         for r in rows:
-            by_name.setdefault(r["name"], []).append(r["U_mm"])
+            by_name.setdefault(r["name"], []).append(r[key])
     ratios = [np.percentile(u, 90) / np.percentile(u, 10) for u in by_name.values() if len(u) > 1]
     return float(np.median(ratios)) if ratios else float("nan")
 
@@ -186,8 +186,8 @@ def table(lines: list[dict], by_name: bool = False) -> str:
     out = [
         "| scenario | plugins | arm sigma (mm) | stated sigma (mm) | r (mm) / tilt (deg) | sessions | lengths "
         "| within u | within 2u | within U | median k | worst abs(e)/u | median U (mm) | U P90/P10 "
-        "| camera Type A / model | chi-square warnings |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| 2u P90/P10 | camera Type A / model | chi-square warnings |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for (scenario, plugins, arm, stated, radius, tilt), sessions in groups.items():
         subsets = [("", None)]
@@ -209,6 +209,7 @@ def table(lines: list[dict], by_name: bool = False) -> str:
             median_U = float(np.median([r["U_mm"] for r in rows]))
             warned = sum(s["warned"] for s in sessions)
             spread = u_spread(per_session)
+            spread_2u = u_spread(per_session, "u_mm")
             ratios = [math.sqrt(s["camera_ratio"]) for s in sessions if s.get("camera_ratio") is not None]
             type_a = f"{np.median(ratios):.2f}" if ratios else "-"
             targets = f"{radius} / {tilt:g}" if radius else "-"
@@ -216,7 +217,7 @@ def table(lines: list[dict], by_name: bool = False) -> str:
                 f"| {scenario}{label} | {plugins} | {arm} | {stated} | {targets} | {len(sessions)} | {n} | "
                 f"{within_u / n:.1%} | {within_2u / n:.1%} | {within_U / n:.1%}{f' +/- {se:.1%}' if np.isfinite(se) else ''} "
                 f"| {median_k:.3f} | {worst:.2f} | "
-                f"{median_U:.4f} | {spread:.2f} | {type_a} | "
+                f"{median_U:.4f} | {spread:.2f} | {spread_2u:.2f} | {type_a} | "
                 f"{warned}/{len(sessions)} |"
             )
     return "\n".join(out)
