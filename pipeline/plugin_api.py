@@ -148,6 +148,7 @@ from crossfield.types import (
 )
 from crossfield.uncertainty.budget import combined, merge
 from crossfield.uncertainty.calibration import DEFAULT_SCALE_U
+from crossfield.uncertainty.dof import excess_dof
 from crossfield.uncertainty.eccentricity import eccentricity_sigma_mm, off_axis_rad
 
 __all__ = [
@@ -256,6 +257,7 @@ __all__ = [
     "dumps",
     "eccentricity_sigma_mm",
     "edge_profile",
+    "excess_dof",
     "finite",
     "fit_circles",
     "fit_discs",

@@ -65,6 +65,7 @@ from crossfield.plugin_api import (
     camera_covariance,
     combined,
     eccentricity_sigma_mm,
+    excess_dof,
     fit_reference_element,
     hookimpl,
     merge,
@@ -319,7 +320,8 @@ class PlanMeasurer:
             measured, line_sd, g_p = point_line_distance(a.xyz, line, None)
             line_var = line_sd**2  # the axis fit's own covariance (its CMM probes, posterior sigma)
             line_sigma = line.sigma_mm  # max(stated, observed): geometry.fit_cylinder_axis
-            line_dof = _fit_dof(line)
+            stated = max((p.sigma_mm for p in reference.points if p.label.startswith(f"{spec.b}.")), default=0.0)
+            line_dof = _fit_dof(line, stated)
             gradients = [(a, g_p)]
             if truth is not None and spec.a in truth.points_global and spec.b in truth.lines_global:
                 actual = truth.lines_global[spec.b].distance(truth.points_global[spec.a])
@@ -386,16 +388,16 @@ class PlanMeasurer:
         return merge(table)
 
 
-def _fit_dof(fit: AxisFit) -> float:
-    """The degrees of freedom of a line fit's sigma (crossfield.uncertainty.dof): the fit's
-    (a cylinder of N probes N - 5, a line 2N - 4) when its a-posteriori sigma
-    sqrt(SSE / dof) set ``fit.sigma_mm`` (above the stated), else infinite (the stated value)."""
+def _fit_dof(fit: AxisFit, stated_mm: float) -> float:
+    """The degrees of freedom of a line fit's sigma (crossfield.uncertainty.dof): its excess over
+    the stated sigma ``stated_mm`` is estimated with the fit's nu (a cylinder of N probes N - 5, a
+    line 2N - 4), so the term has ``nu / w^2``, w = 1 - stated^2 / sigma^2 (infinite where the
+    stated sigma set it; ``dof.excess_dof``)."""
     n = len(fit.residuals_mm)
-    dof = n - 5 if fit.kind == "cylinder" else 2 * n - 4
-    if dof <= 0:
+    nu = n - 5 if fit.kind == "cylinder" else 2 * n - 4
+    if nu <= 0 or not fit.sigma_mm > 0:
         return float("inf")
-    observed = float(np.sqrt(np.sum(np.square(fit.residuals_mm)) / dof))
-    return float(dof) if observed >= fit.sigma_mm else float("inf")
+    return excess_dof(nu, 1.0 - (stated_mm / fit.sigma_mm) ** 2)
 
 
 def _epipolar_evidence(points: CameraPoints) -> dict[str, float | int]:

@@ -59,7 +59,7 @@ from crossfield.uncertainty import budget as _budget
 from crossfield.uncertainty.calibration import DEFAULT_SCALE_U, calibration_uncertainty
 from crossfield.uncertainty.consistency import ConsistencyRun
 from crossfield.uncertainty.decision import decide
-from crossfield.uncertainty.dof import coverage_factor, effective_dof
+from crossfield.uncertainty.dof import coverage_factor, effective_dof, excess_dof
 from crossfield.uncertainty.type_a import PRIOR_DOF
 from crossfield.uncertainty.temperature import LENGTH_KINDS, correction
 
@@ -487,7 +487,9 @@ class SessionAccumulator:
             calibration_source = f"propagated parameters ({getattr(self._calibration_propagation, 'source', '')})"
         camera_dof = cmm_dof = math.inf
         if check is not None:
-            cmm_dof = PRIOR_DOF + check.dof
+            # the CMM terms: the stated sigma times f, the excess 1 - 1/f^2 of their variance
+            # estimated with the posterior's dof (crossfield.uncertainty.dof.excess_dof)
+            cmm_dof = excess_dof(PRIOR_DOF + check.dof, 1.0 - 1.0 / check.cmm_inflation**2)
             if getattr(check, "epipolar_points", 0) > 0:
                 camera_dof = PRIOR_DOF + float(check.epipolar_points)
         ctx = _SessionContext(self.plan, inflation, ratio, 0.0 if check is None else check.camera_excess,

@@ -14,17 +14,19 @@ becomes ``t_p(nu_eff)``, k itself when every term is stated (nu_eff infinite).
 
 Which terms have finite nu (:func:`source_dof`, ``docs/uncertainty.md``):
 
-* ``camera_systematic``: the camera excess the epipolar residuals show, a posterior
-  with ``PRIOR_DOF + m`` degrees of freedom (m matched points per frame;
-  :mod:`crossfield.uncertainty.type_a`);
-* ``control_cmm``, ``reference_cmm``: the CMM standard deviation times the inflation f
-  that the registration residuals support, a posterior with ``PRIOR_DOF + 3n - 6``
-  (n controls), floored at the stated value; always (f = 1 included), so that k is
-  continuous in the data;
-* ``reference_line``: the fitted line's sigma when the fit's own residuals set it (the
-  observed above the stated), with the fit's degrees of freedom (a cylinder of N
-  probes N - 5, a line 2N - 4); the stated sigma otherwise (infinite);
-* ``repeatability``: the scatter of n frames, n - 1;
+Only what the data estimated beyond a stated value carries finite degrees of freedom:
+a term that is a stated floor plus an excess, w of its variance, has ``nu / w^2``
+(:func:`excess_dof`), infinite when the stated value holds, so k is continuous in the
+data and equals the plan's k where the evidence agrees with the model:
+
+* ``camera_systematic`` (all excess): ``PRIOR_DOF + m`` (m matched points per frame;
+  the posterior of :mod:`crossfield.uncertainty.type_a`);
+* ``control_cmm``, ``reference_cmm``: the stated sigma times the inflation f, excess
+  ``w = 1 - 1 / f^2``, estimated with the posterior's ``PRIOR_DOF + 3n - 6`` (n controls);
+* ``reference_line``: the fit's sigma, the larger of the stated and its residuals',
+  excess ``w = 1 - stated^2 / sigma^2``, with the fit's degrees of freedom (a cylinder
+  of N probes N - 5, a line 2N - 4; ``plugins/measure_plan.py``);
+* ``repeatability`` (the scatter beyond the modelled camera part: all excess): n - 1;
 * the others (camera model, eccentricity, calibration, temperature): stated, infinite.
 """
 
@@ -35,7 +37,18 @@ from collections.abc import Iterable
 
 from scipy.stats import norm, t
 
-__all__ = ["coverage_factor", "effective_dof"]
+__all__ = ["coverage_factor", "effective_dof", "excess_dof"]
+
+
+def excess_dof(nu: float, excess_fraction: float) -> float:
+    """The degrees of freedom of a term whose variance is a stated floor plus an excess,
+    ``excess_fraction`` w of the whole (0..1), that data with ``nu`` degrees of freedom
+    estimated: ``nu / w^2`` (GUM eq. (G.3), nu_i = (Delta u_i / u_i)^-2 / 2, with
+    Delta(u^2) = w u^2 sqrt(2 / nu)); infinite for w = 0 (the stated value)."""
+    w = min(max(float(excess_fraction), 0.0), 1.0)
+    if w <= 0 or not nu > 0:
+        return math.inf
+    return float(nu) / (w * w)
 
 
 def effective_dof(terms: Iterable[tuple[float, float]]) -> float:
