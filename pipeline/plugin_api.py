@@ -162,6 +162,7 @@ from crossfield.types import (
 )
 from crossfield.uncertainty.budget import combined, merge
 from crossfield.uncertainty.calibration import DEFAULT_SCALE_U
+from crossfield.uncertainty.dof import excess_dof
 from crossfield.uncertainty.eccentricity import eccentricity_sigma_mm, off_axis_rad
 
 __all__ = [
@@ -274,6 +275,7 @@ __all__ = [
     "eccentricity_sigma_mm",
     "edge_profile",
     "epipolar_candidates",
+    "excess_dof",
     "expanded_heading",
     "finite",
     "fit_circles",

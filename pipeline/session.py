@@ -141,7 +141,9 @@ class CharacteristicSummary:
     terms inflated when the registration residuals contradict the stated sigma,
     a repeatability term for scatter over the frames beyond the modelled camera
     part, the temperature term.
-    expanded_uncertainty_mm: U = k u_c, k = coverage_factor. decision: ISO
+    expanded_uncertainty_mm: U = k u_c, k = coverage_factor: the plan's k for a
+    normal output turned into the Student-t factor of the budget's Welch-Satterthwaite
+    effective_dof (the plan's k when every term is stated; ``crossfield.uncertainty.dof``). decision: ISO
     14253-1 verdict under ``decision_rule`` (conforms / does_not_conform /
     not_proven); passed: accepted under that rule. Zone: ``[nominal -
     lower_tol_mm, nominal + upper_tol_mm]``.
@@ -172,6 +174,7 @@ class CharacteristicSummary:
     #: True when the session stopped before its end (``SessionSummary.incomplete``):
     #: the value is of the pairs measured so far, the decision then never conforms.
     partial: bool = False
+    effective_dof: float = math.inf
 
 
 @dataclass(frozen=True)

@@ -17,6 +17,8 @@ another stage's output in place.
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, field
 from typing import Mapping
 
@@ -433,7 +435,9 @@ class BudgetTerm:
     the control points through the shared registration, the effective one,
     ``u_mm / u``). u_mm: the contribution ``|sensitivity| * u`` (mm); the
     contributions of the sources add in quadrature to the combined standard
-    uncertainty (the sources are independent of each other).
+    uncertainty (the sources are independent of each other). dof: the degrees
+    of freedom of ``u`` (GUM G.3; infinite for a stated value), which the
+    Welch-Satterthwaite coverage factor uses (``crossfield.uncertainty.dof``).
     """
 
     source: str
@@ -441,6 +445,7 @@ class BudgetTerm:
     unit: str
     sensitivity: float
     u_mm: float
+    dof: float = math.inf
 
 
 @dataclass(frozen=True, eq=False)

@@ -45,7 +45,7 @@ correlations of the shared registration, and the squares add up to
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -65,6 +65,7 @@ from crossfield.plugin_api import (
     camera_covariance,
     combined,
     eccentricity_sigma_mm,
+    excess_dof,
     fit_reference_element,
     hookimpl,
     merge,
@@ -304,6 +305,7 @@ class PlanMeasurer:
         actual = None
         line_var = 0.0
         line_sigma = 0.0
+        line_dof = float("inf")
         if spec.kind == "point_point":
             b = elements[spec.b]
             diff = a.xyz - b.xyz
@@ -318,6 +320,8 @@ class PlanMeasurer:
             measured, line_sd, g_p = point_line_distance(a.xyz, line, None)
             line_var = line_sd**2  # the axis fit's own covariance (its CMM probes, posterior sigma)
             line_sigma = line.sigma_mm  # max(stated, observed): geometry.fit_cylinder_axis
+            stated = max((p.sigma_mm for p in reference.points if p.label.startswith(f"{spec.b}.")), default=0.0)
+            line_dof = _fit_dof(line, stated)
             gradients = [(a, g_p)]
             if truth is not None and spec.a in truth.points_global and spec.b in truth.lines_global:
                 actual = truth.lines_global[spec.b].distance(truth.points_global[spec.a])
@@ -327,6 +331,8 @@ class PlanMeasurer:
             if truth is not None and spec.a in truth.points_global:
                 actual = float(truth.points_global[spec.a][2])
         budget = self._budget(spec, gradients, C_reg, inputs, line_var, line_sigma, elements)
+        if spec.kind == "point_line":  # the fit's own residuals set its sigma: Type A with the fit's dof
+            budget = tuple(replace(t, dof=line_dof) if t.source == "reference_line" else t for t in budget)
         deviation = measured - spec.nominal_mm
         return CharacteristicResult(
             name=spec.name,
@@ -380,6 +386,18 @@ class PlanMeasurer:
         if spec.kind == "point_line":  # the axis fit's own covariance, its sigma data-supported
             table["reference_line"] = (line_sigma, "mm", line_var)
         return merge(table)
+
+
+def _fit_dof(fit: AxisFit, stated_mm: float) -> float:
+    """The degrees of freedom of a line fit's sigma (crossfield.uncertainty.dof): its excess over
+    the stated sigma ``stated_mm`` is estimated with the fit's nu (a cylinder of N probes N - 5, a
+    line 2N - 4), so the term has ``nu / w^2``, w = 1 - stated^2 / sigma^2 (infinite where the
+    stated sigma set it; ``dof.excess_dof``)."""
+    n = len(fit.residuals_mm)
+    nu = n - 5 if fit.kind == "cylinder" else 2 * n - 4
+    if nu <= 0 or not fit.sigma_mm > 0:
+        return float("inf")
+    return excess_dof(nu, 1.0 - (stated_mm / fit.sigma_mm) ** 2)
 
 
 def _epipolar_evidence(points: CameraPoints) -> dict[str, float | int]:

@@ -60,6 +60,8 @@ from crossfield.uncertainty import budget as _budget
 from crossfield.uncertainty.calibration import DEFAULT_SCALE_U, calibration_uncertainty
 from crossfield.uncertainty.consistency import ConsistencyRun
 from crossfield.uncertainty.decision import decide
+from crossfield.uncertainty.dof import coverage_factor, effective_dof, excess_dof
+from crossfield.uncertainty.type_a import PRIOR_DOF
 from crossfield.uncertainty.temperature import LENGTH_KINDS, correction
 
 #: Per-frame result rows a session keeps for its report: the first ones (about
@@ -144,17 +146,25 @@ class _SessionContext:
     cmm_inflation: float
     calibration_ratio: float  # session calibration u / the per-frame one
     camera_excess: float = 0.0  # Type A: the camera variance the epipolar residuals add (crossfield.uncertainty.type_a)
+    #: characteristic -> the calibration's parameters propagated (mm; crossfield.uncertainty.calibration
+    #: .calibration_contributions), replacing the relative-scale term; None: the scale term
+    calibration_mm: dict[str, float] | None = None
+    #: degrees of freedom of the Type A-set terms (crossfield.uncertainty.dof): camera_systematic
+    #: (PRIOR_DOF + m epipolar points) and the CMM terms (PRIOR_DOF + 3n - 6)
+    camera_dof: float = math.inf
+    cmm_dof: float = math.inf
 
 
 class _CharacteristicRun:
     """Running values of one characteristic (finite per-frame values only)."""
 
-    __slots__ = ("actual_mm", "budget", "elements", "uncertainty", "values")
+    __slots__ = ("actual_mm", "budget", "dof", "elements", "uncertainty", "values")
 
     def __init__(self) -> None:
         self.values = RunningStats()
         self.uncertainty = RunningStats()
         self.budget: dict[str, tuple[RunningStats, RunningStats, str]] = {}
+        self.dof: dict[str, float] = {}  # the smallest per-frame dof a term stated (a fitted line's)
         self.elements: tuple[str, ...] = ()
         self.actual_mm: float | None = None
 
@@ -170,6 +180,9 @@ class _CharacteristicRun:
                 run = self.budget[t.source] = (RunningStats(), RunningStats(), t.unit)
             run[0].add(t.u)
             run[1].add(t.u_mm * t.u_mm)
+            dof = getattr(t, "dof", math.inf)
+            if math.isfinite(dof):
+                self.dof[t.source] = min(dof, self.dof.get(t.source, math.inf))
 
     def _budget(self, spec: CharacteristicSpec, mean: float, std: float, ctx: _SessionContext):
         """The session budget (see :class:`CharacteristicSummary`) and the temperature correction."""
@@ -183,7 +196,12 @@ class _CharacteristicRun:
             if source in ("control_cmm", "reference_cmm"):
                 t = _budget.scaled(t, ctx.cmm_inflation)
             elif source == "calibration":
-                t = _budget.scaled(t, ctx.calibration_ratio)
+                if ctx.calibration_mm is not None and spec.name in ctx.calibration_mm:
+                    # the file's parameters propagated: one error for the session, not divided
+                    u_cal = ctx.calibration_mm[spec.name]
+                    t = _budget.term(source, u_cal, "mm", u_cal)
+                else:
+                    t = _budget.scaled(t, ctx.calibration_ratio)
             terms.append(t)
         if terms:
             # The camera term is the centroid noise of one frame, drawn anew in every
@@ -240,6 +258,13 @@ class _CharacteristicRun:
         budget, dL = self._budget(spec, raw, std, ctx)
         mean = raw + dL
         u_c = _budget.combined(budget)
+        # Welch-Satterthwaite over the terms the session's data estimated (GUM G.4;
+        # crossfield.uncertainty.dof): k for a normal output becomes t_p(nu_eff)
+        dofs = {"camera_systematic": ctx.camera_dof, "control_cmm": ctx.cmm_dof, "reference_cmm": ctx.cmm_dof,
+                "repeatability": float(n - 1) if n > 1 else math.inf, **self.dof}
+        budget = tuple(dataclasses.replace(t, dof=dofs.get(t.source, math.inf)) for t in budget)
+        nu_eff = effective_dof((t.u_mm, t.dof) for t in budget)
+        k = coverage_factor(k, nu_eff)
         U = _budget.expanded(u_c, k)
         deviation = mean - spec.nominal_mm
         verdict = decide(deviation, spec.lower_tol_mm, spec.upper_tol_mm, U, rule)
@@ -267,6 +292,7 @@ class _CharacteristicRun:
             lower_tol_mm=spec.lower_tol_mm,
             measured_raw_mm=raw,
             temperature_correction_mm=dL,
+            effective_dof=nu_eff,
         )
 
 
@@ -384,6 +410,7 @@ class SessionAccumulator:
         errors_kept: int = FRAME_ERRORS_KEPT,
         calibration_source: str = "",
         reference_source: str = "",
+        calibration_propagation=None,
     ) -> None:
         if rows_kept < 0 or errors_kept < 0:
             raise ValueError(f"rows_kept and errors_kept must be >= 0, got {rows_kept}, {errors_kept}")
@@ -406,6 +433,10 @@ class SessionAccumulator:
         self._calibration = calibration_uncertainty(
             calibration_source, DEFAULT_SCALE_U if stated is None else stated
         )
+        #: frame -> {characteristic: calibration u (mm)} (crossfield.uncertainty.calibration.session_propagation)
+        #: or None; evaluated once, on the first measured frame
+        self._calibration_propagation = calibration_propagation
+        self._calibration_mm: dict[str, float] | None = None
 
     @property
     def rows(self) -> tuple[FrameResult, ...]:
@@ -450,7 +481,20 @@ class SessionAccumulator:
         stated = self.plan.uncertainty.calibration_scale_u
         per_frame = DEFAULT_SCALE_U if stated is None else stated  # what the measurer used
         ratio = self._calibration.scale_u / per_frame if per_frame > 0 else 1.0
-        ctx = _SessionContext(self.plan, inflation, ratio, 0.0 if check is None else check.camera_excess)
+        calibration_source = self._calibration.source
+        if self._calibration_propagation is not None and self._mc_frames:
+            if self._calibration_mm is None:
+                self._calibration_mm = self._calibration_propagation(self._mc_frames[0])
+            calibration_source = f"propagated parameters ({getattr(self._calibration_propagation, 'source', '')})"
+        camera_dof = cmm_dof = math.inf
+        if check is not None:
+            # the CMM terms: the stated sigma times f, the excess 1 - 1/f^2 of their variance
+            # estimated with the posterior's dof (crossfield.uncertainty.dof.excess_dof)
+            cmm_dof = excess_dof(PRIOR_DOF + check.dof, 1.0 - 1.0 / check.cmm_inflation**2)
+            if getattr(check, "epipolar_points", 0) > 0:
+                camera_dof = PRIOR_DOF + float(check.epipolar_points)
+        ctx = _SessionContext(self.plan, inflation, ratio, 0.0 if check is None else check.camera_excess,
+                              self._calibration_mm, camera_dof, cmm_dof)
         return SessionAggregate(
             frames_processed=self.frames_processed,
             frames_failed=self.frames_failed,
@@ -462,7 +506,7 @@ class SessionAccumulator:
             missing_targets=tuple(self._missing.items()),
             consistency=check,
             calibration_scale_u=self._calibration.scale_u,
-            calibration_uncertainty_source=self._calibration.source,
+            calibration_uncertainty_source=calibration_source,
             monte_carlo_frames=tuple(self._mc_frames),
             frames_measured=self._frames_measured,
         )

@@ -81,6 +81,7 @@ from crossfield.types import (
     StereoCentroids,
     StereoFrame,
 )
+from crossfield.uncertainty.calibration import session_propagation
 from crossfield.uncertainty.consistency import describe_reference
 from crossfield.uncertainty.montecarlo import session_monte_carlo
 
@@ -640,6 +641,7 @@ def run_pipeline(
             (p.sigma_mm for p in reference.points),
             info.config.stages["reference"].options,
         ),
+        calibration_propagation=session_propagation(info.plan, reference, info.calibration, stages.measure),
     )
     session_pose = SessionPoseAccumulator()
     failed: str | None = None

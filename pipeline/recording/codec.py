@@ -390,7 +390,8 @@ def measurement_doc(measurement: Any) -> dict[str, Any]:
                 "error_mm": real(c.error_mm),
                 "budget": [
                     {"source": t.source, "u": real(t.u), "unit": t.unit, "sensitivity": real(t.sensitivity),
-                     "u_mm": real(t.u_mm)}
+                     "u_mm": real(t.u_mm),
+                     **({"dof": float(t.dof)} if math.isfinite(getattr(t, "dof", math.inf)) else {})}
                     for t in c.budget
                 ],
             }
@@ -650,7 +651,7 @@ def measurement(doc: Mapping[str, Any]) -> Measurement:
                 elements=tuple(str(e) for e in c.get("elements", ())),
                 budget=tuple(  # absent in recordings made before budgets were recorded
                     BudgetTerm(str(t["source"]), _nan(t["u"]), str(t["unit"]), _nan(t["sensitivity"]),
-                               _nan(t["u_mm"]))
+                               _nan(t["u_mm"]), float(t["dof"]) if "dof" in t else math.inf)
                     for t in c.get("budget", ())
                 ),
             )

@@ -262,6 +262,7 @@ def _characteristic_entry(index: int, c) -> dict[str, Any]:
         "lower_tol_mm": real(c.lower_tol_mm if c.lower_tol_mm is not None else c.tolerance_mm),
         "expanded_uncertainty_mm": real(c.expanded_uncertainty_mm),
         "coverage_factor": real(c.coverage_factor),
+        "effective_dof": real(c.effective_dof),
         "budget": [
             {"source": t.source, "u": real(t.u), "unit": t.unit, "sensitivity": real(t.sensitivity),
              "u_mm": real(t.u_mm)}

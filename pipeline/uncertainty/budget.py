@@ -41,8 +41,10 @@ SOURCE_TEXT: dict[str, str] = {
     "session: not divided by sqrt(n)",
     "eccentricity": "perspective eccentricity of circle centres (projected centre of a tilted circle is "
     "not the projection of its centre), uniform over the stated tilt range",
-    "calibration": "the stereo calibration's parameter uncertainty, as a relative scale of camera-frame "
-    "distances (from the calibration file's std_* keys, else the stated default)",
+    "calibration": "the stereo calibration's parameter uncertainty: the calibration file's std_* keys "
+    "propagated through the triangulation, the registration and the measurement (one error for the "
+    "session: not divided by sqrt(n)); without them a relative scale of camera-frame distances (std_T, "
+    "std_M1/M2, else the stated default)",
     "control_cmm": "CMM coordinates of the common control points, through the shared registration",
     "reference_cmm": "CMM coordinates of the reference points used directly (inflated, like control_cmm, "
     "when the residual check finds the stated sigma too small)",

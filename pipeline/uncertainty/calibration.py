@@ -17,12 +17,22 @@ them the stated default :data:`DEFAULT_SCALE_U` is used.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["DEFAULT_SCALE_U", "CalibrationUncertainty", "calibration_uncertainty"]
+__all__ = [
+    "DEFAULT_SCALE_U",
+    "CalibrationCovariance",
+    "CalibrationUncertainty",
+    "calibration_contributions",
+    "calibration_covariance",
+    "calibration_uncertainty",
+    "point_displacements",
+    "registered_displacements",
+]
 
 #: Relative scale uncertainty of a calibration that states none (1e-5 = 10 ppm,
 #: 3 um over 300 mm; a good target-board calibration of a 50 mm baseline).
@@ -89,3 +99,231 @@ def calibration_uncertainty(source: str, default: float = DEFAULT_SCALE_U) -> Ca
     if not terms:
         return CalibrationUncertainty(default, "stated default")
     return CalibrationUncertainty(math.sqrt(sum(t * t for t in terms)), "calibration file std_* keys")
+
+
+# --------------------------------------------------------------------------
+# The calibration's parameters propagated into the characteristics (issue 22 item 4)
+# --------------------------------------------------------------------------
+#
+# A calibration file that states the standard deviations of every parameter
+# (``std_M1 std_D1 std_M2 std_D2 std_R std_T``, ``crossfield calibrate``; since
+# issue 28 each the larger of the Jacobian's and the jackknife's over views) gives
+# more than a scale: an error of the rotation between the cameras (``std_R``)
+# tilts the lower camera's rays and moves every triangulated point along its line
+# of sight, by about ``Z^2 d(omega) / B``; the principal points and distortion move
+# points sideways. The error is one draw for the session (the same calibration in
+# every frame): a systematic source, not divided by sqrt(n).
+#
+# Per camera point X (upper frame, mm), dX/dtheta = G (3, p) is the implicit-function
+# derivative of the least-squares triangulation from fixed pixels
+# (``crossfield.calibration.covariance.triangulation_sensitivity``, Hartley &
+# Zisserman 5.2; the same G the calibration report's predicted 3-D sigma uses).
+# The registration to the controls answers the displacement of its control points:
+# with their global displacements R d_k and J_k = [-[g_k - g_bar]x, I] the
+# linearised rigid fit moves by xi = -(J^T J)^-1 sum_k J_k^T R d_k (equal weights,
+# as the budget's registration terms), and a point's net global displacement is
+# N_j = R d_j + J_j xi (a pure scale gives N_j = s (p_j - g_bar), the scale term).
+# The characteristics' response to each independent column of the covariance's
+# square root (Sigma = sum_l c_l c_l^T, from its eigen-decomposition) is taken by
+# central differences through the session's own measurer (GUM 5.1.3, eq. (10)
+# with c_i found numerically), so every kind of characteristic is propagated as
+# it is measured: ``u^2 = sum_l ((y(+N c_l) - y(-N c_l)) / 2)^2``.
+
+#: Parameter order of the std_* keys and of ``cov_params``
+#: (``crossfield.calibration.covariance.camera_param_names``).
+_STD_KEYS = ("std_M1", "std_D1", "std_M2", "std_D2", "std_R", "std_T")
+
+
+class CalibrationCovariance:
+    """The calibration's parameter covariance (p, p) in ``camera_param_names(n_dist)`` order
+    (px, unitless distortion, rad, mm); n_dist: distortion terms per camera; source: where
+    the standard deviations and the correlations came from."""
+
+    def __init__(self, covariance: np.ndarray, n_dist: int, source: str) -> None:
+        self.covariance = np.asarray(covariance, dtype=np.float64)
+        self.n_dist = int(n_dist)
+        self.source = source
+
+    @property
+    def std(self) -> np.ndarray:
+        return np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
+
+    def __repr__(self) -> str:
+        return f"CalibrationCovariance(p={len(self.covariance)}, n_dist={self.n_dist}, source={self.source!r})"
+
+
+def _read_keys(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
+    import cv2
+
+    found: dict[str, np.ndarray] = {}
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    try:
+        if fs.isOpened():
+            for name in keys:
+                node = fs.getNode(name)
+                if not node.empty() and not node.isNone():
+                    value = node.mat()
+                    if value is not None:
+                        found[name] = np.asarray(value, dtype=np.float64).reshape(-1)
+    finally:
+        fs.release()
+    return found
+
+
+def calibration_covariance(source: str) -> CalibrationCovariance | None:
+    """The parameter covariance the calibration file(s) ``source`` state (paths separated
+    by ``", "``), or None when they do not state every ``std_*`` key.
+
+    The standard deviations are the ``std_*`` keys as written (the honest ones: the
+    larger of the Jacobian's and the jackknife's); the correlations those of
+    ``cov_params`` when it is there with the same parameters, else none (diagonal):
+    ``Sigma = D Corr D``, D = diag(std)."""
+    from crossfield.calibration.covariance import camera_param_names
+    from crossfield.calibration.file import read_calibration_uncertainty
+
+    for part in str(source or "").split(", "):
+        path = Path(part)
+        if not (part and path.suffix.lower() in (".yml", ".yaml", ".xml", ".json") and path.is_file()):
+            continue
+        keys = _read_keys(path, _STD_KEYS)
+        if len(keys) != len(_STD_KEYS) or keys["std_D1"].size != keys["std_D2"].size:
+            continue
+        std = np.concatenate([keys[k] for k in _STD_KEYS])
+        n_dist = int(keys["std_D1"].size)
+        names = camera_param_names(n_dist)
+        if std.size != len(names) or not np.all(np.isfinite(std)) or np.any(std < 0):
+            continue
+        corr = np.eye(len(std))
+        how = "std_* keys, no correlations"
+        stated = read_calibration_uncertainty(path)
+        if stated is not None and tuple(stated.names) == names:
+            s = np.sqrt(np.clip(np.diag(stated.covariance), 0.0, None))
+            ok = s > 0
+            corr[np.ix_(ok, ok)] = stated.covariance[np.ix_(ok, ok)] / np.outer(s[ok], s[ok])
+            how = "std_* keys, correlations of cov_params"
+        return CalibrationCovariance(corr * np.outer(std, std), n_dist, f"{path}: {how}")
+    return None
+
+
+def _sqrt_columns(covariance: np.ndarray) -> np.ndarray:
+    """Columns c_l (p, q) with sum_l c_l c_l^T = covariance (symmetric PSD; eigen-decomposition,
+    negative rounding clipped, null directions dropped)."""
+    w, V = np.linalg.eigh(0.5 * (covariance + covariance.T))
+    keep = w > max(float(w.max(initial=0.0)), 0.0) * 1e-14
+    return V[:, keep] * np.sqrt(w[keep])
+
+
+def point_displacements(
+    points_upper: np.ndarray,
+    calibration,
+    n_dist: int,
+    columns: np.ndarray,
+) -> np.ndarray:
+    """(N, 3, q) mm: how each triangulated point (upper frame, (N, 3) mm) moves for a
+    calibration error along each column of ``columns`` (p, q); ``calibration`` the
+    :class:`crossfield.types.StereoCalibration` the points were triangulated with (its
+    distortion padded or cut to ``n_dist`` terms, the file's)."""
+    import cv2
+
+    from crossfield.calibration.covariance import triangulation_sensitivity
+
+    def dist(intr) -> np.ndarray:
+        d = np.zeros(n_dist)
+        given = np.asarray(intr.dist_coeffs, dtype=np.float64).reshape(-1)[:n_dist]
+        d[: given.size] = given
+        return d
+
+    rvec = cv2.Rodrigues(np.asarray(calibration.R_lower_upper, dtype=np.float64))[0].reshape(3)
+    G, _ = triangulation_sensitivity(
+        np.asarray(points_upper, dtype=np.float64).reshape(-1, 3),
+        np.asarray(calibration.upper.camera_matrix, dtype=np.float64), dist(calibration.upper),
+        np.asarray(calibration.lower.camera_matrix, dtype=np.float64), dist(calibration.lower),
+        rvec, np.asarray(calibration.t_lower_upper, dtype=np.float64),
+    )
+    return np.einsum("nip,pq->niq", G, columns)
+
+
+def registered_displacements(
+    points_upper: np.ndarray,
+    displacements: np.ndarray,
+    registration,
+    reference,
+) -> np.ndarray:
+    """(N, 3, q) mm, global frame: the displacements (N, 3, q, camera frame) of the camera
+    points ``points_upper`` (N, 3) after the registration to the controls has answered
+    its control points' (comment above: N_j = R d_j + J_j xi,
+    xi = -(J^T J)^-1 sum_k J_k^T R d_k, J_k = [-[g_k - g_bar]x, I], g_k the CMM controls)."""
+    from crossfield.covariance import registration_jacobian
+
+    fit = registration.fit
+    R = np.asarray(fit.R) * float(fit.scale)
+    moved = np.einsum("ij,njq->niq", R, displacements)
+    corr = registration.correspondence
+    by_label = reference.by_label()
+    pairs = [(cid, int(i)) for cid, i in zip(corr.control_ids, corr.camera_index) if cid in by_label]
+    if len(pairs) < 3:
+        return moved
+    g = np.array([by_label[cid].xyz for cid, _ in pairs], dtype=np.float64)
+    g_bar = g.mean(axis=0)
+    J = registration_jacobian(g, g_bar)  # (K, 3, 6)
+    JtJ = np.einsum("kia,kib->ab", J, J)
+    Jtd = np.einsum("kia,kiq->aq", J, moved[[i for _, i in pairs]])
+    xi = -np.linalg.solve(JtJ, Jtd)  # (6, q): (dtheta rad, dt mm) per column
+    J_points = registration_jacobian(fit.apply(np.asarray(points_upper, dtype=np.float64)), g_bar)
+    return moved + np.einsum("nia,aq->niq", J_points, xi)
+
+
+def calibration_contributions(
+    plan,
+    reference,
+    points,
+    registration,
+    calibration,
+    stated: CalibrationCovariance,
+    measurer,
+) -> dict[str, float]:
+    """Characteristic name -> its calibration contribution u (mm): the covariance
+    ``stated`` propagated through the triangulation (G), the registration (xi) and the
+    measurement of one frame (``points`` :class:`CameraPoints`, ``registration``), by
+    central differences of ``measurer.measure`` along each independent column
+    (comment above). A systematic source: the same for every frame of the session."""
+    columns = _sqrt_columns(stated.covariance)
+    xyz = np.asarray(points.xyz, dtype=np.float64)
+    if columns.shape[1] == 0 or len(xyz) == 0:
+        return {}
+    d_camera = point_displacements(xyz, calibration, stated.n_dist, columns)
+    d_global = registered_displacements(xyz, d_camera, registration, reference)
+    # back to the camera frame, so that the measurer's own registration maps each point
+    # to its displaced global position: p_c' = p_c + (s R)^-1 N
+    fit = registration.fit
+    back = np.einsum("ji,njq->niq", np.asarray(fit.R), d_global) / float(fit.scale)
+    sums: dict[str, float] = {}
+    for col in range(columns.shape[1]):
+        values = []
+        for sign in (1.0, -1.0):
+            moved = dataclasses.replace(points, xyz=xyz + sign * back[:, :, col])
+            m = measurer.measure(plan, reference, moved, registration, None)
+            values.append({c.name: c.measured_mm for c in m.characteristics})
+        for name, plus in values[0].items():
+            minus = values[1].get(name)
+            if minus is not None and math.isfinite(plus) and math.isfinite(minus):
+                sums[name] = sums.get(name, 0.0) + (0.5 * (plus - minus)) ** 2
+    return {name: math.sqrt(v) for name, v in sums.items()}
+
+
+def session_propagation(plan, reference, calibration, measurer):
+    """The session's calibration propagation, ``frame -> {name: u (mm)}``
+    (:func:`calibration_contributions` on a measured :class:`FrameResult`), with the
+    covariance the calibration file(s) of ``calibration.source`` state; None when they
+    state none (the budget then keeps the relative scale term)."""
+    stated = calibration_covariance(getattr(calibration, "source", ""))
+    if stated is None:
+        return None
+
+    def propagate(frame) -> dict[str, float]:
+        return calibration_contributions(
+            plan, reference, frame.points, frame.registration, calibration, stated, measurer
+        )
+
+    propagate.source = stated.source  # type: ignore[attr-defined]
+    return propagate

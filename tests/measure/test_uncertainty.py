@@ -17,6 +17,7 @@ from crossfield.types import CameraPoints, ProbedPoint, ReferenceData, Registrat
 from crossfield.uncertainty.budget import SOURCES, combined
 from crossfield.uncertainty.consistency import check_means
 from crossfield.uncertainty.decision import decide
+from crossfield.uncertainty.dof import coverage_factor
 from crossfield.uncertainty.temperature import Temperature, correction
 from crossfield.plugins.register_svd import SvdRegistrar
 
@@ -149,7 +150,9 @@ def test_session_budget_adds_up_with_repeatability_and_temperature():
         assert [t.source for t in c.budget] == [s for s in SOURCES if s in {t.source for t in c.budget}]
         assert {"camera", "control_cmm", "repeatability", "temperature"} <= {t.source for t in c.budget}
         assert c.uncertainty_mm == pytest.approx(combined(c.budget), rel=1e-12)
-        assert c.expanded_uncertainty_mm == pytest.approx(2.0 * c.uncertainty_mm, rel=1e-12)
+        # k = 2 for a normal output, as the Student-t factor of the budget's effective dof (GUM G.4)
+        assert c.coverage_factor == pytest.approx(coverage_factor(2.0, c.effective_dof)) and c.coverage_factor >= 2.0
+        assert c.expanded_uncertainty_mm == pytest.approx(c.coverage_factor * c.uncertainty_mm, rel=1e-12)
         temp = next(t for t in c.budget if t.source == "temperature")
         if c.kind == "depth":
             assert c.temperature_correction_mm == 0.0 and temp.u_mm == 0.0
@@ -265,7 +268,8 @@ def test_plan_decision_rule_and_asymmetric_tolerance_reach_the_summary():
     assert (spec.upper_tol_mm, spec.lower_tol_mm) == (0.01, 0.6)
     aggregate = _session(station, plan, np.random.default_rng(2), cmm_true=0.01, cmm_stated=0.01)
     c = next(c for c in aggregate.characteristics if c.name == "P1-P2")
-    assert c.coverage_factor == 3.0 and c.expanded_uncertainty_mm == pytest.approx(3 * c.uncertainty_mm)
+    assert c.coverage_factor == pytest.approx(coverage_factor(3.0, c.effective_dof)) and c.coverage_factor >= 3.0
+    assert c.expanded_uncertainty_mm == pytest.approx(c.coverage_factor * c.uncertainty_mm)
     expected = decide(c.deviation_mm, 0.6, 0.01, c.expanded_uncertainty_mm, "guarded_acceptance")
     assert (c.decision, c.passed) == (expected.verdict, expected.accepted)
     assert c.deviation_mm == pytest.approx(-0.5, abs=0.05) and c.decision == "conforms"
