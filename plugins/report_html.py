@@ -26,11 +26,13 @@ from crossfield.plugin_api import (
     REPORT_JSON,
     TEMPLATE_DIR,
     SessionSummary,
+    common_coverage_factor,
     decision_class,
     decision_text,
     deviation_chart,
     document_of,
     dumps,
+    expanded_cell,
     expanded_heading,
     fixed,
     hookimpl,
@@ -107,14 +109,15 @@ def _budget_table(report: Mapping[str, Any], decimals: int) -> str:
     sources = [s for s in report["uncertainty"]["sources"] if any(
         t["source"] == s for c in chars for t in c["budget"])]
     head = "".join(f"<th>{esc(s.replace('_', ' '))}</th>" for s in sources)
+    k = common_coverage_factor(chars)
     rows = []
     for c in chars:
         by = {t["source"]: t for t in c["budget"]}
         cells = [_td(esc(c["name"]))]
         cells += [_num(by[s]["u_mm"] if s in by else None, decimals + 1) for s in sources]
-        cells += [_num(c["uncertainty_mm"], decimals + 1), _num(c["expanded_uncertainty_mm"], decimals)]
+        U_text = expanded_cell(c["expanded_uncertainty_mm"], c["coverage_factor"], k, decimals)
+        cells += [_num(c["uncertainty_mm"], decimals + 1), _td(esc(U_text), "num")]
         rows.append(_row(cells))
-    k = chars[0]["coverage_factor"] if chars else 2.0
     legend = "".join(
         f"<li><strong>{esc(s.replace('_', ' '))}</strong>: {esc(report['uncertainty']['sources'][s])}</li>"
         for s in sources
@@ -182,7 +185,7 @@ def _table3(report: Mapping[str, Any], decimals: int) -> str:
     head = ["No.", "Characteristic", "Elements", "Frames", "Measured", "Std", "u"]
     if truth:
         head += ["Actual", "Error"]
-    k = chars[0]["coverage_factor"] if chars else 2.0
+    k = common_coverage_factor(chars)
     head += ["Nominal", "Tolerance", "Deviation", esc(expanded_heading(k)), "Decision"]
     rows = []
     for c in chars:
@@ -202,7 +205,7 @@ def _table3(report: Mapping[str, Any], decimals: int) -> str:
             _num(c["nominal_mm"], decimals),
             _td(esc(tolerance_text(c, decimals)), "num"),
             _num(c["deviation_mm"], decimals, signed=True),
-            _num(c["expanded_uncertainty_mm"], decimals),
+            _td(esc(expanded_cell(c["expanded_uncertainty_mm"], c["coverage_factor"], k, decimals)), "num"),
             _decision_cell(c),
         ]
         rows.append(_row(cells))

@@ -30,8 +30,10 @@ __all__ = [
     "GUARD_BAND_WORDS",
     "RULE_WORDS",
     "ResultTable",
+    "common_coverage_factor",
     "decision_class",
     "decision_text",
+    "expanded_cell",
     "expanded_heading",
     "expanded_text",
     "fixed",
@@ -77,8 +79,28 @@ def _k(k: float | None) -> str:
 
 
 def expanded_heading(k: float | None) -> str:
-    """``U (k = 2)``: the column heading of the expanded uncertainty."""
-    return f"U (k = {_k(k)})"
+    """``U (k = 2)``: the column heading of the expanded uncertainty; ``U (k per row)``
+    when ``k`` is None (the characteristics' coverage factors differ, see
+    :func:`common_coverage_factor`)."""
+    return "U (k per row)" if k is None else f"U (k = {_k(k)})"
+
+
+def common_coverage_factor(chars: Sequence[Mapping[str, Any]]) -> float | None:
+    """The coverage factor all of a report's characteristics share (2.0 when there are
+    none), or None when they differ: k is then each characteristic's own, a Student-t
+    factor at its effective degrees of freedom (GUM G.3, G.4;
+    :mod:`crossfield.uncertainty.dof`)."""
+    ks = {round(float(c["coverage_factor"]), 2) for c in chars}
+    if not ks:
+        return 2.0
+    return float(chars[0]["coverage_factor"]) if len(ks) == 1 else None
+
+
+def expanded_cell(U_mm: float | None, k: float, common_k: float | None, decimals: int = 4) -> str:
+    """A U cell: the value (mm), with ``(k = 2.13)`` after it when the table has no
+    common k (:func:`common_coverage_factor`)."""
+    value = fixed(U_mm, decimals)
+    return value if common_k is not None else f"{value} (k = {float(k):.2f})"
 
 
 def expanded_text(U_mm: float | None, k: float | None, decimals: int = 4) -> str:
@@ -160,7 +182,7 @@ class ResultTable:
     rows: tuple[tuple[str, ...], ...]
     right: tuple[bool, ...]
     decisions: tuple[str, ...]
-    k: float
+    k: float | None
 
 
 def result_table(report: Mapping[str, Any], decimals: int = 4) -> ResultTable:
@@ -169,7 +191,7 @@ def result_table(report: Mapping[str, Any], decimals: int = 4) -> ResultTable:
     simulator's truth is known), Nominal, Tol, Dev, Decision (mm)."""
     chars: Sequence[Mapping[str, Any]] = report["characteristics"]
     truth = bool(report.get("ground_truth_known"))
-    k = float(chars[0]["coverage_factor"]) if chars else 2.0
+    k = common_coverage_factor(chars)
     headers = ["No.", "Characteristic", "n", "Measured", "u", expanded_heading(k)]
     headers += ["Actual", "Error"] if truth else []
     headers += ["Nominal", "Tol", "Dev", "Decision"]
@@ -181,7 +203,7 @@ def result_table(report: Mapping[str, Any], decimals: int = 4) -> ResultTable:
             str(c["n_frames"]),
             fixed(c["measured_mm"], decimals),
             fixed(c["uncertainty_mm"], decimals),
-            fixed(c["expanded_uncertainty_mm"], decimals),
+            expanded_cell(c["expanded_uncertainty_mm"], c["coverage_factor"], k, decimals),
         ]
         if truth:
             row += [fixed(c.get("actual_mm"), decimals), fixed(c.get("error_mm"), decimals, True)]
