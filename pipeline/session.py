@@ -18,6 +18,7 @@ from crossfield.config import Config
 from crossfield.plan import MeasurementPlan
 from crossfield.tables import SummaryTables
 from crossfield.types import (
+    DEFAULT_SCALE_U,
     BudgetTerm,
     CameraPoints,
     GroundTruth,
@@ -28,7 +29,6 @@ from crossfield.types import (
     StereoCentroids,
     frozen_array,
 )
-from crossfield.uncertainty.calibration import DEFAULT_SCALE_U
 from crossfield.uncertainty.consistency import ConsistencyCheck
 
 __all__ = [

@@ -18,7 +18,6 @@ another stage's output in place.
 from __future__ import annotations
 
 import math
-
 from dataclasses import dataclass, field
 from typing import Mapping
 
@@ -26,6 +25,7 @@ import numpy as np
 
 __all__ = [
     "CAMERAS",
+    "DEFAULT_SCALE_U",
     "STAGES",
     "CameraIntrinsics",
     "BudgetTerm",
@@ -49,6 +49,11 @@ __all__ = [
 ]
 
 CAMERAS: tuple[str, str] = ("upper", "lower")
+
+#: Relative scale uncertainty of a calibration that states none (1e-5 = 10 ppm,
+#: 3 um over 300 mm; a good target-board calibration of a 50 mm baseline); the
+#: budget's calibration term (crossfield.uncertainty.calibration) uses it.
+DEFAULT_SCALE_U = 1.0e-5
 
 #: The stages, in data-flow order (the config's tables, the registry hooks, :mod:`crossfield.stages`).
 STAGES: tuple[str, ...] = (

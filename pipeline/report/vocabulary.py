@@ -75,7 +75,8 @@ def fixed(value: float | None, decimals: int, signed: bool = False) -> str:
 
 
 def _k(k: float | None) -> str:
-    return f"{2.0 if k is None else float(k):g}"
+    """k as printed: two decimals at most (``2``, ``2.13``); report.json keeps it whole."""
+    return f"{round(2.0 if k is None else float(k), 2):g}"
 
 
 def expanded_heading(k: float | None) -> str:

@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from crossfield.types import DEFAULT_SCALE_U  # re-exported: the default the term falls back to
+
 __all__ = [
     "DEFAULT_SCALE_U",
     "CalibrationCovariance",
@@ -33,10 +35,6 @@ __all__ = [
     "point_displacements",
     "registered_displacements",
 ]
-
-#: Relative scale uncertainty of a calibration that states none (1e-5 = 10 ppm,
-#: 3 um over 300 mm; a good target-board calibration of a 50 mm baseline).
-DEFAULT_SCALE_U = 1.0e-5
 
 
 class CalibrationUncertainty:

@@ -82,8 +82,10 @@ def test_summary_prints_as_a_table(table3):
     text = str(table3)
     lines = text.splitlines()
     header = next(re.split(r"\s{2,}", line.strip()) for line in lines if line.startswith("No."))
+    ks = {round(c.coverage_factor, 2) for c in table3.characteristics}  # Student-t k (uncertainty.dof)
+    U_head = f"U (k = {ks.pop():g})" if len(ks) == 1 else "U (k per row)"
     assert header == [
-        "No.", "Characteristic", "n", "Measured", "u", "U (k = 2)", "Actual", "Error", "Nominal", "Tol", "Dev",
+        "No.", "Characteristic", "n", "Measured", "u", U_head, "Actual", "Error", "Nominal", "Tol", "Dev",
         "Decision",
     ]
     rows = _table_rows(text)
@@ -95,7 +97,7 @@ def test_summary_prints_as_a_table(table3):
         assert float(cells["Actual"]) == pytest.approx(c.actual_mm, abs=5e-5)
         assert float(cells["Error"]) == pytest.approx(c.error_mm, abs=5e-5)
         assert float(cells["u"]) == pytest.approx(c.uncertainty_mm, abs=5e-5)
-        assert float(cells["U (k = 2)"]) == pytest.approx(c.expanded_uncertainty_mm, abs=5e-5)
+        assert float(cells[U_head].split()[0]) == pytest.approx(c.expanded_uncertainty_mm, abs=5e-5)
         assert cells["Decision"] == {"conforms": "conforms", "does_not_conform": "does not conform"}[c.decision]
     assert lines[-1] == "Result: PASS"
     assert f"RMS error vs ground truth: {table3.rms_error_mm():.4f} mm" in text

@@ -10,14 +10,17 @@ the seal), and that ``crossfield replay`` states the same and ``crossfield audit
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import pty
 import re
 import select
 import signal
+import struct
 import subprocess
 import sys
+import termios
 import time
 from pathlib import Path
 
@@ -48,6 +51,8 @@ class Child:
 
     def __init__(self, args: list[str]) -> None:
         self.master, slave = pty.openpty()
+        # a terminal states its size; tqdm draws nothing on one of 0 columns
+        fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 40, 120, 0, 0))
         self.process = subprocess.Popen(
             crossfield_command() + args, stdout=subprocess.PIPE, stderr=slave, preexec_fn=sigint_default
         )
