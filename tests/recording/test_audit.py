@@ -44,7 +44,7 @@ def recorded_format2(tmp_path_factory):
     out = tmp_path_factory.mktemp("audit2")
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(writer_module, "CHAIN_FORMAT", INTEGRITY_FORMAT_2)
-        record_session(out, "orig", frames=2, session={"compression": "none"})
+        record_session(out, "orig", session={"compression": "none"})
     return out / "orig" / "session.mcap"
 
 
@@ -764,7 +764,7 @@ def as_chain_format_1(src: Path, dst: Path, tamper: tuple[str, int] | None = Non
         for m in msgs:
             if m.topic != "/integrity":
                 digest = hashlib.sha256(m.data).digest()
-                head = link(head, m.topic, m.log_time, m.sequence, digest)
+                head = link(head, m.topic, m.log_time, m.sequence, digest, INTEGRITY_FORMAT_1)
                 count += 1
                 listed.append([m.topic, m.sequence, m.log_time, digest.hex()])
                 data = m.data
@@ -784,9 +784,11 @@ def as_chain_format_1(src: Path, dst: Path, tamper: tuple[str, int] | None = Non
     rewrite_mcap(src, dst, edit)
 
 
-def test_a_chain_format_1_recording_is_checked_for_what_it_covers(recorded, tmp_path):
+def test_a_chain_format_1_recording_is_checked_for_what_it_covers(recorded_format2, tmp_path):
     """Issue 26 item 4: not "missing chain": the format-1 chain covers messages only,
-    says so, and an edited message in it is still named."""
+    says so, and an edited message in it is still named. (Made from a format-2
+    recording: a format-1 writer's header named no format 3.)"""
+    recorded = recorded_format2
     old = tmp_path / "format1.mcap"
     as_chain_format_1(recorded, old)
     result = verify(old)
