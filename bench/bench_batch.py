@@ -18,13 +18,21 @@ each in sessions per second and as a ratio to the sequential loop. Then the engi
 overhead per task: ``--noops`` tasks that do nothing (:func:`crossfield.batch.tasks.noop`)
 through ``run_each`` on 1 worker (ms per task), and (1-worker time - sequential time) /
 sessions on the sessions themselves, and the seconds spent inside the tasks (where they ran)
-against the sequential loop's. The machine is shared: read the ratios.
+against the sequential loop's, wall clock and CPU (``time.process_time`` of the process that ran
+the task): a task whose CPU equals the sequential one but whose wall time is longer waited
+for a core (the machine's load), it did not do more work. ``--profile`` also runs one session
+under ``cProfile`` in the client and in a worker and prints the functions whose cumulative
+time differs most (the in-worker slowdown, issue 25 item 5). The machine is shared: read
+the ratios.
 """
 
 from __future__ import annotations
 
 import argparse
+import cProfile
+import io
 import os
+import pstats
 import shutil
 import sys
 import tempfile
@@ -59,17 +67,30 @@ def record(root: Path, n: int, frames: int) -> list[str]:
     return paths
 
 
-def timed_task(*args: object) -> float:
-    """run_task, returning the seconds it took where it ran (pickled by value to the workers)."""
-    t = time.perf_counter()
+def timed_task(*args: object) -> tuple[float, float]:
+    """run_task, returning (wall s, CPU s of the process) where it ran (pickled by value to the workers)."""
+    t, c = time.perf_counter(), time.process_time()
     run_task(*args)
-    return time.perf_counter() - t
+    return time.perf_counter() - t, time.process_time() - c
 
 
-def on_dask(workers: int, kind: str, paths: list[str], out: Path) -> tuple[float, float]:
-    """(wall seconds, sum of the seconds inside the tasks) for the tasks of ``paths`` on an
-    embedded cluster of ``workers`` (warm)."""
-    inside: list[float] = []
+def profiled_task(*args: object) -> dict[str, float]:
+    """run_task under cProfile timed by the CPU time of the task's thread (not the wall clock,
+    which on a loaded machine mostly measures the wait for a core): {function: cumulative
+    CPU s} where it ran (client or worker)."""
+    profile = cProfile.Profile(time.thread_time)
+    profile.runcall(run_task, *args)
+    stats = pstats.Stats(profile, stream=io.StringIO())
+    return {
+        f"{Path(file).name}:{line}({name})": row[3]
+        for (file, line, name), row in stats.stats.items()  # type: ignore[attr-defined]
+    }
+
+
+def on_dask(workers: int, kind: str, paths: list[str], out: Path) -> tuple[float, float, float]:
+    """(wall seconds, sum of the wall and of the CPU seconds inside the tasks) for the tasks
+    of ``paths`` on an embedded cluster of ``workers`` (warm)."""
+    inside: list[tuple[float, float]] = []
     with engine.client(None, workers, dashboard_address=":0") as c:
         c.run(warm_up, paths[0])
         t = time.perf_counter()
@@ -77,7 +98,20 @@ def on_dask(workers: int, kind: str, paths: list[str], out: Path) -> tuple[float
             c, timed_task, [(kind, i, p, str(out), {}, []) for i, p in enumerate(paths)],
             lambda k, result, error: inside.append(result), progress=False,
         )
-        return time.perf_counter() - t, sum(inside)
+        return time.perf_counter() - t, sum(w for w, _ in inside), sum(c for _, c in inside)
+
+
+def profile_worker(kind: str, path: str, out: Path) -> None:
+    """One session under cProfile in the client and on a 1-worker cluster: the functions
+    whose cumulative time differs most."""
+    here = profiled_task(kind, 0, path, str(out / "prof-client"), {}, [])
+    with engine.client(None, 1, dashboard_address=":0") as c:
+        c.run(warm_up, path)
+        there = c.submit(profiled_task, kind, 0, path, str(out / "prof-worker"), {}, [], pure=False).result()
+    rows = sorted(set(here) | set(there), key=lambda k: -abs(there.get(k, 0.0) - here.get(k, 0.0)))
+    print(f"  profile of one {kind} (cumulative CPU s of the task's thread): client / worker, largest differences first")
+    for key in rows[:15]:
+        print(f"    {here.get(key, 0.0):7.3f} {there.get(key, 0.0):7.3f}  {key}")
 
 
 def main() -> int:
@@ -86,6 +120,7 @@ def main() -> int:
     parser.add_argument("--frames", type=int, default=2)
     parser.add_argument("--kind", default="audit", choices=("audit", "replay"))
     parser.add_argument("--noops", type=int, default=200)
+    parser.add_argument("--profile", action="store_true", help="profile one session in the client and in a worker")
     args = parser.parse_args()
 
     work = Path(tempfile.mkdtemp(prefix="crossfield-bench-batch-"))
@@ -94,19 +129,22 @@ def main() -> int:
         n = len(paths)
         print(f"{n} sessions of {args.frames} stereo pair(s), batch {args.kind}, {os.cpu_count()} core(s)")
         warm_up(paths[0])
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         for i, p in enumerate(paths):
             run_task(args.kind, i, p, str(work / "seq"), {}, [])
-        sequential = time.perf_counter() - t
-        print(f"  sequential loop   {n / sequential:7.3f} sessions/s   1.00 x")
+        sequential, sequential_cpu = time.perf_counter() - t, time.process_time() - c
+        print(
+            f"  sequential loop   {n / sequential:7.3f} sessions/s   1.00 x   "
+            f"({sequential / n * 1e3:.0f} ms per session, CPU {sequential_cpu / n * 1e3:.0f} ms)"
+        )
         one = None
         for workers in (1, 2):
-            s, inside = on_dask(workers, args.kind, paths, work / f"dask{workers}")
+            s, inside, inside_cpu = on_dask(workers, args.kind, paths, work / f"dask{workers}")
             one = s if workers == 1 else one
             record_figure(f"batch.workers{workers}_vs_sequential", sequential / s, "higher")
             print(
                 f"  {workers} worker(s)       {n / s:7.3f} sessions/s   {sequential / s:4.2f} x the sequential loop"
-                f"   (inside the tasks: {inside / n * 1e3:.0f} ms per session, sequential {sequential / n * 1e3:.0f})"
+                f"   (inside the tasks: {inside / n * 1e3:.0f} ms per session, CPU {inside_cpu / n * 1e3:.0f} ms)"
             )
         with engine.client(None, 1, dashboard_address=":0") as c:
             c.run(warm_up)
@@ -118,6 +156,9 @@ def main() -> int:
             f"                    {(one - sequential) / n * 1e3:7.1f} ms per session task "
             f"(1 worker - sequential) / sessions, {(one - sequential) / sequential * 100:+.1f} %"
         )
+        print(f"  load average {os.getloadavg()[0]:.1f} at the end")
+        if args.profile:
+            profile_worker(args.kind, paths[0], work)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     return 0

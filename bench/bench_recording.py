@@ -5,7 +5,9 @@
 For each repeat (interleaved, so that both see the same disk state):
 
 * baseline: the raw pixel bytes of every pair (2 x 1626 x 1236 uint16)
-  written with ``file.write`` into one file;
+  written with ``file.write`` into one file; and for each chunk compression, the same
+  images compressed with it beforehand (outside the timing) and written the same way:
+  "a plain write of the same bytes" that the compressed recorder writes;
 * recorder: the same pairs through ``pm.hook.on_frame`` into a
   :class:`crossfield.recording.recorder.McapRecorder` (writer thread on, then off),
   closed at the end (summary and indexes written, the file sealed), uncompressed
@@ -13,9 +15,12 @@ For each repeat (interleaved, so that both see the same disk state):
 * with ``--rerun``: the same pairs through :class:`crossfield.viz.rerun_log.RerunLogger`.
 
 Reports pairs/s (wall clock, file closed; with ``--fsync`` also synced to
-disk), the CPU time per pair of the process, and for the recorder the time
-the pipeline thread spends inside the hook per pair, and the file's size
-(MB, and as a fraction of the plain write's). Medians over the repeats. Without ``--fsync`` the writes land in the page cache, so the
+disk), the CPU time per pair of the process (every thread: the recorder's writer and
+hashing threads too), and for the recorder the time the pipeline thread spends inside
+the hook per pair, and the file's size (MB, and as a fraction of the plain write's).
+Ratios: CPU and wall time (1 / pairs/s) against the plain write of the same bytes
+(uncompressed for ``none``, compressed for lz4 / zstd); then the compression's own
+CPU per image, timed once. Medians over the repeats. Without ``--fsync`` the writes land in the page cache, so the
 figures measure CPU cost; with it they include the disk.
 """
 
@@ -61,13 +66,37 @@ def make_frames(count: int = 4, seed: int = 0) -> list[StereoFrame]:
     return frames
 
 
-def run_baseline(path: Path, frames: list[StereoFrame], pairs: int, fsync: bool) -> dict[str, float]:
+def compressed_images(frames: list[StereoFrame], compression: str) -> list[tuple[bytes, bytes]]:
+    """Each pair's two images as the chunk compression ``compression`` makes them
+    (the mcap writer's own calls: lz4.frame.compress, zstandard.compress)."""
+    if compression == "none":
+        return [(bytes(f.upper.data), bytes(f.lower.data)) for f in frames]
+    if compression == "lz4":
+        import lz4.frame
+
+        compress = lz4.frame.compress
+    else:
+        import zstandard
+
+        compress = zstandard.compress
+    return [(compress(f.upper.tobytes()), compress(f.lower.tobytes())) for f in frames]
+
+
+def compression_ms_per_image(frames: list[StereoFrame], compression: str) -> float:
+    """CPU ms to compress one image with ``compression`` (the mean over the templates)."""
+    c0 = time.process_time()
+    compressed_images(frames, compression)
+    return 1e3 * (time.process_time() - c0) / (2 * len(frames))
+
+
+def run_baseline(path: Path, images: list[tuple[bytes, bytes]], pairs: int, fsync: bool) -> dict[str, float]:
+    """``pairs`` pairs of ``images`` (the bytes of each pair's two images) with file.write."""
     t0, c0 = time.perf_counter(), time.process_time()
     with open(path, "wb") as f:
         for i in range(pairs):
-            frame = frames[i % len(frames)]
-            f.write(frame.upper.data)
-            f.write(frame.lower.data)
+            upper, lower = images[i % len(images)]
+            f.write(upper)
+            f.write(lower)
         f.flush()
         if fsync:
             os.fsync(f.fileno())
@@ -143,15 +172,22 @@ def main(argv: list[str] | None = None) -> None:
         f"{args.pairs} pairs of 2 x {WIDTH}x{HEIGHT} uint16 ({mb:.0f} MB) per run, {args.repeats} repeats, "
         f"fsync={'on' if args.fsync else 'off'}, {os.cpu_count()} CPUs"
     )
+    plain_images = compressed_images(frames, "none")
     cases = {
-        "plain file write": lambda p: run_baseline(p, frames, args.pairs, args.fsync),
+        "plain file write": lambda p: run_baseline(p, plain_images, args.pairs, args.fsync),
         "McapRecorder (writer thread)": lambda p: run_recorder(p, frames, args.pairs, args.fsync, True),
         "McapRecorder (synchronous)": lambda p: run_recorder(p, frames, args.pairs, args.fsync, False),
     }
+    #: case -> the plain-write case of the same bytes it is compared with
+    same_bytes = {name: "plain file write" for name in cases}
     for compression in args.compressions:
+        images = compressed_images(frames, compression)
+        cases[f"plain write, {compression} bytes"] = lambda p, im=images: run_baseline(p, im, args.pairs, args.fsync)
         cases[f"McapRecorder {compression} (thread)"] = (
             lambda p, c=compression: run_recorder(p, frames, args.pairs, args.fsync, True, c)
         )
+        same_bytes[f"plain write, {compression} bytes"] = f"plain write, {compression} bytes"
+        same_bytes[f"McapRecorder {compression} (thread)"] = f"plain write, {compression} bytes"
     if args.rerun:
         cases["RerunLogger (images)"] = lambda p: run_rerun_logger(p, frames, args.pairs, args.fsync)
     results: dict[str, list[dict[str, float]]] = {name: [] for name in cases}
@@ -163,24 +199,36 @@ def main(argv: list[str] | None = None) -> None:
                 path.unlink()
     print(
         f"{'case':30s} {'pairs/s':>9s} {'(min..max)':>15s} {'CPU ms/pair':>12s} {'in hook ms/pair':>16s} "
-        f"{'CPU / plain':>12s} {'MB':>7s} {'size / plain':>13s}"
+        f"{'CPU / plain':>12s} {'CPU / same':>11s} {'wall / same':>12s} {'MB':>7s} {'size / plain':>13s}"
     )
-    plain_cpu = statistics.median(r["cpu_ms_per_pair"] for r in results["plain file write"])
+
+    def median(name: str, key: str) -> float:
+        return statistics.median(r[key] for r in results[name])
+
+    plain_cpu = median("plain file write", "cpu_ms_per_pair")
     plain_mb = results["plain file write"][0]["mb"]
     for name, runs in results.items():
         rates = [r["pairs_per_s"] for r in runs]
-        cpu = statistics.median(r["cpu_ms_per_pair"] for r in runs)
-        hook = statistics.median(r["hook_ms_per_pair"] for r in runs)
+        cpu = median(name, "cpu_ms_per_pair")
+        hook = median(name, "hook_ms_per_pair")
+        same = same_bytes[name]
+        cpu_same = cpu / median(same, "cpu_ms_per_pair")
+        wall_same = median(same, "pairs_per_s") / statistics.median(rates)
         mb = runs[0]["mb"]
         span = f"({min(rates):.0f}..{max(rates):.0f})"
         hook_text = "-" if np.isnan(hook) else f"{hook:.2f}"
         print(
             f"{name:30s} {statistics.median(rates):9.1f} {span:>15s} {cpu:12.2f} {hook_text:>16s} "
-            f"{cpu / plain_cpu:12.2f} {mb:7.0f} {mb / plain_mb:13.3f}"
+            f"{cpu / plain_cpu:12.2f} {cpu_same:11.2f} {wall_same:12.2f} {mb:7.0f} {mb / plain_mb:13.3f}"
         )
-        if name != "plain file write":
+        if name.startswith("McapRecorder"):
             key = name.removeprefix("McapRecorder ").replace("(", "").replace(")", "").replace(" ", "_")
             record(f"recording.{key}_cpu_vs_plain", cpu / plain_cpu, "lower")
+            record(f"recording.{key}_wall_vs_same_bytes", wall_same, "lower")
+            if same != "plain file write":
+                record(f"recording.{key}_cpu_vs_same_bytes", cpu_same, "lower")
+    for compression in args.compressions:
+        print(f"{compression} compression alone: {compression_ms_per_image(frames, compression):.1f} ms CPU per image")
 
 
 if __name__ == "__main__":

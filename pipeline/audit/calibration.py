@@ -2,7 +2,7 @@
 
 A calibration is audited like a measurement session (:mod:`crossfield.audit.session`):
 
-* **integrity**: the recording's SHA-256 chain (:func:`crossfield.audit.chain.verify`),
+* **integrity**: the recording's hash chain (:func:`crossfield.audit.chain.verify`),
   the same chain a session has; a changed, removed or reordered image,
   detection, result, metadata record or attachment is named;
 * **provenance**: the recorded board, solver settings, bit depth and view

@@ -15,7 +15,15 @@ from pathlib import Path
 from typing import Any
 
 from crossfield.recording.codec import utc_text
-from crossfield.recording.integrity import CHAIN_FORMATS, INTEGRITY_FORMAT, INTEGRITY_FORMAT_1, Entry, link
+from crossfield.recording.integrity import (
+    CHAIN_FORMATS,
+    FORMATS,
+    HEADER_LABEL,
+    INTEGRITY_FORMAT,
+    INTEGRITY_FORMAT_1,
+    Entry,
+    link,
+)
 from crossfield.recording.layout import TOPIC_INTEGRITY
 from crossfield.recording.scan import FileEntry, Problem, entry_key, name_message, record_doc, scan_file
 
@@ -161,14 +169,14 @@ def _merge_moves(problems: list[Problem]) -> list[Problem]:
     return out
 
 
-def detect_format(records: list[tuple[int, FileEntry]]) -> str:
+def detect_format(records: list[tuple[int, FileEntry]], default: str = INTEGRITY_FORMAT) -> str:
     """The chain format of the first ``/integrity`` record that names a known one
-    (:data:`crossfield.recording.integrity.CHAIN_FORMATS`); the current format if none does."""
+    (:data:`crossfield.recording.integrity.CHAIN_FORMATS`); ``default`` if none does."""
     for _, fe in records:
         for chain_format in CHAIN_FORMATS:
             if record_doc(fe, chain_format) is not None:
                 return chain_format
-    return INTEGRITY_FORMAT
+    return default
 
 
 def chained(
@@ -191,20 +199,33 @@ def verify(path: str | Path) -> IntegrityResult:
     record is a :class:`Problem`, and the check goes on with the rest.
     """
     path = Path(path)
-    scan = scan_file(path)
+    scan = scan_file(path)  # digests in the hash of the format the MCAP header names
+    chain_format = detect_format(scan.records, scan.chain_format)
+    header_mismatch = None
+    if FORMATS[chain_format].hash is not FORMATS[scan.chain_format].hash:
+        # The header names another format than the records (an edited or damaged
+        # header): the records decide, the file is read again with their hash.
+        header_mismatch = Problem(
+            "changed",
+            f"changed: the MCAP header names chain format {scan.chain_format}, its {TOPIC_INTEGRITY} "
+            f"records are in {chain_format}",
+            HEADER_LABEL,
+            0,
+            0,
+        )
+        scan = scan_file(path, chain_format)
     result = IntegrityResult(
         str(path), messages=scan.messages, entries=len(scan.entries), chunks=scan.chunks, complete=scan.complete
     )
-    problems = list(scan.problems)
+    problems = list(scan.problems) + ([header_mismatch] if header_mismatch else [])
     result.records = len(scan.records)
-    chain_format = detect_format(scan.records)
     genesis, listing, covers = CHAIN_FORMATS[chain_format]
     result.chain_format, result.covers = chain_format, covers
     entries_chained, records = chained(scan.entries, scan.records, chain_format)
     head = genesis
     heads = [genesis]
     for m in entries_chained:
-        head = link(head, m.label, m.log_time_ns, m.sequence, bytes.fromhex(m.digest))
+        head = link(head, m.label, m.log_time_ns, m.sequence, bytes.fromhex(m.digest), chain_format)
         heads.append(head)
     result.chain_sha256 = head.hex()
     if not scan.records:
@@ -212,7 +233,7 @@ def verify(path: str | Path) -> IntegrityResult:
         problems.append(
             Problem(
                 "missing",
-                f"no {TOPIC_INTEGRITY} records in the {INTEGRITY_FORMAT} format: the file was recorded "
+                f"no {TOPIC_INTEGRITY} records in a known chain format: the file was recorded "
                 f"without this integrity chain",
             )
         )
@@ -278,7 +299,7 @@ def verify(path: str | Path) -> IntegrityResult:
             continue
         # The record's own listing must reproduce its chain head (authenticates the listing).
         for label, sequence, log_time, digest in entries:
-            listed_head = link(listed_head, label, log_time, sequence, bytes.fromhex(digest))
+            listed_head = link(listed_head, label, log_time, sequence, bytes.fromhex(digest), chain_format)
         listed_count += len(entries)
         if listed_head.hex() != doc.get("chain_sha256") or listed_count != doc.get("count"):
             problems.append(

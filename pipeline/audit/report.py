@@ -205,7 +205,7 @@ def parse_head(text: str) -> str:
     """A chain head given by the user (``--expect-head``): 64 hex digits."""
     head = str(text).strip().lower()
     if not seal.is_digest(head):
-        raise ConfigError(f"--expect-head: {text!r} is not a SHA-256 chain head (64 hex digits)")
+        raise ConfigError(f"--expect-head: {text!r} is not a chain head (64 hex digits)")
     return head
 
 

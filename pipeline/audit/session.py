@@ -2,7 +2,7 @@
 
 Three checks, each with its findings named:
 
-* **integrity**: the SHA-256 chain written while recording
+* **integrity**: the hash chain (BLAKE3, format 3) written while recording
   (:mod:`crossfield.recording.integrity`) is recomputed over every message, metadata
   record and attachment in file order; a changed, removed, added or
   reordered message is named by topic, sequence and time, a chunk whose

@@ -3,7 +3,7 @@
 The checks of a session audit (:mod:`crossfield.audit.session`), for a
 ``crossfield verify --record`` file (:mod:`crossfield.verification.procedure`):
 
-* **integrity**: the SHA-256 chain over every record (the session's chain);
+* **integrity**: the hash chain over every record (the session's chain);
 * **provenance**: the ``crossfield.verification.procedure`` record can be read, the
   attached calibration file's SHA-256 is the recorded one, package versions
   recorded against those installed (notes);

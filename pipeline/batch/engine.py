@@ -140,9 +140,14 @@ def client(
     # 4 MB image array is a fresh mmap whose pages fault in again: 2.6 -> 8.6 ms per
     # decoded-and-thresholded image (measured), the in-worker slowdown of issue 25. Unset
     # for the embedded cluster (None unsets a pre-spawn variable, distributed.nanny).
+    # Each worker process starts a session of its own (setsid), so that Linux's autogroup
+    # scheduler gives it its own CPU share instead of one share for the client and all
+    # its workers: two workers in the client's group ran at 0.90-0.95x the sequential
+    # loop on this loaded machine (issue 25 item 5; crossfield.batch.worker_session).
     with dask.config.set({
         "distributed.worker.profile.enabled": False,
         "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
+        "distributed.worker.preload": ["crossfield.batch.worker_session"],
     }):
         cluster = LocalCluster(
             n_workers=n,

@@ -349,7 +349,7 @@ COMMANDS: tuple[Command, ...] = (
         "and the centroid statistics of two recorded sessions, with every difference. "
         "Exit status 0 if they agree in every compared value, 1 if not."),
     Command("audit", add_audit_arguments, cmd_audit, help="check a recorded session: integrity chain, provenance, reproduction by replay",
-            description="Check a recorded session: (1) integrity: the SHA-256 chain over every message; "
+            description="Check a recorded session: (1) integrity: the hash chain over every record; "
         "(2) provenance: config, plugins and versions, packages, machine, plan and calibration hashes; "
         "(3) reproduction: a replay with the recorded plugins gives the recorded results. "
         "Exit status 0 if all pass, 1 if not."),

@@ -19,7 +19,9 @@ from typing import Any
 from crossfield.progress import bar
 from crossfield.recording.codec import utc_text
 from crossfield.recording.integrity import (
+    FORMATS,
     INTEGRITY_FORMAT,
+    INTEGRITY_FORMAT_2,
     Entry,
     attachment_entry,
     channel_entry,
@@ -108,15 +110,25 @@ class FileScan:
     problems: list[Problem] = field(default_factory=list)
     complete: bool = False
     ends: str = ""
+    #: the chain format whose hash the digests were computed with
+    chain_format: str = INTEGRITY_FORMAT_2
 
     @property
     def messages(self) -> int:
         return sum(1 for e in self.entries if e.is_message)
 
 
-def scan_file(path: Path) -> FileScan:
+def library_chain_format(library: str) -> str:
+    """The chain format a writer's header names (``crossfield/... crossfield-integrity/3 ...``,
+    since format 3); format 2 when it names none (its hash is also format 1's)."""
+    return next((word for word in library.split() if word in FORMATS), INTEGRITY_FORMAT_2)
+
+
+def scan_file(path: Path, chain_format: str | None = None) -> FileScan:
     """Read every record in file order, checking chunk CRCs ourselves so that a
-    bad chunk is reported and its records still compared."""
+    bad chunk is reported and its records still compared. The digests are those of
+    ``chain_format`` (by default the one the MCAP header names,
+    :func:`library_chain_format`; ``scan.chain_format`` says which)."""
     from mcap.exceptions import McapError
     from mcap.records import (
         Attachment,
@@ -132,17 +144,20 @@ def scan_file(path: Path) -> FileScan:
     from mcap.stream_reader import StreamReader, breakup_chunk, get_chunk_data_stream
 
     scan = FileScan()
+    if chain_format is not None:
+        scan.chain_format = chain_format
     channels: dict[int, str] = {}
     in_summary = False
 
     def take(record: Any, offset: int) -> None:
+        fmt = scan.chain_format
         if in_summary:
             if isinstance(record, Schema):
-                e = schema_entry(record.id, record.name, record.encoding, record.data)
+                e = schema_entry(record.id, record.name, record.encoding, record.data, fmt)
                 scan.summary_entries[(e[0], e[1])] = e[3]
             elif isinstance(record, Channel):
                 e = channel_entry(
-                    record.id, record.topic, record.message_encoding, record.schema_id, record.metadata
+                    record.id, record.topic, record.message_encoding, record.schema_id, record.metadata, fmt
                 )
                 scan.summary_entries[(e[0], e[1])] = e[3]
             elif isinstance(record, Footer):
@@ -150,19 +165,21 @@ def scan_file(path: Path) -> FileScan:
             return
         entry: Entry | None = None
         if isinstance(record, Header):
-            entry = header_entry(record.profile, record.library)
+            if chain_format is None:
+                fmt = scan.chain_format = library_chain_format(record.library)
+            entry = header_entry(record.profile, record.library, fmt)
         elif isinstance(record, Schema):
-            entry = schema_entry(record.id, record.name, record.encoding, record.data)
+            entry = schema_entry(record.id, record.name, record.encoding, record.data, fmt)
         elif isinstance(record, Channel):
             channels[record.id] = record.topic
             entry = channel_entry(
-                record.id, record.topic, record.message_encoding, record.schema_id, record.metadata
+                record.id, record.topic, record.message_encoding, record.schema_id, record.metadata, fmt
             )
         elif isinstance(record, Metadata):
-            entry = metadata_entry(record.name, record.metadata)
+            entry = metadata_entry(record.name, record.metadata, fmt)
         elif isinstance(record, Attachment):
             entry = attachment_entry(
-                record.name, record.media_type, record.log_time, record.create_time, record.data
+                record.name, record.media_type, record.log_time, record.create_time, record.data, fmt
             )
         elif isinstance(record, Message):
             topic = channels.get(record.channel_id)
@@ -184,7 +201,7 @@ def scan_file(path: Path) -> FileScan:
                 fe = FileEntry(topic, record.sequence, record.log_time, digest, bytes(record.data), offset)
                 scan.records.append((len(scan.entries), fe))
                 return
-            entry = message_entry(topic, record.sequence, record.log_time, record.data)
+            entry = message_entry(topic, record.sequence, record.log_time, record.data, fmt)
         if entry is not None:
             scan.entries.append(FileEntry(*entry, None, offset))
 

@@ -78,7 +78,8 @@ from crossfield.recording.codec import (
     utc_text,
 )
 from crossfield.recording.foxglove_overlay import FoxgloveOverlay
-from crossfield.recording.integrity import IntegrityChain, file_sha256
+from crossfield.recording.hashed_stream import HashedStream
+from crossfield.recording.integrity import INTEGRITY_FORMAT, IntegrityChain
 from crossfield.report.document import document_of
 from crossfield.types import CAMERAS, CameraPoints
 
@@ -91,6 +92,10 @@ from crossfield.types import CAMERAS, CameraPoints
 COMPRESSIONS = {"none": CompressionType.NONE, "lz4": CompressionType.LZ4, "zstd": CompressionType.ZSTD}
 #: The compression of a recording unless told otherwise.
 DEFAULT_COMPRESSION = "lz4"
+
+#: The integrity chain format written (integrity.py; the tests set an older one to make
+#: recordings in it and check that they are still audited).
+CHAIN_FORMAT = INTEGRITY_FORMAT
 
 #: Each image (4 MB for 1626 x 1236 mono16) is larger than this, so it closes
 #: its chunk: chunks stay small (crash safety) and the writer never re-grows a
@@ -233,7 +238,7 @@ class _McapFile:
         self.flush_interval_s = flush_interval_s
         self.last_flush = time.monotonic()
         # Every record is chained in the order it lands in the file (integrity.py).
-        self.chain = IntegrityChain()
+        self.chain = IntegrityChain(CHAIN_FORMAT)
         self.chain.add_header(profile, library)
 
     def _channel_id(self, spec: ChannelSpec) -> int:
@@ -341,12 +346,18 @@ class McapFileSink:
         if compression not in COMPRESSIONS:
             raise ValueError(f"compression must be one of {', '.join(COMPRESSIONS)}, got {compression!r}")
         try:
-            self._stream = open(self.path, "wb" if overwrite else "xb")  # noqa: SIM115 - held until close()
+            raw = open(self.path, "wb" if overwrite else "xb")  # noqa: SIM115 - held until close()
         except FileExistsError:
             raise RecordingError(f"{self.path}: a recording already exists there (not overwritten)") from None
         except OSError as exc:
             raise RecordingError(f"{self.path}: cannot create the recording: {exc.strerror}") from None
-        library = f"crossfield/{crossfield_version()} {L.RECORDING_FORMAT} mcap-python/{metadata.version('mcap')}"
+        # The file's SHA-256 (the seal) is computed on a thread while the file is written.
+        self._stream = HashedStream(raw)
+        # The header names the chain format (its hash: crossfield.recording.scan.library_chain_format).
+        library = (
+            f"crossfield/{crossfield_version()} {L.RECORDING_FORMAT} {CHAIN_FORMAT} "
+            f"mcap-python/{metadata.version('mcap')}"
+        )
         self._file = _McapFile(
             self._stream, chunk_size, flush_interval_s, library, COMPRESSIONS[compression], profile
         )
@@ -431,7 +442,7 @@ class McapFileSink:
     def _seal(self, head: str) -> None:
         """The chain head and the file's SHA-256 leave the file: the sidecar (signed
         with the station key when there is one)."""
-        digest = file_sha256(self.path)
+        digest = self._stream.hexdigest()  # of every byte written (hashed_stream.py)
         signature = None
         if self._signing_key is not None:
             signature = seal.sign(self._signing_key, seal.seal_statement(head, digest))

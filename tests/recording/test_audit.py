@@ -13,6 +13,7 @@ import sys
 import time
 from pathlib import Path
 
+import blake3
 import pytest
 from session_tools import Msg, edit_json, record_session, rewrite_mcap, sigint_default
 
@@ -21,7 +22,8 @@ from crossfield.audit.chain import verify
 from crossfield.chain.registry import make_plugin_manager
 from crossfield.cli import main
 from crossfield.config import DEFAULT_PLUGINS
-from crossfield.recording.integrity import GENESIS, INTEGRITY_FORMAT
+from crossfield.recording import writer as writer_module
+from crossfield.recording.integrity import GENESIS, GENESIS_2, INTEGRITY_FORMAT, INTEGRITY_FORMAT_2
 from crossfield.recording.reader import open_recording
 from crossfield.replay import replay_session
 
@@ -33,6 +35,16 @@ def recorded(tmp_path_factory):
     out = tmp_path_factory.mktemp("audit")
     # uncompressed: the damage tests find and edit message bytes in the file itself
     record_session(out, "orig", session={"compression": "none"})
+    return out / "orig" / "session.mcap"
+
+
+@pytest.fixture(scope="module")
+def recorded_format2(tmp_path_factory):
+    """A session recorded with chain format 2 (SHA-256), as before issue 25."""
+    out = tmp_path_factory.mktemp("audit2")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(writer_module, "CHAIN_FORMAT", INTEGRITY_FORMAT_2)
+        record_session(out, "orig", session={"compression": "none"})
     return out / "orig" / "session.mcap"
 
 
@@ -62,24 +74,35 @@ def test_untouched_recording_passes(recorded):
     assert "Audit: PASS" in format_report(report)
 
 
-def canonical(fields) -> bytes:
-    text = json.dumps(fields, ensure_ascii=False, separators=(",", ":"), sort_keys=True)
-    return hashlib.sha256(text.encode()).digest()
+#: chain format -> (its hash H, the fixture recorded in it, its genesis h_0 as the code has it)
+FORMULAS = {
+    "crossfield-integrity/3": (blake3.blake3, "recorded", GENESIS),
+    "crossfield-integrity/2": (hashlib.sha256, "recorded_format2", GENESIS_2),
+}
 
 
-def test_chain_follows_the_documented_formula(recorded):
+@pytest.mark.parametrize("chain_format", sorted(FORMULAS))
+def test_chain_follows_the_documented_formula(chain_format, request):
     """Recompute h_k by hand (docs/recording.md) over every record of the data
-    section in file order, read with the mcap library's own stream reader."""
+    section in file order, read with the mcap library's own stream reader: format 3
+    (BLAKE3, written now) and format 2 (SHA-256, still audited)."""
     from mcap.records import Attachment, Channel, DataEnd, Header, Message, Metadata, Schema
     from mcap.stream_reader import StreamReader
 
-    h = hashlib.sha256(INTEGRITY_FORMAT.encode()).digest()
-    assert h == GENESIS and INTEGRITY_FORMAT == "crossfield-integrity/2"
+    H, fixture, genesis = FORMULAS[chain_format]
+    recorded = request.getfixturevalue(fixture)
+    assert INTEGRITY_FORMAT == "crossfield-integrity/3"
+    h = H(chain_format.encode()).digest()
+    assert h == genesis
+
+    def canonical(fields) -> bytes:
+        text = json.dumps(fields, ensure_ascii=False, separators=(",", ":"), sort_keys=True)
+        return H(text.encode()).digest()
 
     def fold(label: str, log_time: int, sequence: int, digest: bytes) -> None:
         nonlocal h
         t = label.encode()
-        h = hashlib.sha256(
+        h = H(
             h + len(t).to_bytes(4, "little") + t + log_time.to_bytes(8, "little") + sequence.to_bytes(4, "little")
             + digest
         ).digest()
@@ -93,9 +116,10 @@ def test_chain_follows_the_documented_formula(recorded):
                 break
             kinds_seen.add(type(r).__name__)
             if isinstance(r, Header):
+                assert chain_format in r.library.split()  # the header names the chain format
                 fold("#header", 0, 0, canonical(["header", r.profile, r.library]))
             elif isinstance(r, Schema):
-                fold(f"#schema {r.name}", 0, r.id, canonical(["schema", r.id, r.name, r.encoding, hashlib.sha256(r.data).hexdigest()]))
+                fold(f"#schema {r.name}", 0, r.id, canonical(["schema", r.id, r.name, r.encoding, H(r.data).hexdigest()]))
             elif isinstance(r, Channel):
                 topics[r.id] = r.topic
                 fold(f"#channel {r.topic}", 0, r.id, canonical(["channel", r.id, r.topic, r.message_encoding, r.schema_id, dict(r.metadata)]))
@@ -104,19 +128,59 @@ def test_chain_follows_the_documented_formula(recorded):
             elif isinstance(r, Attachment):
                 fold(
                     f"#attachment {r.name}", r.log_time, 0,
-                    canonical(["attachment", r.name, r.media_type, r.log_time, r.create_time, hashlib.sha256(r.data).hexdigest()]),
+                    canonical(["attachment", r.name, r.media_type, r.log_time, r.create_time, H(r.data).hexdigest()]),
                 )
             elif isinstance(r, Message):
                 if topics[r.channel_id] == "/integrity":
                     records.append((h.hex(), json.loads(r.data)))
                     continue
-                fold(topics[r.channel_id], r.log_time, r.sequence, hashlib.sha256(r.data).digest())
+                fold(topics[r.channel_id], r.log_time, r.sequence, H(r.data).digest())
     assert {"Header", "Schema", "Channel", "Metadata", "Attachment", "Message"} <= kinds_seen
     assert len(records) >= 5 and records[-1][1]["final"] and not any(r["final"] for _, r in records[:-1])
     for head, doc in records:
-        assert doc["chain_sha256"] == head
+        assert doc["chain_sha256"] == head and doc["format"] == chain_format
     assert [doc["index"] for _, doc in records] == list(range(len(records)))
-    assert verify(recorded).chain_sha256 == h.hex()
+    result = verify(recorded)
+    assert result.passed and result.chain_format == chain_format and result.covers == "every record"
+    assert result.chain_sha256 == h.hex()
+
+
+def flip_image_bit(src: Path, dst: Path, sequence: int = 1):
+    """Copy ``src`` with one bit of one pixel of ``/camera/upper/image`` ``sequence`` flipped."""
+    target = message(src, "/camera/upper/image", sequence)
+    blob = bytearray(src.read_bytes())
+    probe = target.data[-300_000:-299_900]
+    at = blob.find(probe)
+    assert at > 0 and blob.find(probe, at + 1) < 0
+    blob[at + 7] ^= 0x01
+    dst.write_bytes(bytes(blob))
+    return target
+
+
+def test_a_chain_format_2_recording_is_still_audited_and_a_flipped_bit_named(recorded_format2, tmp_path):
+    """Recordings made before format 3 (SHA-256) audit as before: intact passes, one
+    flipped pixel bit is the one changed message."""
+    result = verify(recorded_format2)
+    assert result.passed and result.chain_format == INTEGRITY_FORMAT_2 and result.problems == []
+    target = flip_image_bit(recorded_format2, tmp_path / "flipped2.mcap")
+    damaged = verify(tmp_path / "flipped2.mcap")
+    changed = [p for p in damaged.problems if p.kind == "changed"]
+    assert [(p.topic, p.sequence, p.log_time_ns) for p in changed] == [("/camera/upper/image", 1, target.log_time_ns)]
+    assert kinds(damaged) == ["changed", "crc"]
+
+
+def test_a_header_that_names_another_chain_format_is_named(recorded, tmp_path):
+    """The header names the chain format (so the scan hashes with it); a header edited
+    to name format 2 is a finding, and the records' own format still checks the rest."""
+    blob = recorded.read_bytes()
+    assert blob.count(b"crossfield-integrity/3 mcap-python") == 1
+    edited = tmp_path / "header.mcap"
+    edited.write_bytes(blob.replace(b"crossfield-integrity/3 mcap-python", b"crossfield-integrity/2 mcap-python"))
+    result = verify(edited)
+    assert result.chain_format == "crossfield-integrity/3" and not result.passed
+    changed = [p for p in result.problems if p.kind == "changed"]
+    assert {p.topic for p in changed} == {"#header"} and len(changed) == 2
+    assert any("names chain format crossfield-integrity/2" in p.detail for p in changed)
 
 
 def test_flipped_byte_in_an_image_is_named(recorded, tmp_path):
@@ -671,7 +735,7 @@ def as_chain_format_1(src: Path, dst: Path, tamper: tuple[str, int] | None = Non
         for m in msgs:
             if m.topic != "/integrity":
                 digest = hashlib.sha256(m.data).digest()
-                head = link(head, m.topic, m.log_time, m.sequence, digest)
+                head = link(head, m.topic, m.log_time, m.sequence, digest, INTEGRITY_FORMAT_1)
                 count += 1
                 listed.append([m.topic, m.sequence, m.log_time, digest.hex()])
                 data = m.data
@@ -691,9 +755,11 @@ def as_chain_format_1(src: Path, dst: Path, tamper: tuple[str, int] | None = Non
     rewrite_mcap(src, dst, edit)
 
 
-def test_a_chain_format_1_recording_is_checked_for_what_it_covers(recorded, tmp_path):
+def test_a_chain_format_1_recording_is_checked_for_what_it_covers(recorded_format2, tmp_path):
     """Issue 26 item 4: not "missing chain": the format-1 chain covers messages only,
-    says so, and an edited message in it is still named."""
+    says so, and an edited message in it is still named. (Made from a format-2
+    recording: a format-1 writer's header named no format 3.)"""
+    recorded = recorded_format2
     old = tmp_path / "format1.mcap"
     as_chain_format_1(recorded, old)
     result = verify(old)

@@ -1,0 +1,29 @@
+"""The embedded cluster's workers each run in a session of their own (pipeline/batch/worker_session.py)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from crossfield.batch import engine
+
+
+def _session_and_group() -> tuple[int, str | None]:
+    autogroup = Path("/proc/self/autogroup")
+    return os.getsid(0), autogroup.read_text().split()[0] if autogroup.exists() else None
+
+
+def test_embedded_workers_lead_their_own_sessions_and_autogroups():
+    """Each worker is the leader of its own session (so Linux's autogroup scheduler gives it
+    its own CPU share), not in the client's."""
+    client_session, client_group = _session_and_group()
+    with engine.client(None, 2, dashboard_address=":0") as c:
+        workers = c.run(_session_and_group)
+        pids = c.run(os.getpid)
+    assert len(workers) == 2
+    sessions = {address: session for address, (session, _) in workers.items()}
+    assert sessions == pids  # each worker leads the session it is in: sid == its pid
+    assert client_session not in sessions.values()
+    groups = [group for _, group in workers.values()]
+    if client_group is not None:  # a kernel with autogroup scheduling
+        assert len(set(groups)) == 2 and client_group not in groups
