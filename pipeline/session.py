@@ -65,6 +65,10 @@ class SessionInfo:
     ground_truth: GroundTruth | None = None
     start_time_ns: int = 0
     parent: Mapping[str, Any] | None = None  # replay: the session this one re-runs
+    #: The calibration files as read at the session's start (a replay: the recorded
+    #: copies), :class:`crossfield.recording.calibration_files.CalibrationFile`; recorded
+    #: whole, and what the budget's calibration term reads.
+    calibration_files: tuple[Any, ...] = ()
 
 
 @dataclass(frozen=True)

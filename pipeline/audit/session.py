@@ -55,6 +55,7 @@ from crossfield.chain.registry import STAGES, implementations
 from crossfield.errors import CrossfieldError, RecordingError
 from crossfield.recording import layout as L
 from crossfield.recording import seal
+from crossfield.recording.calibration_files import copy_problems, disk_notes, no_copy_note, recorded_calibration_files
 from crossfield.recording.codec import decode_log
 from crossfield.recording.facts import load_session_facts, require_session
 from crossfield.recording.reader import open_recording
@@ -92,6 +93,7 @@ def provenance(path: Path, pm: pluggy.PluginManager | None) -> dict[str, Any]:
         attachments, L.ATTACHMENT_CALIBRATION, session.get("calibration_sha256"), problems, notes
     )
     calibration["source"] = session.get("calibration_source")
+    calibration["files"] = _calibration_files(path, session, attachments, problems, notes)
 
     plugins = docs.get(L.META_PLUGINS, {})
     installed_plugins: dict[str, Any] = {}
@@ -131,6 +133,27 @@ def provenance(path: Path, pm: pluggy.PluginManager | None) -> dict[str, Any]:
         "attachments": sorted(attachments),
         "writer": rec.library,
     }
+
+
+def _calibration_files(
+    path: Path, session: dict[str, Any], attachments: dict[str, Any], problems: list[str], notes: list[str]
+) -> list[dict[str, Any]]:
+    """The recorded copies of the calibration file(s): each against its recorded SHA-256
+    (a mismatch or a missing copy is a problem), and against the file on disk at the
+    recorded path (differs or gone: a note, not a failure; the replay uses the copy)."""
+    try:
+        files = recorded_calibration_files(session, attachments, str(path))
+    except RecordingError as exc:
+        problems.append(str(exc))
+        return []
+    if files is None:
+        note = no_copy_note(str(session.get("calibration_source") or ""))
+        if note is not None:
+            notes.append(note)
+        return []
+    problems.extend(copy_problems(session, files))
+    notes.extend(disk_notes(files))
+    return [f.entry() for f in files]
 
 
 # --------------------------------------------------------------------------

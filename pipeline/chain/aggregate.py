@@ -28,9 +28,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -373,6 +374,10 @@ class SessionAccumulator:
 
     ``add(result)`` after every frame (in frame order), then :meth:`result`
     for the :class:`SessionAggregate`; :attr:`rows` are the kept slim results.
+    calibration_files: the calibration files' contents the budget's calibration
+    term reads (:class:`crossfield.recording.calibration_files.CalibrationFile`, as
+    the session read them at its start; a replay's are the recorded copies); None:
+    the files ``calibration_source`` names, read now.
     """
 
     def __init__(
@@ -383,6 +388,7 @@ class SessionAccumulator:
         errors_kept: int = FRAME_ERRORS_KEPT,
         calibration_source: str = "",
         reference_source: str = "",
+        calibration_files: Sequence[Any] | None = None,
     ) -> None:
         if rows_kept < 0 or errors_kept < 0:
             raise ValueError(f"rows_kept and errors_kept must be >= 0, got {rows_kept}, {errors_kept}")
@@ -402,8 +408,10 @@ class SessionAccumulator:
         self._mc_frames: list[FrameResult] = []
         self._frames_measured = 0
         stated = plan.uncertainty.calibration_scale_u
+        # the calibration files as the session read them (a replay: the recorded copies);
+        # None: those calibration_source names, read now
         self._calibration = calibration_uncertainty(
-            calibration_source, DEFAULT_SCALE_U if stated is None else stated
+            calibration_source, DEFAULT_SCALE_U if stated is None else stated, calibration_files
         )
 
     @property

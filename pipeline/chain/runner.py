@@ -39,6 +39,7 @@ from crossfield.chain.weights import fit_registration
 from crossfield.config import Config
 from crossfield.errors import ConfigError, CrossfieldError, PluginError, RecordingError
 from crossfield.plan import MeasurementPlan, load_plan
+from crossfield.recording.calibration_files import session_calibration_files
 from crossfield.recording.recorder import McapRecorder, SessionRecorder
 from crossfield.recording.writer import DEFAULT_COMPRESSION
 from crossfield.report.document import build_report, with_seal
@@ -372,6 +373,7 @@ def session_info(
         ground_truth=acquisition.ground_truth,
         start_time_ns=start_time_ns,
         parent=parent,
+        calibration_files=session_calibration_files(acquisition),
     )
 
 
@@ -571,6 +573,7 @@ def run_pipeline(
     accumulator = SessionAccumulator(
         info.plan,
         calibration_source=info.calibration.source,
+        calibration_files=info.calibration_files,
         reference_source=describe_reference(
             stages.implementations["reference"].name,
             (p.sigma_mm for p in reference.points),

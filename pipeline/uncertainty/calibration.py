@@ -11,14 +11,19 @@ controls cannot absorb a scale, so a camera point p moves by ``s (p - g_bar)``
 u(|T|) from the calibration file's ``std_T`` (mm, per component) and u(f)
 from ``std_M1`` / ``std_M2`` (px, standard deviations of fx fy cx cy: fx
 first), the keys ``crossfield calibrate`` writes (``T_std``, ``M1_std``,
-``M2_std`` are read as well). Without
-them the stated default :data:`DEFAULT_SCALE_U` is used.
+``M2_std`` are read as well; the reader is
+:func:`crossfield.calibration.file.read_uncertainty_keys`). Without
+them the stated default :data:`DEFAULT_SCALE_U` is used. The file's content is
+the one the session read at its start, which a replay and an audit take from
+the recording's copy (:mod:`crossfield.recording.calibration_files`), never
+from the recorded path.
 """
 
 from __future__ import annotations
 
 import math
-from pathlib import Path
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -40,38 +45,21 @@ class CalibrationUncertainty:
         return f"CalibrationUncertainty(scale_u={self.scale_u!r}, source={self.source!r})"
 
 
-def _read_std(path: Path) -> dict[str, np.ndarray]:
-    import cv2
+def calibration_uncertainty(
+    source: str = "", default: float = DEFAULT_SCALE_U, files: Sequence[Any] | None = None
+) -> CalibrationUncertainty:
+    """The relative scale uncertainty of the calibration in ``files`` (the calibration
+    files' contents, :class:`crossfield.recording.calibration_files.CalibrationFile`:
+    read at a live session's start, or the recorded copies in a replay; the first file
+    holding a key wins), or ``default`` when they state no standard deviations. Without
+    ``files`` the files ``source`` names (paths joined by ``", "``) are read now."""
+    from crossfield.calibration.file import read_uncertainty_keys  # the one reader of the std_* keys
+    from crossfield.recording.calibration_files import read_calibration_files
 
-    found: dict[str, np.ndarray] = {}
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    try:
-        if not fs.isOpened():
-            return found
-        # ``std_T`` etc. as ``crossfield calibrate`` writes them (crossfield.calibration.file);
-        # ``T_std`` etc. accepted as well
-        for key, names in (("T_std", ("std_T", "T_std")), ("M1_std", ("std_M1", "M1_std")),
-                           ("M2_std", ("std_M2", "M2_std")), ("T", ("T",)), ("M1", ("M1",)), ("M2", ("M2",))):
-            for name in names:
-                node = fs.getNode(name)
-                if not node.empty():
-                    value = node.mat()
-                    if value is not None:
-                        found.setdefault(key, np.asarray(value, dtype=np.float64))
-    finally:
-        fs.release()
-    return found
-
-
-def calibration_uncertainty(source: str, default: float = DEFAULT_SCALE_U) -> CalibrationUncertainty:
-    """The relative scale uncertainty of the calibration in file(s) ``source``
-    (paths separated by ``", "``), or ``default`` when they state no standard deviations."""
     keys: dict[str, np.ndarray] = {}
-    for part in str(source or "").split(", "):
-        path = Path(part)
-        if part and path.suffix.lower() in (".yml", ".yaml", ".xml", ".json") and path.is_file():
-            for key, value in _read_std(path).items():
-                keys.setdefault(key, value)
+    for f in read_calibration_files(source) if files is None else files:
+        for key, value in read_uncertainty_keys(f.text).items():
+            keys.setdefault(key, value)
     terms = []
     if "T_std" in keys and "T" in keys:
         T = keys["T"].reshape(-1)
