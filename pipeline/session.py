@@ -67,8 +67,9 @@ class SessionInfo:
     parent: Mapping[str, Any] | None = None  # replay: the session this one re-runs
     #: The calibration files as read at the session's start (a replay: the recorded
     #: copies), :class:`crossfield.recording.calibration_files.CalibrationFile`; recorded
-    #: whole, and what the budget's calibration term reads.
-    calibration_files: tuple[Any, ...] = ()
+    #: whole, and what the budget's calibration term reads. None (a recording made
+    #: before the copies were kept): the files the calibration's source names, read then.
+    calibration_files: tuple[Any, ...] | None = None
 
 
 @dataclass(frozen=True)

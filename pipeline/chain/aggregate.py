@@ -475,6 +475,27 @@ class SessionAccumulator:
         )
 
 
+def session_accumulator(info: SessionInfo, reference: ReferenceData) -> SessionAccumulator:
+    """The :class:`SessionAccumulator` of a session, made one way for a live run or
+    replay (:mod:`crossfield.chain.runner`) and for the viewer of a recording
+    (:mod:`crossfield.viz.rerun_mcap`): the plan, the calibration files the budget's
+    calibration term reads (``info.calibration_files``; none recorded: those the
+    calibration's source names), and the reference source as the consistency warning
+    names it (the reference plugin's name, the sigmas its points state, its options)."""
+    from crossfield.uncertainty.consistency import describe_reference
+
+    return SessionAccumulator(
+        info.plan,
+        calibration_source=info.calibration.source,
+        calibration_files=info.calibration_files,
+        reference_source=describe_reference(
+            str((info.plugins.get("reference") or {}).get("name", "")),
+            (p.sigma_mm for p in reference.points),
+            info.config.stages["reference"].options,
+        ),
+    )
+
+
 def aggregate_frames(frames: Iterable[FrameResult], plan: MeasurementPlan) -> SessionAggregate:
     """The :class:`SessionAggregate` of ``frames`` (every frame given, none left out:
     all rows and errors are kept)."""

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 import pluggy
 
-from crossfield.chain.aggregate import SessionAccumulator, session_summary
+from crossfield.chain.aggregate import SessionAccumulator, session_accumulator, session_summary
 from crossfield.chain.correspondence import match_control_points
 from crossfield.chain.provenance import package_versions
 from crossfield.chain.registry import Implementation, get_implementation
@@ -73,7 +73,6 @@ from crossfield.types import (
     StereoCentroids,
     StereoFrame,
 )
-from crossfield.uncertainty.consistency import describe_reference
 from crossfield.uncertainty.montecarlo import session_monte_carlo
 
 __all__ = [
@@ -570,16 +569,7 @@ def run_pipeline(
     hook.on_reference(reference=reference)
     # Aggregated frame by frame: memory does not grow with the session's length
     # (the first rows are kept for the report; the recording has every frame).
-    accumulator = SessionAccumulator(
-        info.plan,
-        calibration_source=info.calibration.source,
-        calibration_files=info.calibration_files,
-        reference_source=describe_reference(
-            stages.implementations["reference"].name,
-            (p.sigma_mm for p in reference.points),
-            info.config.stages["reference"].options,
-        ),
-    )
+    accumulator = session_accumulator(info, reference)
     session_pose = SessionPoseAccumulator()
     failed: str | None = None
     for frame in frames:

@@ -556,7 +556,7 @@ class SessionWriter:
             "calibration_source": session.calibration.source,
             "calibration_sha256": hashlib.sha256(calibration_text).hexdigest(),
             # the calibration file(s) themselves, attached below (recording/calibration_files.py)
-            "calibration_files": [f.entry() for f in session.calibration_files],
+            "calibration_files": [f.entry() for f in session.calibration_files or ()],
             "simulated": session.ground_truth is not None,
             "parent": plain(session.parent),
             "units": "JSON messages: mm, rad, px; foxglove PointCloud and FrameTransforms: m",
@@ -577,7 +577,7 @@ class SessionWriter:
 
         sink.attachment(L.ATTACHMENT_PLAN, "application/toml", session.plan.text.encode("utf-8"), start)
         sink.attachment(L.ATTACHMENT_CALIBRATION, "application/yaml", calibration_text, start)
-        for copy in session.calibration_files:
+        for copy in session.calibration_files or ():
             sink.attachment(copy.attachment, copy.media_type, copy.data, start)
         if session.ground_truth is not None:
             sink.attachment(

@@ -42,7 +42,7 @@ def session(tmp_path_factory):
     out = tmp_path_factory.mktemp("calcopy")
     calib = out / "calib.yml"
     cal = write_calibration(calib, STD_T_MM)
-    summary = record_session(out, "s", frames=1, acquire={"calibration": str(calib)})
+    summary = record_session(out, "s", frames=1, acquire={"calibration": str(calib)}, reference={"sigma_mm": 0.0005})
     return calib, cal, summary, out / "s" / "session.mcap"
 
 
@@ -120,3 +120,32 @@ def test_a_recording_without_the_copy_reads_the_path_as_before_and_says_so(sessi
     ]
     (read,) = session_calibration_files(RecordingSource(recorded))
     assert read.path == str(calib) and read.data == calib.read_bytes()
+
+
+class _Viewer:
+    """The observer hooks :func:`crossfield.viz.rerun_mcap.log_recording` calls, without Rerun."""
+
+    def wants_images(self, sequence):
+        return False
+
+    def __getattr__(self, name):
+        if name.startswith("on_"):
+            return lambda **kw: None
+        raise AttributeError(name)
+
+
+def test_the_viewer_summarises_a_recording_as_the_live_run_did(session):
+    """The viewer of a recording (viz/rerun_mcap.py) builds its summary the live way
+    (chain/aggregate.py session_accumulator): the budget from the recorded calibration
+    copy, the consistency warning naming the reference source, the motion test's line."""
+    from crossfield.report.document import build_report
+    from crossfield.viz.rerun_mcap import log_recording
+
+    calib, cal, summary, path = session
+    shown = log_recording(path, _Viewer())
+    live, again = build_report(summary), build_report(shown)
+    assert summary.aggregate.consistency.warning  # the stated sigma_mm is too small: the warning fires
+    assert "the reference source 'romer-serial'" in summary.aggregate.consistency.warning
+    assert again["uncertainty"]["consistency"] == live["uncertainty"]["consistency"]
+    assert again["station_moved"] == live["station_moved"]
+    assert shown.aggregate.calibration_scale_u == summary.aggregate.calibration_scale_u
