@@ -426,6 +426,11 @@ def format_session_report(report: AuditReport, *, limit: int = 40) -> str:
     else:
         cal_state = "(no recorded digest)"
     lines.append(f"  calibration  {cal.get('source')} SHA-256 {cal.get('sha256')} {cal_state}")
+    for copy in cal.get("files") or []:
+        lines.append(
+            f"  calibration file {copy.get('path')}: recorded copy {copy.get('attachment')} "
+            f"SHA-256 {copy.get('sha256')} (the budget reads this copy)"
+        )
     for p in prov.get("problems", []):
         lines.append(f"  - {p}")
     for n in prov.get("notes", []):
