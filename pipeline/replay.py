@@ -2,8 +2,10 @@
 
 Only the raw inputs of the recording are used: both camera images of every
 stereo pair, the exact bytes read from the CMM arm (``/cmm/raw``), the
-calibration (``calibration.yml``), the measurement plan (``plan.toml``),
-the simulator's ground truth when there is one, and the recorded config
+calibration (``calibration.yml``) and the recorded copies of the calibration
+files the budget's calibration term reads (``calibration/stereo.yml``; the
+recorded path is never opened to read them, :func:`calibration_notes`), the
+measurement plan (``plan.toml``), the simulator's ground truth when there is one, and the recorded config
 (which plugins ran, with which options). Recorded stage results are never
 read. Frames are fed in the order they were recorded, with their recorded
 capture times; serial bytes with their recorded read times; the session
