@@ -2,8 +2,10 @@
 
 Only the raw inputs of the recording are used: both camera images of every
 stereo pair, the exact bytes read from the CMM arm (``/cmm/raw``), the
-calibration (``calibration.yml``), the measurement plan (``plan.toml``),
-the simulator's ground truth when there is one, and the recorded config
+calibration (``calibration.yml``) and the recorded copies of the calibration
+files the budget's calibration term reads (``calibration/stereo.yml``; the
+recorded path is never opened to read them, :func:`calibration_notes`), the
+measurement plan (``plan.toml``), the simulator's ground truth when there is one, and the recorded config
 (which plugins ran, with which options). Recorded stage results are never
 read. Frames are fed in the order they were recorded, with their recorded
 capture times; serial bytes with their recorded read times; the session
@@ -36,6 +38,7 @@ from crossfield.chain.runner import run_session, safe_session_name
 from crossfield.config import Config, with_overrides
 from crossfield.errors import ConfigError, RecordingError
 from crossfield.recording import layout as L
+from crossfield.recording.calibration_files import disk_notes, no_copy_note
 from crossfield.recording.codec import decode_image, decode_link_event, ground_truth_from_doc, utc_text  # noqa: F401 - public here too
 from crossfield.recording.facts import SessionFacts, load_session_facts, require_session  # noqa: F401
 from crossfield.recording.integrity import file_sha256
@@ -79,6 +82,9 @@ class RecordingSource:
         self.ground_truth = recorded.ground_truth
         self.default_plan = recorded.plan
         self.recorded_plugins = recorded.plugins
+        #: The recorded copies of the calibration files (None: the recording kept none, and
+        #: the session reads them from the recorded path as it did then).
+        self.recorded_calibration_files = recorded.calibration_files
         self.start_time_ns = int(recorded.session.get("start_time_ns") or 0)
         self.incomplete: str | None = None
         self.frames_read = 0
@@ -261,6 +267,16 @@ def recorded_budget_note(path: Path) -> str | None:
     return None
 
 
+def calibration_notes(recorded: RecordedSession) -> list[str]:
+    """What a replay says about the calibration file(s): one line per recorded copy whose
+    file on disk differs or is gone (the replay uses the copy), or that the recording kept
+    no copy (the file is read from the recorded path, as before the copies were kept)."""
+    if recorded.calibration_files is None:
+        note = no_copy_note(recorded.calibration.source)
+        return [] if note is None else [note]
+    return disk_notes(recorded.calibration_files)
+
+
 def replay_session(
     path: str | Path,
     pm: pluggy.PluginManager,
@@ -328,9 +344,12 @@ def replay_session(
         "changed": changed,
         "replayed_at_utc": utc_text(time.time_ns()),
     }
+    notes = calibration_notes(recorded)
     budget_note = recorded_budget_note(recorded.path)
     if budget_note is not None:
-        parent["notes"] = [budget_note]
+        notes.append(budget_note)
+    if notes:
+        parent["notes"] = notes
     return run_session(
         config,
         pm,

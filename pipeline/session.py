@@ -97,6 +97,11 @@ class SessionInfo:
     ground_truth: GroundTruth | None = None
     start_time_ns: int = 0
     parent: Mapping[str, Any] | None = None  # replay: the session this one re-runs
+    #: The calibration files as read at the session's start (a replay: the recorded
+    #: copies), :class:`crossfield.recording.calibration_files.CalibrationFile`; recorded
+    #: whole, and what the budget's calibration term reads. None (a recording made
+    #: before the copies were kept): the files the calibration's source names, read then.
+    calibration_files: tuple[Any, ...] | None = None
 
 
 @dataclass(frozen=True)

@@ -56,6 +56,7 @@ from crossfield.errors import CrossfieldError, RecordingError
 from crossfield.progress import Progress
 from crossfield.recording import layout as L
 from crossfield.recording import seal
+from crossfield.recording.calibration_files import copy_problems, disk_notes, no_copy_note, recorded_calibration_files
 from crossfield.recording.codec import decode_log
 from crossfield.recording.facts import load_session_facts, require_session
 from crossfield.recording.reader import open_recording
@@ -93,6 +94,7 @@ def provenance(path: Path, pm: pluggy.PluginManager | None) -> dict[str, Any]:
         attachments, L.ATTACHMENT_CALIBRATION, session.get("calibration_sha256"), problems, notes
     )
     calibration["source"] = session.get("calibration_source")
+    calibration["files"] = _calibration_files(path, session, attachments, problems, notes)
 
     plugins = docs.get(L.META_PLUGINS, {})
     installed_plugins: dict[str, Any] = {}
@@ -132,6 +134,27 @@ def provenance(path: Path, pm: pluggy.PluginManager | None) -> dict[str, Any]:
         "attachments": sorted(attachments),
         "writer": rec.library,
     }
+
+
+def _calibration_files(
+    path: Path, session: dict[str, Any], attachments: dict[str, Any], problems: list[str], notes: list[str]
+) -> list[dict[str, Any]]:
+    """The recorded copies of the calibration file(s): each against its recorded SHA-256
+    (a mismatch or a missing copy is a problem), and against the file on disk at the
+    recorded path (differs or gone: a note, not a failure; the replay uses the copy)."""
+    try:
+        files = recorded_calibration_files(session, attachments, str(path))
+    except RecordingError as exc:
+        problems.append(str(exc))
+        return []
+    if files is None:
+        note = no_copy_note(str(session.get("calibration_source") or ""))
+        if note is not None:
+            notes.append(note)
+        return []
+    problems.extend(copy_problems(session, files))
+    notes.extend(disk_notes(files))
+    return [f.entry() for f in files]
 
 
 # --------------------------------------------------------------------------
@@ -421,6 +444,11 @@ def format_session_report(report: AuditReport, *, limit: int = 40) -> str:
     else:
         cal_state = "(no recorded digest)"
     lines.append(f"  calibration  {cal.get('source')} SHA-256 {cal.get('sha256')} {cal_state}")
+    for copy in cal.get("files") or []:
+        lines.append(
+            f"  calibration file {copy.get('path')}: recorded copy {copy.get('attachment')} "
+            f"SHA-256 {copy.get('sha256')} (the budget reads this copy)"
+        )
     for p in prov.get("problems", []):
         lines.append(f"  - {p}")
     for n in prov.get("notes", []):

@@ -79,6 +79,45 @@ def calibration_result_yaml(result: CalibrationResult) -> str:
     return stereo_calibration_to_yaml(result.calibration, extra=_extra(result))
 
 
+#: The keys the budget's calibration term reads (:mod:`crossfield.uncertainty.calibration`):
+#: the name each is returned under, and the names accepted in a file (``std_*`` as
+#: :func:`write_calibration_result` writes them, ``*_std`` as well).
+UNCERTAINTY_KEYS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("T_std", ("std_T", "T_std")),
+    ("M1_std", ("std_M1", "M1_std")),
+    ("M2_std", ("std_M2", "M2_std")),
+    ("T", ("T",)),
+    ("M1", ("M1",)),
+    ("M2", ("M2",)),
+)
+
+
+def read_uncertainty_keys(text: str) -> dict[str, np.ndarray]:
+    """The :data:`UNCERTAINTY_KEYS` found in the FileStorage text ``text`` (YAML, XML or
+    JSON: a calibration file's content, from disk or from a recording's copy; never a
+    path): name -> matrix (float64; T mm, M px, std as the file states them). A key
+    that is missing or not a matrix is left out; a text OpenCV cannot parse gives ``{}``
+    (the budget then uses its stated default)."""
+    found: dict[str, np.ndarray] = {}
+    try:
+        fs = cv2.FileStorage(text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
+    except (cv2.error, SystemError):  # a parse error arrives as SystemError wrapping cv2.error
+        return found
+    try:
+        if not fs.isOpened():
+            return found
+        for key, names in UNCERTAINTY_KEYS:
+            for name in names:
+                node = fs.getNode(name)
+                if not node.empty() and node.isMap():
+                    value = node.mat()
+                    if value is not None:
+                        found.setdefault(key, np.asarray(value, dtype=np.float64))
+    finally:
+        fs.release()
+    return found
+
+
 @dataclass(frozen=True)
 class CalibrationUncertainty:
     """The uncertainty keys of a calibration file: names (p,), covariance (p, p), std (p,)."""

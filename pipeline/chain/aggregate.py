@@ -28,9 +28,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -400,6 +401,10 @@ class SessionAccumulator:
 
     ``add(result)`` after every frame (in frame order), then :meth:`result`
     for the :class:`SessionAggregate`; :attr:`rows` are the kept slim results.
+    calibration_files: the calibration files' contents the budget's calibration
+    term reads (:class:`crossfield.recording.calibration_files.CalibrationFile`, as
+    the session read them at its start; a replay's are the recorded copies); None:
+    the files ``calibration_source`` names, read now.
     """
 
     def __init__(
@@ -411,6 +416,7 @@ class SessionAccumulator:
         calibration_source: str = "",
         reference_source: str = "",
         calibration_propagation=None,
+        calibration_files: Sequence[Any] | None = None,
     ) -> None:
         if rows_kept < 0 or errors_kept < 0:
             raise ValueError(f"rows_kept and errors_kept must be >= 0, got {rows_kept}, {errors_kept}")
@@ -430,8 +436,10 @@ class SessionAccumulator:
         self._mc_frames: list[FrameResult] = []
         self._frames_measured = 0
         stated = plan.uncertainty.calibration_scale_u
+        # the calibration files as the session read them (a replay: the recorded copies);
+        # None: those calibration_source names, read now
         self._calibration = calibration_uncertainty(
-            calibration_source, DEFAULT_SCALE_U if stated is None else stated
+            calibration_source, DEFAULT_SCALE_U if stated is None else stated, calibration_files
         )
         #: frame -> {characteristic: calibration u (mm)} (crossfield.uncertainty.calibration.session_propagation)
         #: or None; evaluated once, on the first measured frame
@@ -510,6 +518,34 @@ class SessionAccumulator:
             monte_carlo_frames=tuple(self._mc_frames),
             frames_measured=self._frames_measured,
         )
+
+
+def session_accumulator(info: SessionInfo, reference: ReferenceData, measurer: Any = None) -> SessionAccumulator:
+    """The :class:`SessionAccumulator` of a session, made one way for a live run or
+    replay (:mod:`crossfield.chain.runner`) and for the viewer of a recording
+    (:mod:`crossfield.viz.rerun_mcap`): the plan, the calibration files the budget's
+    calibration term reads (``info.calibration_files``; none recorded: those the
+    calibration's source names), and the reference source as the consistency warning
+    names it (the reference plugin's name, the sigmas its points state, its options).
+    ``measurer`` (the session's measure stage): the calibration's parameter covariance
+    is propagated through it (crossfield.uncertainty.calibration.session_propagation);
+    None (the viewer): the relative scale term only."""
+    from crossfield.uncertainty.calibration import session_propagation
+    from crossfield.uncertainty.consistency import describe_reference
+
+    return SessionAccumulator(
+        info.plan,
+        calibration_source=info.calibration.source,
+        calibration_files=info.calibration_files,
+        reference_source=describe_reference(
+            str((info.plugins.get("reference") or {}).get("name", "")),
+            (p.sigma_mm for p in reference.points),
+            info.config.stages["reference"].options,
+        ),
+        calibration_propagation=None if measurer is None else session_propagation(
+            info.plan, reference, info.calibration, measurer, info.calibration_files
+        ),
+    )
 
 
 def aggregate_frames(frames: Iterable[FrameResult], plan: MeasurementPlan) -> SessionAggregate:

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 import pluggy
 
-from crossfield.chain.aggregate import SessionAccumulator, session_summary
+from crossfield.chain.aggregate import SessionAccumulator, session_accumulator, session_summary
 from crossfield.chain.correspondence import match_control_points
 from crossfield.chain.interrupt import InterruptedAgain, OperatorInterrupts, operator_interrupts
 from crossfield.chain.provenance import package_versions
@@ -40,6 +40,7 @@ from crossfield.chain.weights import fit_registration
 from crossfield.config import Config
 from crossfield.errors import ConfigError, CrossfieldError, PluginError, RecordingError
 from crossfield.plan import MeasurementPlan, load_plan
+from crossfield.recording.calibration_files import session_calibration_files
 from crossfield.recording.recorder import McapRecorder, SessionRecorder
 from crossfield.recording.writer import DEFAULT_COMPRESSION
 from crossfield.report.document import build_report, with_seal
@@ -81,8 +82,6 @@ from crossfield.types import (
     StereoCentroids,
     StereoFrame,
 )
-from crossfield.uncertainty.calibration import session_propagation
-from crossfield.uncertainty.consistency import describe_reference
 from crossfield.uncertainty.montecarlo import session_monte_carlo
 
 __all__ = [
@@ -391,6 +390,7 @@ def session_info(
         ground_truth=acquisition.ground_truth,
         start_time_ns=start_time_ns,
         parent=parent,
+        calibration_files=session_calibration_files(acquisition),
     )
 
 
@@ -633,16 +633,7 @@ def run_pipeline(
         t = stop.timestamp_ns
     # Aggregated frame by frame: memory does not grow with the session's length
     # (the first rows are kept for the report; the recording has every frame).
-    accumulator = SessionAccumulator(
-        info.plan,
-        calibration_source=info.calibration.source,
-        reference_source=describe_reference(
-            stages.implementations["reference"].name,
-            (p.sigma_mm for p in reference.points),
-            info.config.stages["reference"].options,
-        ),
-        calibration_propagation=session_propagation(info.plan, reference, info.calibration, stages.measure),
-    )
+    accumulator = session_accumulator(info, reference, stages.measure)
     session_pose = SessionPoseAccumulator()
     failed: str | None = None
     deferred = interrupts.deferred if interrupts is not None else contextlib.nullcontext

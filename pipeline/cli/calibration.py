@@ -32,6 +32,7 @@ from crossfield.chain.registry import get_implementation, make_plugin_manager
 from crossfield.cli.common import Command
 from crossfield.config import DEFAULT_PLUGINS, load_config, parse_option
 from crossfield.errors import ConfigError, CrossfieldError
+from crossfield.recording.seal import load_private_key
 from crossfield.report.vocabulary import verdict_word
 from crossfield.simulator.board_views import cached_calibration_views
 from crossfield.simulator.scenarios import SCENARIOS, station_calibration
@@ -122,6 +123,24 @@ def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
         "--record", metavar="CAL.mcap",
         help="record the session (images, detections, result) to MCAP (--source: default <CALIB>.mcap)",
     )
+    _add_signing_key(parser)
+
+
+def _add_signing_key(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--signing-key", metavar="KEY.pem",
+        help="sign the recording's seal with this Ed25519 station key (crossfield keygen; needs --record)",
+    )
+
+
+def _check_signing_key(args: argparse.Namespace, records: bool) -> None:
+    """``--signing-key`` checked before anything is computed: it needs a recording
+    (``records``), and a key that cannot be read is a one-line
+    :class:`crossfield.recording.seal.SealError` naming the file."""
+    if args.signing_key:
+        if not records:
+            raise ConfigError("--signing-key signs a recording: give --record as well")
+        load_private_key(args.signing_key)
 
 
 def add_verify_arguments(parser: argparse.ArgumentParser) -> None:
@@ -151,6 +170,7 @@ def add_verify_arguments(parser: argparse.ArgumentParser) -> None:
         "-o", "--output", metavar="OUT", default="verification", help="report stem (default verification)"
     )
     parser.add_argument("--operator", metavar="NAME", help="who ran the verification (stated in the record's header)")
+    _add_signing_key(parser)
 
 
 def _board_and_settings(path: str | None, distortion: str | None):
@@ -174,6 +194,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             raise ConfigError(f"{given[0]} applies to live cameras (--source) only")
     if args.record and Path(args.record).exists():  # refused before the solve, not after it
         raise ConfigError(f"--record: {args.record} exists; a recording is not overwritten")
+    _check_signing_key(args, bool(args.record or args.source))  # --source records by default
     if args.replay:
         recorded = read_calibration_recording(args.replay)
         images, bit_depth, names = recorded.images, recorded.bit_depth, recorded.names
@@ -216,7 +237,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     result = calibrate_images(images, board, bit_depth, settings, names=names, source=source)
     out = write_calibration_result(args.output, result)
     if args.record:
-        sealed = record_calibration(args.record, images, names, bit_depth, result, source)
+        sealed = record_calibration(
+            args.record, images, names, bit_depth, result, source, signing_key=args.signing_key
+        )
     c = result.calibration
     print(f"calibration written to {out}")
     print(
@@ -246,8 +269,16 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         for path in write_report(result, stem, calibration_path=out, seal=sealed if args.record else None):
             print(f"  report: {path}")
     if args.record:
-        print(f"  recorded to {args.record} (chain head {sealed.chain_head}; audit: crossfield audit {args.record})")
+        print(
+            f"  recorded to {args.record} (chain head {sealed.chain_head}{_signed(sealed)}; "
+            f"audit: crossfield audit {args.record})"
+        )
     return 0
+
+
+def _signed(sealed) -> str:
+    """', signed' when the seal carries the station key's signature."""
+    return ", signed" if sealed.signature else ""
 
 
 def _live_options(args: argparse.Namespace) -> dict:
@@ -348,6 +379,7 @@ def cmd_verify(args: argparse.Namespace) -> int:
         raise CrossfieldError("--recording and --scenario: give one (the recording holds its own pairs)")
     if args.record and Path(args.record).exists():
         raise CrossfieldError(f"--record: {args.record} exists; a recording is not overwritten")
+    _check_signing_key(args, bool(args.record))
 
     recorded = read_verification_recording(args.recording) if args.recording else None
     bar_mm = args.bar_mm if args.bar_mm is not None else recorded.certified_mm if recorded else 100.0
@@ -398,8 +430,8 @@ def cmd_verify(args: argparse.Namespace) -> int:
     text = Path(args.calibration).read_text(encoding="utf-8", errors="replace")
     sealed = None
     if args.record:  # recorded first, so that the verification record states its seal
-        sealed = record_verification(args.record, frames, result, text, specs, source)
-        print(f"  recorded to {args.record} (chain head {sealed.chain_head})")
+        sealed = record_verification(args.record, frames, result, text, specs, source, signing_key=args.signing_key)
+        print(f"  recorded to {args.record} (chain head {sealed.chain_head}{_signed(sealed)})")
     for path in write_verification(result, args.output, calibration_sha256=hashlib.sha256(text.encode()).hexdigest(),
                                    seal=sealed, operator=args.operator):
         print(f"  report: {path}")

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from crossfield.camera.calibration_io import stereo_calibration_from_yaml
+from crossfield.recording.calibration_files import CalibrationFile, recorded_calibration_files
 from crossfield.config import Config, parse_config
 from crossfield.errors import CrossfieldError, RecordingError
 from crossfield.plan import MeasurementPlan, parse_plan
@@ -57,6 +58,9 @@ class SessionFacts:
     calibration: StereoCalibration
     ground_truth: GroundTruth | None
     result: Mapping[str, Any] | None = None
+    #: The recorded copies of the calibration file(s) the session read
+    #: (:mod:`crossfield.recording.calibration_files`); None: the recording kept none.
+    calibration_files: tuple[CalibrationFile, ...] | None = None
 
     @property
     def complete(self) -> bool:
@@ -165,6 +169,7 @@ def load_session_facts(source: str | Path | Recording) -> SessionFacts:
         calibration.t_lower_upper,
         str(session.get("calibration_source") or calibration.source),
     )
+    calibration_files = recorded_calibration_files(session, attachments, str(path))
     truth = None
     if L.ATTACHMENT_GROUND_TRUTH in attachments:
         try:
@@ -188,4 +193,5 @@ def load_session_facts(source: str | Path | Recording) -> SessionFacts:
         calibration=calibration,
         ground_truth=truth,
         result=result,
+        calibration_files=calibration_files,
     )

@@ -34,6 +34,7 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap_protobuf.decoder import DecoderFactory
 
 from crossfield.errors import RecordingError
+from crossfield.recording.records import DamagedRecord, records_at
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
@@ -175,11 +176,12 @@ class Recording:
     def _scan(self) -> Iterator[Any]:
         """Every record in file order, stopping quietly at damage."""
         with self._open() as f:
-            reader = StreamReader(f, validate_crcs=self.validate_crcs)
             try:
-                yield from reader.records
-            except _DAMAGE as exc:
-                self.damage = f"damaged or truncated near byte {f.tell()}: {str(exc) or type(exc).__name__}"
+                for _, record in records_at(f, validate_crcs=self.validate_crcs):
+                    yield record
+            except DamagedRecord as exc:
+                # the same words and byte as the audit's (crossfield.recording.records)
+                self.damage = str(exc.damage)
 
     def _scan_channels(self) -> tuple[dict[int, Schema], dict[int, Channel], dict[int, int]]:
         schemas: dict[int, Schema] = {}

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import struct
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,6 +30,7 @@ from crossfield.recording.integrity import (
     schema_entry,
 )
 from crossfield.recording.layout import TOPIC_INTEGRITY
+from crossfield.recording.records import DamagedRecord, records_at
 
 
 @dataclass(frozen=True)
@@ -129,7 +129,6 @@ def scan_file(path: Path, chain_format: str | None = None) -> FileScan:
     bad chunk is reported and its records still compared. The digests are those of
     ``chain_format`` (by default the one the MCAP header names,
     :func:`library_chain_format`; ``scan.chain_format`` says which)."""
-    from mcap.exceptions import McapError
     from mcap.records import (
         Attachment,
         Channel,
@@ -141,7 +140,7 @@ def scan_file(path: Path, chain_format: str | None = None) -> FileScan:
         Metadata,
         Schema,
     )
-    from mcap.stream_reader import StreamReader, breakup_chunk, get_chunk_data_stream
+    from mcap.stream_reader import breakup_chunk, get_chunk_data_stream
 
     scan = FileScan()
     if chain_format is not None:
@@ -206,15 +205,12 @@ def scan_file(path: Path, chain_format: str | None = None) -> FileScan:
             scan.entries.append(FileEntry(*entry, None, offset))
 
     size = path.stat().st_size
-    damage = (McapError, struct.error, EOFError, ValueError, UnicodeDecodeError, MemoryError)
     with open(path, "rb") as f, bar(desc="integrity check", total=size, unit="B", unit_scale=True) as read:
-        offset = 8
         at_start = True
         while True:
-            reader = StreamReader(f, skip_magic=not at_start, emit_chunks=True, validate_crcs=False)
-            at_start = False
             try:
-                for record in reader.records:
+                for offset, record in records_at(f, emit_chunks=True, skip_magic=not at_start):
+                    at_start = False
                     if isinstance(record, Chunk):
                         scan.chunks += 1
                         records = crc = None
@@ -259,26 +255,25 @@ def scan_file(path: Path, chain_format: str | None = None) -> FileScan:
                             in_summary = True
                         elif isinstance(record, Footer):
                             scan.complete = True
-                    offset = f.tell()
-                    read.update(offset - read.n)
+                    read.update(f.tell() - read.n)
                 break
-            except damage as exc:
-                reason = type(exc).__name__ + (f": {exc}" if str(exc) else "")
-                resume = None if in_summary else _next_chunk(f, offset, size, get_chunk_data_stream)
+            except DamagedRecord as exc:
+                at_start = False
+                damage = exc.damage
+                resume = None if in_summary else _next_chunk(f, damage.offset, size, get_chunk_data_stream)
                 if resume is None:
-                    scan.ends = f"the file ends in damage or is cut short at byte {offset} of {size} ({reason})"
+                    scan.ends = str(damage)
                     break
                 # Go on after the damage: the next intact chunk (its CRC-32 matches).
                 scan.problems.append(
                     Problem(
                         "unreadable",
-                        f"bytes {offset}..{resume} cannot be read as MCAP records ({reason}); "
+                        f"bytes {damage.offset}..{resume} cannot be read as MCAP records ({damage.reason}); "
                         f"reading goes on at the next intact chunk, byte {resume}",
-                        offset=offset,
+                        offset=damage.offset,
                     )
                 )
                 f.seek(resume)
-                offset = resume
     return scan
 
 

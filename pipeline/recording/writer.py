@@ -566,6 +566,8 @@ class SessionWriter:
             "plan_sha256": session.plan.sha256,
             "calibration_source": session.calibration.source,
             "calibration_sha256": hashlib.sha256(calibration_text).hexdigest(),
+            # the calibration file(s) themselves, attached below (recording/calibration_files.py)
+            "calibration_files": [f.entry() for f in session.calibration_files or ()],
             "simulated": session.ground_truth is not None,
             "parent": plain(session.parent),
             "units": "JSON messages: mm, rad, px; foxglove PointCloud and FrameTransforms: m",
@@ -586,6 +588,8 @@ class SessionWriter:
 
         sink.attachment(L.ATTACHMENT_PLAN, "application/toml", session.plan.text.encode("utf-8"), start)
         sink.attachment(L.ATTACHMENT_CALIBRATION, "application/yaml", calibration_text, start)
+        for copy in session.calibration_files or ():
+            sink.attachment(copy.attachment, copy.media_type, copy.data, start)
         if session.ground_truth is not None:
             sink.attachment(
                 L.ATTACHMENT_GROUND_TRUTH,

@@ -11,15 +11,20 @@ controls cannot absorb a scale, so a camera point p moves by ``s (p - g_bar)``
 u(|T|) from the calibration file's ``std_T`` (mm, per component) and u(f)
 from ``std_M1`` / ``std_M2`` (px, standard deviations of fx fy cx cy: fx
 first), the keys ``crossfield calibrate`` writes (``T_std``, ``M1_std``,
-``M2_std`` are read as well). Without
-them the stated default :data:`DEFAULT_SCALE_U` is used.
+``M2_std`` are read as well; the reader is
+:func:`crossfield.calibration.file.read_uncertainty_keys`). Without
+them the stated default :data:`DEFAULT_SCALE_U` is used. The file's content is
+the one the session read at its start, which a replay and an audit take from
+the recording's copy (:mod:`crossfield.recording.calibration_files`), never
+from the recorded path.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-from pathlib import Path
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -48,38 +53,21 @@ class CalibrationUncertainty:
         return f"CalibrationUncertainty(scale_u={self.scale_u!r}, source={self.source!r})"
 
 
-def _read_std(path: Path) -> dict[str, np.ndarray]:
-    import cv2
+def calibration_uncertainty(
+    source: str = "", default: float = DEFAULT_SCALE_U, files: Sequence[Any] | None = None
+) -> CalibrationUncertainty:
+    """The relative scale uncertainty of the calibration in ``files`` (the calibration
+    files' contents, :class:`crossfield.recording.calibration_files.CalibrationFile`:
+    read at a live session's start, or the recorded copies in a replay; the first file
+    holding a key wins), or ``default`` when they state no standard deviations. Without
+    ``files`` the files ``source`` names (paths joined by ``", "``) are read now."""
+    from crossfield.calibration.file import read_uncertainty_keys  # the one reader of the std_* keys
+    from crossfield.recording.calibration_files import read_calibration_files
 
-    found: dict[str, np.ndarray] = {}
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    try:
-        if not fs.isOpened():
-            return found
-        # ``std_T`` etc. as ``crossfield calibrate`` writes them (crossfield.calibration.file);
-        # ``T_std`` etc. accepted as well
-        for key, names in (("T_std", ("std_T", "T_std")), ("M1_std", ("std_M1", "M1_std")),
-                           ("M2_std", ("std_M2", "M2_std")), ("T", ("T",)), ("M1", ("M1",)), ("M2", ("M2",))):
-            for name in names:
-                node = fs.getNode(name)
-                if not node.empty():
-                    value = node.mat()
-                    if value is not None:
-                        found.setdefault(key, np.asarray(value, dtype=np.float64))
-    finally:
-        fs.release()
-    return found
-
-
-def calibration_uncertainty(source: str, default: float = DEFAULT_SCALE_U) -> CalibrationUncertainty:
-    """The relative scale uncertainty of the calibration in file(s) ``source``
-    (paths separated by ``", "``), or ``default`` when they state no standard deviations."""
     keys: dict[str, np.ndarray] = {}
-    for part in str(source or "").split(", "):
-        path = Path(part)
-        if part and path.suffix.lower() in (".yml", ".yaml", ".xml", ".json") and path.is_file():
-            for key, value in _read_std(path).items():
-                keys.setdefault(key, value)
+    for f in read_calibration_files(source) if files is None else files:
+        for key, value in read_uncertainty_keys(f.text).items():
+            keys.setdefault(key, value)
     terms = []
     if "T_std" in keys and "T" in keys:
         T = keys["T"].reshape(-1)
@@ -150,11 +138,51 @@ class CalibrationCovariance:
         return f"CalibrationCovariance(p={len(self.covariance)}, n_dist={self.n_dist}, source={self.source!r})"
 
 
-def _read_keys(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
+def calibration_covariance(source: str, files: Sequence[Any] | None = None) -> CalibrationCovariance | None:
+    """The parameter covariance the calibration files state, or None when none states
+    every ``std_*`` key. ``files``: the files' contents
+    (:class:`crossfield.recording.calibration_files.CalibrationFile`: read at a live
+    session's start, or a replay's recorded copies, never re-read by the recorded path);
+    without them the files ``source`` names (paths separated by ``", "``) are read now.
+
+    The standard deviations are the ``std_*`` keys as written (the honest ones: the
+    larger of the Jacobian's and the jackknife's); the correlations those of
+    ``cov_params`` when it is there with the same parameters, else none (diagonal):
+    ``Sigma = D Corr D``, D = diag(std)."""
+    from crossfield.calibration.covariance import camera_param_names
+    from crossfield.recording.calibration_files import read_calibration_files
+
+    for f in read_calibration_files(source) if files is None else files:
+        keys = _text_keys(f.text, _STD_KEYS)
+        if len(keys) != len(_STD_KEYS) or keys["std_D1"].size != keys["std_D2"].size:
+            continue
+        std = np.concatenate([keys[k].reshape(-1) for k in _STD_KEYS])
+        n_dist = int(keys["std_D1"].size)
+        names = camera_param_names(n_dist)
+        if std.size != len(names) or not np.all(np.isfinite(std)) or np.any(std < 0):
+            continue
+        corr = np.eye(len(std))
+        how = "std_* keys, no correlations"
+        cov, labels = _text_keys(f.text, ("cov_params",)).get("cov_params"), _text_string(f.text, "cov_param_names")
+        if cov is not None and cov.ndim == 2 and tuple(labels.split()) == names:
+            s = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+            ok = s > 0
+            corr[np.ix_(ok, ok)] = cov[np.ix_(ok, ok)] / np.outer(s[ok], s[ok])
+            how = "std_* keys, correlations of cov_params"
+        return CalibrationCovariance(corr * np.outer(std, std), n_dist, f"{f.path}: {how}")
+    return None
+
+
+def _text_keys(text: str, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """The matrices ``keys`` of a calibration file's text (OpenCV FileStorage, read from
+    memory: a file's content, never a path); a text OpenCV cannot parse gives ``{}``."""
     import cv2
 
     found: dict[str, np.ndarray] = {}
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    try:
+        fs = cv2.FileStorage(text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
+    except (cv2.error, SystemError):
+        return found
     try:
         if fs.isOpened():
             for name in keys:
@@ -162,45 +190,25 @@ def _read_keys(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
                 if not node.empty() and not node.isNone():
                     value = node.mat()
                     if value is not None:
-                        found[name] = np.asarray(value, dtype=np.float64).reshape(-1)
+                        found[name] = np.asarray(value, dtype=np.float64)
     finally:
         fs.release()
     return found
 
 
-def calibration_covariance(source: str) -> CalibrationCovariance | None:
-    """The parameter covariance the calibration file(s) ``source`` state (paths separated
-    by ``", "``), or None when they do not state every ``std_*`` key.
+def _text_string(text: str, key: str) -> str:
+    """The string ``key`` of a calibration file's text ('' when absent or unreadable)."""
+    import cv2
 
-    The standard deviations are the ``std_*`` keys as written (the honest ones: the
-    larger of the Jacobian's and the jackknife's); the correlations those of
-    ``cov_params`` when it is there with the same parameters, else none (diagonal):
-    ``Sigma = D Corr D``, D = diag(std)."""
-    from crossfield.calibration.covariance import camera_param_names
-    from crossfield.calibration.file import read_calibration_uncertainty
-
-    for part in str(source or "").split(", "):
-        path = Path(part)
-        if not (part and path.suffix.lower() in (".yml", ".yaml", ".xml", ".json") and path.is_file()):
-            continue
-        keys = _read_keys(path, _STD_KEYS)
-        if len(keys) != len(_STD_KEYS) or keys["std_D1"].size != keys["std_D2"].size:
-            continue
-        std = np.concatenate([keys[k] for k in _STD_KEYS])
-        n_dist = int(keys["std_D1"].size)
-        names = camera_param_names(n_dist)
-        if std.size != len(names) or not np.all(np.isfinite(std)) or np.any(std < 0):
-            continue
-        corr = np.eye(len(std))
-        how = "std_* keys, no correlations"
-        stated = read_calibration_uncertainty(path)
-        if stated is not None and tuple(stated.names) == names:
-            s = np.sqrt(np.clip(np.diag(stated.covariance), 0.0, None))
-            ok = s > 0
-            corr[np.ix_(ok, ok)] = stated.covariance[np.ix_(ok, ok)] / np.outer(s[ok], s[ok])
-            how = "std_* keys, correlations of cov_params"
-        return CalibrationCovariance(corr * np.outer(std, std), n_dist, f"{path}: {how}")
-    return None
+    try:
+        fs = cv2.FileStorage(text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
+    except (cv2.error, SystemError):
+        return ""
+    try:
+        node = fs.getNode(key) if fs.isOpened() else None
+        return node.string() if node is not None and not node.empty() else ""
+    finally:
+        fs.release()
 
 
 def _sqrt_columns(covariance: np.ndarray) -> np.ndarray:
@@ -309,12 +317,13 @@ def calibration_contributions(
     return {name: math.sqrt(v) for name, v in sums.items()}
 
 
-def session_propagation(plan, reference, calibration, measurer):
+def session_propagation(plan, reference, calibration, measurer, files: Sequence[Any] | None = None):
     """The session's calibration propagation, ``frame -> {name: u (mm)}``
     (:func:`calibration_contributions` on a measured :class:`FrameResult`), with the
-    covariance the calibration file(s) of ``calibration.source`` state; None when they
-    state none (the budget then keeps the relative scale term)."""
-    stated = calibration_covariance(getattr(calibration, "source", ""))
+    covariance the calibration files state (``files``, see :func:`calibration_covariance`;
+    None: those of ``calibration.source``, read now); None when they state none (the
+    budget then keeps the relative scale term)."""
+    stated = calibration_covariance(getattr(calibration, "source", ""), files)
     if stated is None:
         return None
 

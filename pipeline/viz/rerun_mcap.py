@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
-from crossfield.chain.aggregate import SessionAccumulator, session_summary
+from crossfield.chain.aggregate import session_accumulator, session_summary
 from crossfield.errors import RecordingError
 from crossfield.recording import codec
 from crossfield.recording import layout as L
@@ -83,6 +83,7 @@ def info_from_facts(facts: SessionFacts) -> SessionInfo:
         ground_truth=facts.ground_truth,
         start_time_ns=facts.start_time_ns,
         parent=facts.session.get("parent"),
+        calibration_files=facts.calibration_files,
     )
 
 
@@ -166,6 +167,18 @@ def _events(recording: Recording, logger: RerunLogger) -> Iterator[tuple[str, An
             raise RecordingError(f"{where}: unexpected content: {exc!r}") from None
 
 
+def recorded_station_moved(recording: Recording) -> str | None:
+    """The session pose's motion-test line as the recorded ``/report`` states it (None:
+    the station did not move, or no report was recorded). The viewer does not refit the
+    joint pose (that needs the register plugin: ``crossfield replay`` does)."""
+    if not recording.complete:
+        return None  # a cut-short recording has no /report
+    for m in recording.messages([L.TOPIC_REPORT]):
+        moved = m.decoded.get("station_moved") if isinstance(m.decoded, dict) else None
+        return moved if isinstance(moved, str) else None
+    return None
+
+
 def log_recording(mcap_path: str | Path, logger: RerunLogger) -> SessionSummary:
     """Feed the recorded session ``mcap_path`` to ``logger``; close it; return the summary.
 
@@ -177,11 +190,12 @@ def log_recording(mcap_path: str | Path, logger: RerunLogger) -> SessionSummary:
     info = info_from_facts(facts)
     logger.on_session_start(session=info)
     reference = ReferenceData(points=())
-    accumulator = SessionAccumulator(info.plan, calibration_source=info.calibration.source)  # as live
+    accumulator = session_accumulator(info, reference)  # as live
     for kind, payload in _events(recording, logger):
         if kind == "reference":
             reference = payload
             logger.on_reference(reference=reference)
+            accumulator.reference_source = session_accumulator(info, reference).reference_source
         elif kind == "frame":
             logger.on_frame(frame=payload)
         elif kind == "done":
@@ -198,6 +212,7 @@ def log_recording(mcap_path: str | Path, logger: RerunLogger) -> SessionSummary:
     summary = session_summary(
         info, reference, accumulator, incomplete=incomplete,
         report_files=(Path(p) for p in result.get("report_files", ())),
+        station_moved=recorded_station_moved(recording),
     )
     logger.on_session_end(summary=summary)
     return summary

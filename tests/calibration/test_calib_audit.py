@@ -166,3 +166,60 @@ def test_an_existing_recording_is_not_overwritten(recorded, tmp_path, capsys):
     assert main(["calibrate", "--replay", str(path), "-o", str(out), "--record", str(path)]) == 2
     assert "exists; a recording is not overwritten" in capsys.readouterr().err
     assert path.read_bytes() == before and not out.exists()  # refused before solving
+
+
+def _flip_image_bit(path, out, sequence=3):
+    """Copy ``path`` to ``out`` with one bit of upper image ``sequence`` flipped (a
+    stretch of its pixels is found verbatim in the file: lz4 keeps noisy pixels as
+    literals); the sidecar is copied along."""
+    target = message(path, TOPIC_IMAGE.format(camera="upper"), sequence)
+    blob = bytearray(path.read_bytes())
+    for start in range(len(target.data) - 200_000, 0, -50_000):
+        probe = target.data[start : start + 64]
+        at = blob.find(probe)
+        if at > 0 and blob.find(probe, at + 1) < 0:
+            break
+    else:
+        raise AssertionError("no stretch of the image found verbatim in the file")
+    blob[at + 7] ^= 0x01
+    out.write_bytes(bytes(blob))
+    sidecar_path(out).write_bytes(sidecar_path(path).read_bytes())
+    return out
+
+
+def test_calibrate_and_verify_sign_their_recordings_from_the_cli(recorded, tmp_path, capsys):
+    """Issue 26 item 3: ``--signing-key`` on calibrate and verify. The signed calibration
+    recording passes ``audit --public-key``; with one image bit flipped it fails; a bad key
+    or one without ``--record`` is refused before anything is computed."""
+    path, _ = recorded
+    key = tmp_path / "station"
+    assert main(["keygen", str(key)]) == 0
+    capsys.readouterr()
+    out = tmp_path / "again.yml"
+    assert main(["calibrate", "--replay", str(path), "-o", str(out), "--signing-key", str(key)]) == 2
+    assert "--signing-key signs a recording: give --record" in capsys.readouterr().err
+    assert main(["calibrate", "--replay", str(path), "-o", str(out), "--record", str(tmp_path / "x.mcap"),
+                 "--signing-key", str(tmp_path / "missing")]) == 2  # fmt: skip
+    assert "missing: cannot read the signing key" in capsys.readouterr().err
+    assert not out.exists() and not (tmp_path / "x.mcap").exists()  # refused before the solve
+    signed = tmp_path / "signed.mcap"
+    argv = ["calibrate", "--replay", str(path), "-o", str(out), "--record", str(signed), "--no-report"]
+    assert main([*argv, "--signing-key", str(key)]) == 0
+    assert "signed; audit: crossfield audit" in capsys.readouterr().out
+    assert read_sidecar(signed)["signature"]["public_key"]
+    public = str(key.with_name(key.name + ".pub"))
+    assert main(["audit", str(signed), "--public-key", public, "--no-replay", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["kind"] == "calibration" and report["seal"]["passed"]
+    assert report["seal"]["level"] == "signed by the station's key"
+    flipped = _flip_image_bit(signed, tmp_path / "flipped.mcap")
+    assert main(["audit", str(flipped), "--public-key", public, "--no-replay"]) == 1
+    text = capsys.readouterr().out
+    assert "Audit: FAIL" in text and TOPIC_IMAGE.format(camera="upper") in text
+    # an unsigned recording does not pass a check that asks for a signature
+    assert main(["audit", str(path), "--public-key", public, "--no-replay"]) == 1
+    capsys.readouterr()
+    # verify: the same flag, the same refusal without --record
+    calib = out
+    assert main(["verify", "--calibration", str(calib), "--signing-key", str(key)]) == 2
+    assert "give --record" in capsys.readouterr().err

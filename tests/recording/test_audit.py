@@ -433,6 +433,30 @@ def test_truncated_file_is_replayed_and_audited_up_to_the_last_chunk(recorded, t
     shutil.rmtree(summary.info.out_dir, ignore_errors=True)
 
 
+def test_replay_and_audit_name_the_same_byte_for_a_mid_chunk_cut(recorded, tmp_path):
+    """Issue 26 item 6: a file cut in the middle of a chunk is named by one byte, the
+    chunk's start (from the complete file's chunk index), in the replay's INCOMPLETE
+    note and in the audit's; before, the reader named where the mcap library stopped
+    reading (the end of the cut file)."""
+    from crossfield.replay import RecordingSource, load_recorded_session
+
+    second = message(recorded, "/camera/lower/image", 1)
+    with open(recorded, "rb") as f:
+        from mcap.reader import SeekingReader
+
+        summary = SeekingReader(f).get_summary()
+    data = recorded.read_bytes()
+    inside = data.find(second.data[-1000:])
+    (chunk,) = [c for c in summary.chunk_indexes if c.chunk_start_offset < inside < c.chunk_start_offset + c.chunk_length]
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: chunk.chunk_start_offset + chunk.chunk_length // 2])
+    expected = f"cut short at byte {chunk.chunk_start_offset} of {cut.stat().st_size} ("
+    source = RecordingSource(load_recorded_session(cut))
+    assert [frame.sequence for frame in source.decoded_frames()] == [0]  # pair 1's lower image is cut off
+    assert expected in source.incomplete
+    assert expected in verify(cut).ends
+
+
 # --------------------------------------------------------------------------
 # The chain covers every record; the seal leaves the file
 # --------------------------------------------------------------------------
