@@ -19,12 +19,12 @@ import json
 import re
 import shutil
 import subprocess
-from html.parser import HTMLParser
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from session_tools import HtmlCells
 
 import crossfield.cli.session as cli_session
 from crossfield.cli import main
@@ -113,30 +113,10 @@ def _text_rows(text: str) -> dict[str, dict[str, str]]:
     return rows
 
 
-class _Cells(HTMLParser):
-    def __init__(self) -> None:
-        super().__init__()
-        self.rows: list[list[str]] = []
-        self._cell: str | None = None
-
-    def handle_starttag(self, tag, attrs):
-        if tag == "tr":
-            self.rows.append([])
-        elif tag in ("td", "th"):
-            self._cell = ""
-
-    def handle_endtag(self, tag):
-        if tag in ("td", "th"):
-            self.rows[-1].append(self._cell)
-            self._cell = None
-
-    def handle_data(self, data):
-        if self._cell is not None:
-            self._cell += data
 
 
 def _html_rows(fragment: str) -> dict[str, dict[str, str]]:
-    parser = _Cells()
+    parser = HtmlCells()
     parser.feed(fragment)
     header, *rows = parser.rows
     return {r[1]: dict(zip(header, r)) for r in rows}

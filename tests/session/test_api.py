@@ -4,17 +4,17 @@ from __future__ import annotations
 
 import json
 import re
-from html.parser import HTMLParser
 from importlib import metadata
 
 import numpy as np
 import pytest
+from session_tools import HtmlCells
 
 import crossfield
+from crossfield.chain.registry import make_plugin_manager
 from crossfield.cli import build_parser
 from crossfield.cli.session import resolve_run_config
 from crossfield.errors import ConfigError, PluginError
-from crossfield.chain.registry import make_plugin_manager
 from crossfield.simulator.scenarios import TABLE3_ACTUAL_MM
 
 
@@ -104,30 +104,10 @@ def test_summary_prints_as_a_table(table3):
     assert str(table3.info.out_dir) in lines[0]
 
 
-class _Cells(HTMLParser):
-    def __init__(self) -> None:
-        super().__init__()
-        self.rows: list[list[str]] = []
-        self._cell: str | None = None
-
-    def handle_starttag(self, tag, attrs):
-        if tag == "tr":
-            self.rows.append([])
-        elif tag in ("td", "th"):
-            self._cell = ""
-
-    def handle_endtag(self, tag):
-        if tag in ("td", "th"):
-            self.rows[-1].append(self._cell)
-            self._cell = None
-
-    def handle_data(self, data):
-        if self._cell is not None:
-            self._cell += data
 
 
 def test_summary_html_for_notebooks(table3):
-    parser = _Cells()
+    parser = HtmlCells()
     parser.feed(table3._repr_html_())
     header, *rows = parser.rows
     assert header[:4] == ["No.", "Characteristic", "n", "Measured"]
