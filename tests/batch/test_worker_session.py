@@ -9,8 +9,11 @@ from crossfield.batch import engine
 
 
 def _session_and_group() -> tuple[int, str | None]:
+    """This process's session id and its autogroup (None where the kernel does not say: no file, or an
+    empty one, as in some containers)."""
     autogroup = Path("/proc/self/autogroup")
-    return os.getsid(0), autogroup.read_text().split()[0] if autogroup.exists() else None
+    words = autogroup.read_text().split() if autogroup.exists() else []
+    return os.getsid(0), words[0] if words else None
 
 
 def test_embedded_workers_lead_their_own_sessions_and_autogroups():

@@ -136,12 +136,18 @@ def _cli(*args: str) -> list[str]:
 WRITER = """
 import pathlib, sys, time
 import crossfield.catalog, crossfield.catalog.ingest
-go = pathlib.Path(sys.argv[3])
-pathlib.Path(sys.argv[4]).touch()  # imported, ready
-while not go.exists():
-    time.sleep(0.005)
+folders = sorted(p for p in pathlib.Path(sys.argv[2]).iterdir() if p.is_dir())
+go, ready, first, other_first = (pathlib.Path(a) for a in sys.argv[3:7])
 with crossfield.catalog.open(sys.argv[1], migrate=False) as cat:
-    assert all(r.status == "added" for r in cat.add(sys.argv[2]))
+    ready.touch()  # imported and connected
+    while not go.exists():
+        time.sleep(0.005)
+    for i, folder in enumerate(folders):
+        assert all(r.status == "added" for r in cat.add(folder))
+        if i == 0:  # the rest only once the other writer has written too: the writes interleave
+            first.touch()
+            while not other_first.exists():
+                time.sleep(0.005)
 """
 
 
@@ -151,8 +157,10 @@ def test_two_writer_processes_at_once_lose_nothing(catalog_url, tmp_path):
     crossfield.catalog.open(catalog_url).close()  # the schema first (as `crossfield catalog upgrade`)
     go = tmp_path / "go"
     ready = [tmp_path / f"ready-{d}" for d in "ab"]
-    procs = [subprocess.Popen([sys.executable, "-c", WRITER, catalog_url, str(tmp_path / d), str(go), str(r)],
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for d, r in zip("ab", ready)]
+    first = [tmp_path / f"first-{d}" for d in "ab"]
+    procs = [subprocess.Popen([sys.executable, "-c", WRITER, catalog_url, str(tmp_path / d), str(go), str(r), str(f),
+                               str(other)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for d, r, f, other in zip("ab", ready, first, first[::-1])]
     deadline = time.monotonic() + 60
     while not all(r.exists() for r in ready):  # both started and imported: then they write at once
         assert all(p.poll() is None for p in procs) and time.monotonic() < deadline
