@@ -37,6 +37,8 @@ logger = logging.getLogger(__name__)
 #: The memory limit of each embedded worker ("auto": the machine's memory shared out
 #: equally); a worker over 95 % of it is restarted by its nanny (Dask worker memory management).
 DEFAULT_MEMORY_LIMIT = "auto"
+#: The embedded cluster's event-loop health check interval (Dask's default: 20 ms), see :func:`client`.
+TICK_INTERVAL = "1s"
 
 
 def add_engine_flags(parser: argparse.ArgumentParser) -> None:
@@ -144,7 +146,16 @@ def client(
     # scheduler gives it its own CPU share instead of one share for the client and all
     # its workers: two workers in the client's group ran at 0.90-0.95x the sequential
     # loop on this loaded machine (issue 25 item 5; crossfield.batch.worker_session).
+    # Every Dask server (scheduler, nanny, worker) wakes its event loop every
+    # distributed.admin.tick.interval (20 ms) to measure how responsive it is. In a worker
+    # each wake-up takes the GIL from the task thread (a forced switch: the task waits
+    # until the event loop's thread has run, which on a busy machine is a wait for a core):
+    # 250-700 voluntary context switches per 1.5-2 s audit task, against ~15 for the same
+    # audit in the client; at 1 s, 57-141, and the worker's CPU beside its task thread
+    # fell from ~68 to ~42 ms per task (issue 25 item 5, docs/batch.md "Throughput"). The
+    # warning for a blocked event loop (tick.limit, 3 s) still fires.
     with dask.config.set({
+        "distributed.admin.tick.interval": TICK_INTERVAL,
         "distributed.worker.profile.enabled": False,
         "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
         "distributed.worker.preload": ["crossfield.batch.worker_session"],

@@ -16,13 +16,21 @@ def _session_and_group() -> tuple[int, str | None]:
     return os.getsid(0), words[0] if words else None
 
 
+def _tick_interval_s(dask_worker) -> float:
+    """The worker's event-loop health check interval (s), as its server read it from the Dask config."""
+    return float(dask_worker._tick_interval)
+
+
 def test_embedded_workers_lead_their_own_sessions_and_autogroups():
     """Each worker is the leader of its own session (so Linux's autogroup scheduler gives it
-    its own CPU share), not in the client's."""
+    its own CPU share), not in the client's; and it checks its event loop once a second."""
     client_session, client_group = _session_and_group()
     with engine.client(None, 2, dashboard_address=":0") as c:
         workers = c.run(_session_and_group)
         pids = c.run(os.getpid)
+        ticks = c.run(_tick_interval_s)
+    # the event-loop health check wakes a worker (and takes the task's GIL) once a second, not every 20 ms
+    assert set(ticks.values()) == {1.0}
     assert len(workers) == 2
     sessions = {address: session for address, (session, _) in workers.items()}
     assert sessions == pids  # each worker leads the session it is in: sid == its pid
