@@ -2,7 +2,7 @@
 
 Run on demand (never part of the tests)::
 
-    .venv/bin/python bench/bench_batch.py [--sessions 6] [--frames 2] [--kind audit]
+    .venv/bin/python bench/bench_batch.py [--sessions 6] [--frames 2] [--kind audit] [--tick 20ms]
 
 Records ``--sessions`` simulator sessions (table3, ``--frames`` stereo pairs, no .rrd),
 then times, in one run:
@@ -19,8 +19,11 @@ overhead per task: ``--noops`` tasks that do nothing (:func:`crossfield.batch.ta
 through ``run_each`` on 1 worker (ms per task), and (1-worker time - sequential time) /
 sessions on the sessions themselves, and the seconds spent inside the tasks (where they ran)
 against the sequential loop's, wall clock and CPU (``time.process_time`` of the process that ran
-the task): a task whose CPU equals the sequential one but whose wall time is longer waited
-for a core (the machine's load), it did not do more work. ``--profile`` also runs one session
+the task, and of the task's own thread) and the voluntary context switches of that process
+during the task: a task whose CPU equals the sequential one but whose wall time is longer
+waited for a core (the machine's load), it did not do more work; a process CPU above the
+thread's is the worker's own threads (event loop, monitors), and context switches are
+where the task thread gave the GIL to them. ``--profile`` also runs one session
 under ``cProfile`` in the client and in a worker and prints the functions whose cumulative
 time differs most (the in-worker slowdown, issue 25 item 5). The machine is shared: read
 the ratios.
@@ -67,11 +70,20 @@ def record(root: Path, n: int, frames: int) -> list[str]:
     return paths
 
 
-def timed_task(*args: object) -> tuple[float, float]:
-    """run_task, returning (wall s, CPU s of the process) where it ran (pickled by value to the workers)."""
-    t, c = time.perf_counter(), time.process_time()
+def _switches() -> int:
+    """Voluntary context switches of this process so far (a thread giving up the CPU: waiting
+    for the GIL, a lock, I/O)."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_nvcsw
+
+
+def timed_task(*args: object) -> tuple[float, float, float, int]:
+    """run_task, returning (wall s, CPU s of the process, CPU s of the task's thread, voluntary
+    context switches of the process) where it ran (pickled by value to the workers)."""
+    t, c, th, sw = time.perf_counter(), time.process_time(), time.thread_time(), _switches()
     run_task(*args)
-    return time.perf_counter() - t, time.process_time() - c
+    return time.perf_counter() - t, time.process_time() - c, time.thread_time() - th, _switches() - sw
 
 
 def profiled_task(*args: object) -> dict[str, float]:
@@ -87,10 +99,10 @@ def profiled_task(*args: object) -> dict[str, float]:
     }
 
 
-def on_dask(workers: int, kind: str, paths: list[str], out: Path) -> tuple[float, float, float]:
-    """(wall seconds, sum of the wall and of the CPU seconds inside the tasks) for the tasks
-    of ``paths`` on an embedded cluster of ``workers`` (warm)."""
-    inside: list[tuple[float, float]] = []
+def on_dask(workers: int, kind: str, paths: list[str], out: Path) -> tuple[float, list[tuple[float, float, float, int]]]:
+    """(wall seconds, :func:`timed_task`'s figures of each task) for the tasks of ``paths``
+    on an embedded cluster of ``workers`` (warm)."""
+    inside: list[tuple[float, float, float, int]] = []
     with engine.client(None, workers, dashboard_address=":0") as c:
         c.run(warm_up, paths[0])
         t = time.perf_counter()
@@ -98,7 +110,7 @@ def on_dask(workers: int, kind: str, paths: list[str], out: Path) -> tuple[float
             c, timed_task, [(kind, i, p, str(out), {}, []) for i, p in enumerate(paths)],
             lambda k, result, error: inside.append(result), progress=False,
         )
-        return time.perf_counter() - t, sum(w for w, _ in inside), sum(c for _, c in inside)
+        return time.perf_counter() - t, inside
 
 
 def profile_worker(kind: str, path: str, out: Path) -> None:
@@ -121,30 +133,37 @@ def main() -> int:
     parser.add_argument("--kind", default="audit", choices=("audit", "replay"))
     parser.add_argument("--noops", type=int, default=200)
     parser.add_argument("--profile", action="store_true", help="profile one session in the client and in a worker")
+    parser.add_argument("--tick", default=engine.TICK_INTERVAL,
+                        help=f"the embedded cluster's event-loop tick (default {engine.TICK_INTERVAL}; Dask's own: 20ms)")
     args = parser.parse_args()
+    engine.TICK_INTERVAL = args.tick
 
+    load_start = os.getloadavg()[0]
     work = Path(tempfile.mkdtemp(prefix="crossfield-bench-batch-"))
     try:
         paths = record(work / "archive", args.sessions, args.frames)
         n = len(paths)
-        print(f"{n} sessions of {args.frames} stereo pair(s), batch {args.kind}, {os.cpu_count()} core(s)")
+        print(f"{n} sessions of {args.frames} stereo pair(s), batch {args.kind}, {os.cpu_count()} core(s), "
+              f"tick {args.tick}, load {load_start:.1f}")
         warm_up(paths[0])
-        t, c = time.perf_counter(), time.process_time()
-        for i, p in enumerate(paths):
-            run_task(args.kind, i, p, str(work / "seq"), {}, [])
-        sequential, sequential_cpu = time.perf_counter() - t, time.process_time() - c
-        print(
-            f"  sequential loop   {n / sequential:7.3f} sessions/s   1.00 x   "
-            f"({sequential / n * 1e3:.0f} ms per session, CPU {sequential_cpu / n * 1e3:.0f} ms)"
-        )
+        t = time.perf_counter()
+        tasks = [timed_task(args.kind, i, p, str(work / "seq"), {}, []) for i, p in enumerate(paths)]
+        sequential = time.perf_counter() - t
+
+        def per_session(rows: list[tuple[float, float, float, int]]) -> str:
+            wall, cpu, thread, switches = (sum(r[k] for r in rows) / len(rows) for k in range(4))
+            return (f"{wall * 1e3:.0f} ms per session, CPU {cpu * 1e3:.0f} ms (task thread {thread * 1e3:.0f}), "
+                    f"{switches:.0f} voluntary context switches")
+
+        print(f"  sequential loop   {n / sequential:7.3f} sessions/s   1.00 x   ({per_session(tasks)})")
         one = None
         for workers in (1, 2):
-            s, inside, inside_cpu = on_dask(workers, args.kind, paths, work / f"dask{workers}")
+            s, inside = on_dask(workers, args.kind, paths, work / f"dask{workers}")
             one = s if workers == 1 else one
             record_figure(f"batch.workers{workers}_vs_sequential", sequential / s, "higher")
             print(
                 f"  {workers} worker(s)       {n / s:7.3f} sessions/s   {sequential / s:4.2f} x the sequential loop"
-                f"   (inside the tasks: {inside / n * 1e3:.0f} ms per session, CPU {inside_cpu / n * 1e3:.0f} ms)"
+                f"   (inside the tasks: {per_session(inside)})"
             )
         with engine.client(None, 1, dashboard_address=":0") as c:
             c.run(warm_up)
@@ -156,7 +175,7 @@ def main() -> int:
             f"                    {(one - sequential) / n * 1e3:7.1f} ms per session task "
             f"(1 worker - sequential) / sessions, {(one - sequential) / sequential * 100:+.1f} %"
         )
-        print(f"  load average {os.getloadavg()[0]:.1f} at the end")
+        print(f"  load average {os.getloadavg()[0]:.1f} at the end (at the start {load_start:.1f})")
         if args.profile:
             profile_worker(args.kind, paths[0], work)
     finally:

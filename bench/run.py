@@ -32,12 +32,17 @@ import figures  # noqa: E402
 
 BASELINE = HERE / "baseline.json"
 
+#: bench_recording writes into memory where the machine has a tmpfs: the kernel's page-cache
+#: work for a 965 MB file on disk (reclaim, write-back) scattered the plain write's CPU
+#: 2.4-27 ms per pair between runs, and the ratios with it (docs/recording.md)
+RAM_DIR = ["--dir", "/dev/shm"] if Path("/dev/shm").is_dir() else []
+
 #: script, arguments for a full run, arguments for --quick
 BENCHMARKS = (
     ("bench_centroid.py", ["--source", "station"], ["--source", "station", "--runs", "100"]),
     ("bench_pipeline.py", ["--frames", "300", "--repeat", "3", "--scenario", "station"],
      ["--frames", "100", "--repeat", "1", "--scenario", "station"]),
-    ("bench_recording.py", ["--repeats", "3"], ["--pairs", "40", "--repeats", "2"]),
+    ("bench_recording.py", ["--repeats", "3", *RAM_DIR], ["--pairs", "40", "--repeats", "2", *RAM_DIR]),
     ("bench_replay.py", ["--frames", "60", "--repeat", "3"], ["--frames", "20", "--repeat", "1"]),
     ("bench_triangulate.py", [], ["--runs", "500"]),
     ("bench_batch.py", [], ["--sessions", "4", "--noops", "50"]),
