@@ -349,7 +349,9 @@ def main(argv: list[str] | None = None) -> None:
         plain_added = median("plain file write", "wall_ms_per_pair") - alone
         for name in results:
             if name.startswith("McapRecorder"):
-                print(f"added wall, {name} / plain write: {(median(name, 'wall_ms_per_pair') - alone) / plain_added:.2f}")
+                added = median(name, "wall_ms_per_pair") - alone
+                ratio = f"{added / plain_added:.2f}" if plain_added > 0.05 else "- (the plain write added nothing measurable)"
+                print(f"added wall per pair, {name}: {added:.2f} ms; / plain write ({plain_added:.2f} ms): {ratio}")
     for compression in args.compressions:
         print(f"{compression} compression alone: {compression_ms_per_image(frames, compression):.1f} ms CPU per image")
     if costs:
