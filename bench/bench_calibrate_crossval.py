@@ -63,7 +63,9 @@ def detections(seed: int, vary_layout: bool, cache: Path | None) -> list[dict[st
             view = {}
             for cam in CAMERAS:
                 ids = z[f"{k}_{cam}_ids"]
-                view[cam] = BoardDetection(ids, z[f"{k}_{cam}_uv"], board.object_points()[ids]) if len(ids) else None
+                view[cam] = (
+                    BoardDetection(ids, z[f"{k}_{cam}_uv"], board.object_points()[ids]) if len(ids) else None
+                )
             out.append(view)
         return out
 
@@ -87,7 +89,10 @@ def session(seed: int, vary_layout: bool, cache: Path | None) -> dict:
     )
     cv = compare(a.calibration, a.covariance, b.calibration, b.covariance, halves=halves)
     z = np.concatenate([cv.projection_ratio(cam) for cam in CAMERAS])
-    jac = [sol.covariance / np.outer(*(2 * [np.sqrt(np.diag(sol.covariance)) / sol.std_jacobian])) for sol in (a, b)]
+    jac = [
+        sol.covariance / np.outer(*(2 * [np.sqrt(np.diag(sol.covariance)) / sol.std_jacobian]))
+        for sol in (a, b)
+    ]
     cv_j = compare(a.calibration, jac[0], b.calibration, jac[1], halves=halves)
     z_j = np.concatenate([cv_j.projection_ratio(cam) for cam in CAMERAS])
     row = {
@@ -113,7 +118,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, default=None, help="write the per-seed rows here")
     args = ap.parse_args(argv)
     rows = []
-    print("| seed | max upper | max lower | max 3-D | grid within 2 | grid mean z^2 | Jacobian alone | A vs truth | B vs truth | whole vs truth |")
+    print(
+        "| seed | max upper | max lower | max 3-D | grid within 2 | grid mean z^2 | Jacobian alone | A vs truth | B vs truth | whole vs truth |"
+    )
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for seed in range(1, args.seeds + 1):
         r = session(seed, args.vary_layout, args.cache)

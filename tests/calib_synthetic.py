@@ -48,7 +48,9 @@ def synthetic_detections(
     truth = station_calibration()
     if dist_coeffs is not None:
         D = np.array(dist_coeffs, float)
-        truth = replace(truth, upper=replace(truth.upper, dist_coeffs=D), lower=replace(truth.lower, dist_coeffs=D))
+        truth = replace(
+            truth, upper=replace(truth.upper, dist_coeffs=D), lower=replace(truth.lower, dist_coeffs=D)
+        )
     rng = np.random.default_rng([seed, 28])
     poses = station_board_poses(
         n_views, board, layout_seed=1000 + seed if layout_seed is None else layout_seed

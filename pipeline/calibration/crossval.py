@@ -35,7 +35,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-
 from scipy import stats
 
 from crossfield.types import CameraIntrinsics, StereoCalibration

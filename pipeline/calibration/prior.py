@@ -86,9 +86,7 @@ def mrcal_prior(n_dist: int, image_sizes: tuple[tuple[int, int], tuple[int, int]
     return Prior(np.array(index), np.array(target, float), np.array(scale, float))
 
 
-def covariance_with_prior(
-    res: np.ndarray, J: np.ndarray, J_prior: np.ndarray
-) -> tuple[np.ndarray, float]:
+def covariance_with_prior(res: np.ndarray, J: np.ndarray, J_prior: np.ndarray) -> tuple[np.ndarray, float]:
     """The covariance of a regularised least-squares estimate, and sigma (px).
 
     res (m,), J (m, p): the reprojection rows; J_prior (k, p): the prior rows.

@@ -24,7 +24,9 @@ def _refine(dets, size, **kw):
         dets, {"upper": size, "lower": size}, BOARD, CalibrationSettings(holdout_every=0, joint=False)
     )
     views = {k: (dets[k]["upper"], dets[k]["lower"]) for k in result.used_stereo}
-    return refine(views, result.params, result.calibration, BOARD.object_points(), jackknife_views=False, **kw)
+    return refine(
+        views, result.params, result.calibration, BOARD.object_points(), jackknife_views=False, **kw
+    )
 
 
 def test_prior_rows_carry_mrcals_share_of_the_cost():
@@ -41,7 +43,9 @@ def test_prior_rows_carry_mrcals_share_of_the_cost():
     np.testing.assert_allclose(np.sum(r[centre] ** 2), 0.0025 * n_res, rtol=1e-12)
     # rows s (x - target): the Jacobian is s at x's column
     J = prior.jacobian(len(theta))
-    np.testing.assert_allclose(J @ theta - J @ np.zeros_like(theta), -(r - prior.residuals(np.zeros_like(theta))))
+    np.testing.assert_allclose(
+        J @ theta - J @ np.zeros_like(theta), -(r - prior.residuals(np.zeros_like(theta)))
+    )
 
 
 def test_covariance_with_no_prior_is_the_gauss_newton_one():

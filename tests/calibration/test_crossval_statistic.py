@@ -13,7 +13,9 @@ def _draws(cov: np.ndarray, n: int, seed: int) -> np.ndarray:
 
 def test_a_scalar_difference_is_its_ratio_to_sigma():
     d = np.array([[0.3], [-1.7], [2.5]])
-    np.testing.assert_allclose(normal_equivalent(d, np.full((3, 1, 1), 0.25)), np.abs(d[:, 0]) / 0.5, rtol=1e-9)
+    np.testing.assert_allclose(
+        normal_equivalent(d, np.full((3, 1, 1), 0.25)), np.abs(d[:, 0]) / 0.5, rtol=1e-9
+    )
 
 
 def test_differences_drawn_from_their_covariance_are_within_2_sigma_as_often_as_a_normal_variable():
