@@ -11,12 +11,15 @@ outside the image dropped), then what a real session adds:
 * ``warp_mm``: a fixed board bow (wx, wy) and ``bow_per_view_mm`` the std
   of a random bow per view (errors correlated within a view);
 * ``view_shift_px``: std of a random shift common to a view's corners in
-  each image (correlated errors, e.g. a PSF that changes with the view).
+  each image (correlated errors, e.g. a PSF that changes with the view);
+* ``dist_coeffs``: (k1, k2, p1, p2, k3) for both cameras in place of the
+  station's (the returned truth has them).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -38,10 +41,16 @@ def synthetic_detections(
     bow_per_view_mm: float = 0.0,
     view_shift_px: float = 0.0,
     layout_seed: int | None = None,
+    dist_coeffs: tuple[float, float, float, float, float] | None = None,
 ):
     """(detections per view {camera: BoardDetection}, truth StereoCalibration, image size)."""
     board = default_board()
     truth = station_calibration()
+    if dist_coeffs is not None:
+        D = np.array(dist_coeffs, float)
+        truth = replace(
+            truth, upper=replace(truth.upper, dist_coeffs=D), lower=replace(truth.lower, dist_coeffs=D)
+        )
     rng = np.random.default_rng([seed, 28])
     poses = station_board_poses(
         n_views, board, layout_seed=1000 + seed if layout_seed is None else layout_seed

@@ -62,6 +62,7 @@ def jackknife(
             grid=grid,
             max_iterations=max_iterations,
             warp_start=solution.warp_mm,
+            image_sizes=solution.image_sizes,
         )
         thetas.append(sol.theta)
     thetas = np.array(thetas)

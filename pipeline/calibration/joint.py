@@ -33,6 +33,7 @@ import cv2
 import numpy as np
 
 from crossfield.calibration.covariance import project_with_jacobians
+from crossfield.calibration.prior import Prior, mrcal_prior
 
 #: Parameters of the rig block (after both cameras' intrinsics).
 RIG_SIZE = 6
@@ -59,6 +60,8 @@ class JointSolution:
     """The refined parameters, and the residuals (m,) px and Jacobian (m, p) at the solution.
 
     theta: camera + rig (+ warp) block, (p_cam,); poses: (V, 6) rvec, t per view.
+    residuals, jacobian: the reprojection rows only; image_sizes: the cameras'
+    (width, height) px when the solve had mrcal's prior (``prior``: its rows), else None.
     """
 
     theta: np.ndarray
@@ -68,6 +71,21 @@ class JointSolution:
     n_dist: int
     warp: bool
     iterations: int
+    image_sizes: tuple[tuple[int, int], tuple[int, int]] | None = None
+
+    @property
+    def prior(self) -> Prior | None:
+        """mrcal's regularisation rows of this solve (``crossfield.calibration.prior``), or None."""
+        if self.image_sizes is None:
+            return None
+        return mrcal_prior(self.n_dist, self.image_sizes, len(self.residuals))
+
+    @property
+    def prior_jacobian(self) -> np.ndarray:
+        """(k, p) the prior rows' Jacobian over all parameters (k = 0 without a prior)."""
+        prior = self.prior
+        n = self.jacobian.shape[1]
+        return np.zeros((0, n)) if prior is None else prior.jacobian(n)
 
     @property
     def n_camera_params(self) -> int:
@@ -194,12 +212,15 @@ def refine_joint(
     max_iterations: int = 60,
     tolerance: float = 1e-10,
     warp_start: np.ndarray | None = None,
+    image_sizes: tuple[tuple[int, int], tuple[int, int]] | None = None,
 ) -> JointSolution:
     """Levenberg-Marquardt from (theta0, poses0) (stereoCalibrate's solution).
 
     theta0: camera + rig block (2 (4 + n_dist) + 6,); poses0: (V, 6);
-    warp_start: (2,) mm, the bow to start from (default flat). Stops when the
-    cost changes by less than ``tolerance`` relative.
+    warp_start: (2,) mm, the bow to start from (default flat); image_sizes:
+    (width, height) px of both cameras to add mrcal's prior on the distortion
+    and the centre (``crossfield.calibration.prior.mrcal_prior``; None: no
+    prior). Stops when the cost changes by less than ``tolerance`` relative.
     """
     theta = np.asarray(theta0, float)
     if warp:
@@ -208,7 +229,16 @@ def refine_joint(
     n_cam = len(theta)
     lam = 1e-3
     split = lambda x: (x[:n_cam], x[n_cam:].reshape(-1, 6))
-    res, J = residuals_jacobian(views, *split(x), n_dist, warp, grid)
+    n_rows = sum(2 * (len(v.object_upper) + len(v.object_lower)) for v in views)
+    prior = None if image_sizes is None else mrcal_prior(n_dist, image_sizes, n_rows)
+
+    def rows(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        res, J = residuals_jacobian(views, *split(x), n_dist, warp, grid)
+        if prior is None:
+            return res, J
+        return np.concatenate([res, prior.residuals(x)]), np.vstack([J, prior.jacobian(len(x))])
+
+    res, J = rows(x)
     cost = float(res @ res)
     it = 0
     for it in range(1, max_iterations + 1):
@@ -221,7 +251,7 @@ def refine_joint(
         for _ in range(10):
             step = np.linalg.solve(A + lam * np.diag(np.diag(A)), g) / scale
             x_new = x + step
-            res_new, J_new = residuals_jacobian(views, *split(x_new), n_dist, warp, grid)
+            res_new, J_new = rows(x_new)
             cost_new = float(res_new @ res_new)
             if cost_new <= cost:
                 improved = True
@@ -235,7 +265,7 @@ def refine_joint(
         if done:
             break
     theta, poses = split(x)
-    return JointSolution(theta.copy(), poses.copy(), res, J, n_dist, warp, it)
+    return JointSolution(theta.copy(), poses.copy(), res[:n_rows], J[:n_rows], n_dist, warp, it, image_sizes)
 
 
 def camera_residuals(

@@ -26,7 +26,6 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from crossfield.calibration.covariance import covariance_from_jacobian
 from crossfield.calibration.detect import BoardDetection
 from crossfield.calibration.jackknife import combined_covariance, jackknife
 from crossfield.calibration.joint import (
@@ -37,6 +36,7 @@ from crossfield.calibration.joint import (
     refine_joint,
     without_corners,
 )
+from crossfield.calibration.prior import covariance_with_prior
 from crossfield.calibration.residuals import ResidualMap, residual_map
 from crossfield.types import CAMERAS, CameraIntrinsics, StereoCalibration
 
@@ -127,13 +127,15 @@ def refine(
     jackknife_views: bool = True,
     reject_corners: bool = True,
     weight_views: bool = True,
+    prior: bool = True,
 ) -> Refinement:
     """Steps 1-4 of the module docstring.
 
     stereo_views: view -> (upper, lower) detections (all their corners);
     params0 (p,): the stereo solution (``camera_param_names`` order); like:
     a calibration with the image sizes; object_points (n, 3) mm: the whole
-    board's points (the bow's span).
+    board's points (the bow's span); prior: mrcal's regularisation in every
+    solve (``crossfield.calibration.prior``; needs the image sizes).
     """
     n_dist = len(like.upper.dist_coeffs)
     n = 4 + n_dist
@@ -146,7 +148,9 @@ def refine(
     K1 = np.array([[params0[0], 0, params0[2]], [0, params0[1], params0[3]], [0, 0, 1.0]])
     poses0 = initial_poses(views, K1, params0[4:n])
     warp = estimate_warp and len(views) >= WARP_MIN_VIEWS
-    sol = refine_joint(views, params0, poses0, n_dist, warp=warp, grid=grid)
+    sizes = (like.upper.image_size, like.lower.image_size)
+    image_sizes = sizes if prior and all(s is not None for s in sizes) else None
+    sol = refine_joint(views, params0, poses0, n_dist, warp=warp, grid=grid, image_sizes=image_sizes)
     resolve = lambda views, sol: refine_joint(
         views,
         sol.theta[: sol.n_camera_params],
@@ -155,6 +159,7 @@ def refine(
         warp=warp,
         grid=grid,
         warp_start=sol.warp_mm,
+        image_sizes=image_sizes,
     )
     n_outliers = 0
     for stage in ("unweighted", "weighted") if weight_views else ("unweighted",):
@@ -170,7 +175,7 @@ def refine(
             sol = resolve(views, sol)
     n_cam = sol.n_camera_params
     n_block = n_cam + (2 if warp else 0)
-    cov_full, sigma = covariance_from_jacobian(sol.residuals, sol.jacobian)
+    cov_full, sigma = covariance_with_prior(sol.residuals, sol.jacobian, sol.prior_jacobian)
     cov_j = cov_full[:n_block, :n_block]
     if jackknife_views and len(views) >= JACKKNIFE_MIN_VIEWS:
         jk = jackknife(views, sol, grid=grid)

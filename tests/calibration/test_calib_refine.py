@@ -31,8 +31,9 @@ def _solve(dets, size, **kw):
 
 
 def test_exact_corners_give_the_true_rig_and_bow():
+    # without mrcal's prior (which by design moves the distortion coefficients a little towards 0)
     dets, truth, size = synthetic_detections(10, 3, noise_px=0.0, warp_mm=(0.3, -0.2))
-    _, ref = _solve(dets, size, jackknife_views=False)
+    _, ref = _solve(dets, size, jackknife_views=False, prior=False)
     np.testing.assert_allclose(ref.params, params_of(truth), rtol=1e-7, atol=1e-9)
     np.testing.assert_allclose(ref.warp_mm, [0.3, -0.2], atol=1e-6)
     assert ref.rms_px["upper"] < 1e-6 and ref.rms_px["lower"] < 1e-6
