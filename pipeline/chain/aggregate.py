@@ -60,6 +60,7 @@ from crossfield.types import (
 from crossfield.uncertainty import budget as _budget
 from crossfield.uncertainty.calibration import DEFAULT_SCALE_U, calibration_uncertainty
 from crossfield.uncertainty.cmm_evidence import CmmEvidence, line_fit_evidence
+from crossfield.uncertainty.line_of_sight import line_of_sight_sensitivities, per_control_variance
 from crossfield.uncertainty.consistency import ConsistencyRun
 from crossfield.uncertainty.decision import decide
 from crossfield.uncertainty.dof import coverage_factor, effective_dof, excess_dof, parts_dof
@@ -158,6 +159,9 @@ class _SessionContext:
     #: at the controls (crossfield.uncertainty.consistency), and the dof of that estimate
     camera_registration_excess: float = 0.0
     registration_dof: float = math.inf
+    #: characteristic -> that share propagated along the controls' lines of sight (mm^2;
+    #: crossfield.uncertainty.line_of_sight); None: through control_cmm's shape (isotropic)
+    camera_registration_mm2: dict[str, float] | None = None
 
 
 class _CharacteristicRun:
@@ -217,9 +221,12 @@ class _CharacteristicRun:
             # The Type A excess of the session's epipolar residuals is a bias: its own source,
             # camera_systematic, not divided (budget.camera_terms).
             # The camera's share of the registration excess, a bias at the controls, goes through the
-            # registration as the stated control_cmm term does (an isotropic error of the same trace).
+            # registration only (crossfield.uncertainty.line_of_sight).
             control = self.budget.get("control_cmm")
-            registration_mm2 = ctx.camera_registration_excess * max(control[1].mean, 0.0) if control else 0.0
+            if ctx.camera_registration_mm2 is not None and spec.name in ctx.camera_registration_mm2:
+                registration_mm2 = ctx.camera_registration_mm2[spec.name]  # along the lines of sight
+            else:  # no measurer to propagate it: an isotropic error of the same trace, control_cmm's shape
+                registration_mm2 = ctx.camera_registration_excess * max(control[1].mean, 0.0) if control else 0.0
             epipolar_mm2 = 0.0
             for t in terms:
                 if t.source == "camera":
@@ -425,6 +432,9 @@ class SessionAccumulator:
     reference: the session's CMM data; its reference lines' fit residuals are the CMM's own
     Type A evidence (:mod:`crossfield.uncertainty.cmm_evidence`) by which the registration
     residuals' excess is split between camera and CMM; None: no such evidence.
+    measurer: the session's measure stage, through which the camera's share of that excess is
+    propagated along the controls' lines of sight (:mod:`crossfield.uncertainty.line_of_sight`,
+    once per session, on the first measured frame); None: as an isotropic error at the controls.
     """
 
     def __init__(
@@ -438,6 +448,7 @@ class SessionAccumulator:
         calibration_propagation=None,
         calibration_files: Sequence[Any] | None = None,
         reference: ReferenceData | None = None,
+        measurer: Any = None,
     ) -> None:
         if rows_kept < 0 or errors_kept < 0:
             raise ValueError(f"rows_kept and errors_kept must be >= 0, got {rows_kept}, {errors_kept}")
@@ -467,6 +478,10 @@ class SessionAccumulator:
         self._calibration_propagation = calibration_propagation
         self._calibration_mm: dict[str, float] | None = None
         self._cmm_evidence = CmmEvidence() if reference is None else line_fit_evidence(plan, reference)
+        self._reference = reference
+        self._measurer = measurer
+        #: characteristic -> sum of squared line-of-sight sensitivities at the controls; evaluated once
+        self._line_of_sight: dict[str, float] | None = None
 
     @property
     def rows(self) -> tuple[FrameResult, ...]:
@@ -526,8 +541,19 @@ class SessionAccumulator:
             # camera_systematic is all excess (crossfield.uncertainty.consistency)
             cmm_dof = excess_dof(check.cmm_excess_dof, 1.0 - 1.0 / check.cmm_inflation**2)
             camera_dof = check.camera_excess_dof
-        ctx_registration = (0.0, math.inf) if check is None else (
-            check.camera_registration_excess, check.registration_excess_dof)
+        ctx_registration: tuple = (0.0, math.inf, None)
+        if check is not None:
+            along: dict[str, float] | None = None
+            if (check.camera_registration_excess > 0 and self._measurer is not None and self._reference is not None
+                    and self._mc_frames):
+                if self._line_of_sight is None:
+                    first = self._mc_frames[0]
+                    self._line_of_sight = line_of_sight_sensitivities(
+                        self.plan, self._reference, first.points, first.registration, self._measurer)
+                v = per_control_variance(check.camera_registration_excess * check.expected_cmm_ss_mm2,
+                                         (check.dof + 6) // 3)
+                along = {name: v * s2 for name, s2 in self._line_of_sight.items()}
+            ctx_registration = (check.camera_registration_excess, check.registration_excess_dof, along)
         ctx = _SessionContext(self.plan, inflation, ratio, 0.0 if check is None else check.camera_excess,
                               self._calibration_mm, camera_dof, cmm_dof, *ctx_registration)
         return SessionAggregate(
@@ -565,6 +591,7 @@ def session_accumulator(info: SessionInfo, reference: ReferenceData, measurer: A
         calibration_source=info.calibration.source,
         calibration_files=info.calibration_files,
         reference=reference,
+        measurer=measurer,
         reference_source=describe_reference(
             str((info.plugins.get("reference") or {}).get("name", "")),
             (p.sigma_mm for p in reference.points),

@@ -188,22 +188,27 @@ def check_means(
     cmm_ratio = variance_ratio(cmm_statistic, cmm_dof)
     b = max(0.0, cmm_ratio - 1.0)
     e_arm = expected_excess(cmm_statistic, cmm_dof)
-    # 3. the registration residuals beyond both; the rest split by the own evidence of excess
-    expected_a = e_cam * (1.0 + a) + e_cmm * (1.0 + b)
-    reg_ratio = variance_ratio(dof * ss / expected_a, dof)
-    rest = max(0.0, reg_ratio - 1.0) * expected_a
+    # 3. the registration residuals beyond the camera's own evidence and the stated CMM sigma,
+    #    split by each source's own evidence of excess
+    expected_a = e_cam * (1.0 + a) + e_cmm
+    T_a = dof * ss / expected_a
+    reg_ratio = variance_ratio(T_a, dof)
     w_cam, w_cmm = e_camera * e_cam, e_arm * e_cmm
     share = w_cmm / (w_cam + w_cmm) if w_cam + w_cmm > 0 else (1.0 if e_cmm > 0 else 0.0)
-    c_cmm = share * rest / e_cmm if e_cmm > 0 else 0.0
-    inflation = math.sqrt(1.0 + b + c_cmm) if e_cmm > 0 else 1.0
-    camera_rest = rest - share * rest  # mm^2 at the controls
     if e_cmm > 0:
-        c_cam, camera_excess = camera_rest / e_cmm, a
+        # the CMM's share of the registration, as a chi-square statistic on its variance ratio
+        # (signed: residuals below the expectation are evidence too), pooled with the line fits'
+        registration_statistic = max(0.0, dof * (1.0 + share * (T_a / dof - 1.0) * expected_a / e_cmm))
+        pooled = variance_ratio(cmm_statistic + registration_statistic, cmm_dof + dof)
+        inflation = math.sqrt(max(1.0, pooled))
+        # the camera's share: the shrunk registration excess, in units of the stated CMM variance
+        c_cam, camera_excess = (1.0 - share) * max(0.0, reg_ratio - 1.0) * expected_a / e_cmm, a
     else:  # no stated CMM sigma to carry it through the registration: on every camera point
-        c_cam, camera_excess = 0.0, a + (camera_rest / e_cam if e_cam > 0 else 0.0)
+        inflation, c_cam = 1.0, 0.0
+        camera_excess = a + (max(0.0, reg_ratio - 1.0) * expected_a / e_cam if e_cam > 0 else 0.0)
     nu_reg = PRIOR_DOF + dof
     camera_dof = parts_dof(((a, PRIOR_DOF + m), (camera_excess - a, nu_reg)))
-    cmm_excess_dof = parts_dof(((b, PRIOR_DOF + cmm_dof), (c_cmm, nu_reg)))
+    cmm_excess_dof = PRIOR_DOF + cmm_dof + dof if inflation > 1.0 else math.inf
     warning = None
     if not consistent:
         warning = (
@@ -225,15 +230,11 @@ def check_means(
             f"(camera_systematic through the registration, {c_cam:.2f} x the stated CMM variance there)"
         )
     if inflation > 1.0:
-        seen = []
-        if b > 0:
-            seen.append(f"reference line fits: shrunk ratio {cmm_ratio:.2f} for {cmm_dof} degrees of freedom")
-        if c_cmm > 0:
-            seen.append(f"registration residuals: shrunk ratio {reg_ratio:.2f} for {dof} degrees of freedom, "
-                        f"{share:.0%} of their excess by the CMM's own evidence")
+        lines = f"the reference line fits' residuals (shrunk ratio {cmm_ratio:.2f}, {cmm_dof} dof) and " if cmm_dof else ""
         notes.append(
             f"CMM standard deviation {('stated by ' + reference + ' ') if reference else ''}inflated by "
-            f"{inflation:.2f} (Type A evidence: {'; '.join(seen)})"
+            f"{inflation:.2f} (Type A evidence: {lines}{share:.0%} of the registration residuals' excess "
+            f"(shrunk ratio {reg_ratio:.2f} for {dof} degrees of freedom) by the CMM's own evidence)"
         )
     return ConsistencyCheck(
         n, ss, e_cam, e_cmm, dof, T, p, math.sqrt(T / dof), alpha, consistent, inflation, warning,
