@@ -60,10 +60,10 @@ from crossfield.types import (
 from crossfield.uncertainty import budget as _budget
 from crossfield.uncertainty.calibration import DEFAULT_SCALE_U, calibration_uncertainty
 from crossfield.uncertainty.cmm_evidence import CmmEvidence, line_fit_evidence
-from crossfield.uncertainty.line_of_sight import line_of_sight_sensitivities, per_control_variance
 from crossfield.uncertainty.consistency import ConsistencyRun
 from crossfield.uncertainty.decision import decide
 from crossfield.uncertainty.dof import coverage_factor, effective_dof, excess_dof, parts_dof
+from crossfield.uncertainty.line_of_sight import line_of_sight_sensitivities, per_control_variance
 from crossfield.uncertainty.temperature import LENGTH_KINDS, correction
 
 #: Per-frame result rows a session keeps for its report: the first ones (about
@@ -482,6 +482,13 @@ class SessionAccumulator:
         self._measurer = measurer
         #: characteristic -> sum of squared line-of-sight sensitivities at the controls; evaluated once
         self._line_of_sight: dict[str, float] | None = None
+
+    def set_reference(self, reference: ReferenceData) -> None:
+        """The session's CMM data, when they arrive after the accumulator was made (the viewer of a
+        recording reads them from it): their reference lines' fits are the CMM's own evidence."""
+        self._reference = reference
+        self._cmm_evidence = line_fit_evidence(self.plan, reference)
+        self._line_of_sight = None
 
     @property
     def rows(self) -> tuple[FrameResult, ...]:

@@ -191,7 +191,7 @@ def _frame_inputs(frame: Any, plan: MeasurementPlan, calibration: tuple | None =
 def _calibration_columns(summary: Any) -> tuple | None:
     """(the session's StereoCalibration, n_dist, (p, q) columns of the stated covariance's square
     root) when the session's budget propagated the calibration file's parameters, else None."""
-    from crossfield.uncertainty.calibration import _sqrt_columns, calibration_covariance
+    from crossfield.uncertainty.calibration import calibration_covariance, sqrt_columns
 
     aggregate, info = summary.aggregate, summary.info
     if not str(getattr(aggregate, "calibration_uncertainty_source", "")).startswith("propagated parameters"):
@@ -199,7 +199,7 @@ def _calibration_columns(summary: Any) -> tuple | None:
     stated = calibration_covariance(getattr(info.calibration, "source", ""), getattr(info, "calibration_files", None))
     if stated is None:
         return None
-    return info.calibration, stated.n_dist, _sqrt_columns(stated.covariance)
+    return info.calibration, stated.n_dist, sqrt_columns(stated.covariance)
 
 
 def _stage(config: Any, name: str) -> tuple[str, dict[str, Any]]:

@@ -8,18 +8,17 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_calibration_propagation import CAL, _calibration_file, _std_keys
+from test_measure import Station, measurer, register
 
 from crossfield.types import CameraPoints, ProbedPoint, ReferenceData, StereoCalibration
 from crossfield.uncertainty.calibration import (
-    _sqrt_columns,
     calibration_contributions,
     calibration_covariance,
     point_displacements,
+    sqrt_columns,
 )
 from crossfield.uncertainty.montecarlo import MonteCarloFrame, MonteCarloProblem, draw_chunk
-
-from test_calibration_propagation import CAL, _calibration_file, _std_keys
-from test_measure import Station, measurer, register
 
 
 def test_calibration_is_drawn_from_the_stated_parameters_as_the_linear_term_propagates(tmp_path):
@@ -42,7 +41,7 @@ def test_calibration_is_drawn_from_the_stated_parameters_as_the_linear_term_prop
     for cid, i in zip(registration.correspondence.control_ids, registration.correspondence.camera_index):
         labels[int(i)] = cid
     frame = MonteCarloFrame(points, registration.correspondence, np.zeros(n), tuple(labels),
-                            point_displacements(xyz, cal, stated.n_dist, _sqrt_columns(stated.covariance)))
+                            point_displacements(xyz, cal, stated.n_dist, sqrt_columns(stated.covariance)))
     names = tuple(linear)
     kinds = tuple(next(c.kind for c in plan.characteristics if c.name == name) for name in names)
     problem = MonteCarloProblem(plan, reference, (frame,), 1.0, 1.0, 0.0, names, kinds, np.zeros(len(names)),

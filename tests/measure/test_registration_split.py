@@ -14,6 +14,7 @@ import math
 
 import numpy as np
 import pytest
+from test_measure import Station, measurer, register
 
 from crossfield.chain.aggregate import SessionAccumulator
 from crossfield.geometry import fit_reference_element
@@ -23,8 +24,6 @@ from crossfield.uncertainty.cmm_evidence import line_fit_evidence
 from crossfield.uncertainty.consistency import check_means
 from crossfield.uncertainty.line_of_sight import line_of_sight_sensitivities
 from crossfield.uncertainty.type_a import expected_excess, variance_ratio
-
-from test_measure import Station, measurer, register
 
 _MEASURER = measurer()
 CAMERA = np.array([0.001, 0.001, 0.004])  # camera-frame x y z (mm)
@@ -77,7 +76,7 @@ def _terms(case: dict, sessions: int = 24, seed: int = 3):
             growth.append(c.uncertainty_mm / math.sqrt(sum(v * v for v in model.values())))
             if c.error_mm is not None:
                 covered.append(abs(c.error_mm) <= c.expanded_uncertainty_mm)
-    median = lambda d: {k: float(np.median(v)) for k, v in d.items()}  # noqa: E731
+    median = lambda d: {k: float(np.median(v)) for k, v in d.items()}
     _terms.growth, _terms.share = float(np.median(growth)), float(np.median(share))
     return median(systematic), median(cmm), float(np.median(f)), float(np.mean(covered))
 
@@ -89,14 +88,14 @@ def clean():
 
 
 def test_neither_excess_nothing_grows(clean):
-    systematic, cmm, f, covered, growth = clean
+    _, _, f, covered, growth = clean
     assert f < 1.1  # the arm as stated: its factor stays near 1
     assert growth < 1.05  # u within a few percent of the model's (the positive part of the evidence's noise)
     assert covered >= 0.93
 
 
 def test_understated_cmm_grows_the_cmm_term_not_the_camera_term(clean):
-    systematic0, cmm0, f0, *_ = clean
+    systematic0, cmm0, *_ = clean
     systematic, cmm, f, covered = _terms({"arm": 2 * STATED})
     assert 1.6 <= f <= 2.4  # the line fits' residuals and the registration's: the arm is ~2x off
     # the camera keeps its weight's share only: its epipolar evidence agrees (12 points), which still leaves
@@ -114,7 +113,7 @@ def test_understated_cmm_grows_the_cmm_term_not_the_camera_term(clean):
 def test_camera_bias_at_the_controls_goes_to_the_camera_term_not_the_cmm(clean):
     # as on mismatch-camera: the epipolar residuals show a camera excess (beta 1.5), the registration
     # residuals a larger one along the lines of sight (~5x the stated CMM variance at the controls)
-    systematic0, cmm0, f0, *_ = clean
+    systematic0, cmm0, *_ = clean
     systematic, cmm, f, covered = _terms({"los_bias": 2 * CAMERA[2], "beta": 1.5})
     assert _terms.share <= 0.2  # the camera takes >= 80 % of the registration excess
     assert f <= 1.3  # (all of it on the CMM: f ~ 2.5)
@@ -129,7 +128,7 @@ def test_camera_bias_at_the_controls_goes_to_the_camera_term_not_the_cmm(clean):
 
 def test_split_rule_on_constructed_numbers():
     # registration residuals 4x the expectation (18 dof), camera and CMM equal at the controls
-    base = dict(n=1, ss=4.0, e_cam=0.5, e_cmm=0.5, dof=18)
+    base = {"n": 1, "ss": 4.0, "e_cam": 0.5, "e_cmm": 0.5, "dof": 18}
     # the lines say the arm is 2x off (14 dof at ratio 4), the epipolar residuals agree (14 points at 1)
     arm = check_means(**base, epipolar_chi2=14.0, epipolar_count=14, cmm_statistic=56.0, cmm_dof=14)
     w_cam, w_cmm = expected_excess(14.0, 14) * 0.5, expected_excess(56.0, 14) * 0.5
