@@ -156,6 +156,13 @@ def one_session(out: Path, scenario: str, seed: int, frames: int, arm_sigma: flo
             "camera_ratio": None if check is None else getattr(check, "camera_ratio", None),
             "registration_dof": None if check is None else check.dof,
             "epipolar_points": None if check is None else getattr(check, "epipolar_points", None),
+            **({} if check is None else {
+                "expected_camera_ss_mm2": check.expected_camera_ss_mm2, "expected_cmm_ss_mm2": check.expected_cmm_ss_mm2,
+                "observed_ss_mm2": check.observed_ss_mm2,
+                "camera_excess": check.camera_excess,
+                "camera_registration_excess": getattr(check, "camera_registration_excess", None),
+                "cmm_ratio": getattr(check, "cmm_ratio", None), "cmm_evidence_dof": getattr(check, "cmm_evidence_dof", None),
+                "cmm_share": getattr(check, "cmm_share", None)}),
             "rows": rows}
 
 

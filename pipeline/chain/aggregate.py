@@ -59,10 +59,11 @@ from crossfield.types import (
 )
 from crossfield.uncertainty import budget as _budget
 from crossfield.uncertainty.calibration import DEFAULT_SCALE_U, calibration_uncertainty
+from crossfield.uncertainty.cmm_evidence import CmmEvidence, line_fit_evidence
 from crossfield.uncertainty.consistency import ConsistencyRun
 from crossfield.uncertainty.decision import decide
-from crossfield.uncertainty.dof import coverage_factor, effective_dof, excess_dof
-from crossfield.uncertainty.type_a import PRIOR_DOF
+from crossfield.uncertainty.dof import coverage_factor, effective_dof, excess_dof, parts_dof
+from crossfield.uncertainty.line_of_sight import line_of_sight_sensitivities, per_control_variance
 from crossfield.uncertainty.temperature import LENGTH_KINDS, correction
 
 #: Per-frame result rows a session keeps for its report: the first ones (about
@@ -150,10 +151,17 @@ class _SessionContext:
     #: characteristic -> the calibration's parameters propagated (mm; crossfield.uncertainty.calibration
     #: .calibration_contributions), replacing the relative-scale term; None: the scale term
     calibration_mm: dict[str, float] | None = None
-    #: degrees of freedom of the Type A-set terms (crossfield.uncertainty.dof): camera_systematic
-    #: (PRIOR_DOF + m epipolar points) and the CMM terms (PRIOR_DOF + 3n - 6)
+    #: degrees of freedom of the Type A-set terms (crossfield.uncertainty.dof): camera_systematic and
+    #: the CMM terms (their evidence's, crossfield.uncertainty.consistency: camera_excess_dof, cmm_excess_dof)
     camera_dof: float = math.inf
     cmm_dof: float = math.inf
+    #: the camera's share of the registration residuals' excess, in units of the stated CMM variance
+    #: at the controls (crossfield.uncertainty.consistency), and the dof of that estimate
+    camera_registration_excess: float = 0.0
+    registration_dof: float = math.inf
+    #: characteristic -> that share propagated along the controls' lines of sight (mm^2;
+    #: crossfield.uncertainty.line_of_sight); None: through control_cmm's shape (isotropic)
+    camera_registration_mm2: dict[str, float] | None = None
 
 
 class _CharacteristicRun:
@@ -186,9 +194,11 @@ class _CharacteristicRun:
                 self.dof[t.source] = min(dof, self.dof.get(t.source, math.inf))
 
     def _budget(self, spec: CharacteristicSpec, mean: float, std: float, ctx: _SessionContext):
-        """The session budget (see :class:`CharacteristicSummary`) and the temperature correction."""
+        """The session budget (see :class:`CharacteristicSummary`), the temperature correction and
+        the dof of camera_systematic (its two parts', crossfield.uncertainty.dof.parts_dof)."""
         n = self.values.n
         terms: list[BudgetTerm] = []
+        systematic_dof = math.inf
         for source in _budget.SOURCES:
             if source not in self.budget:
                 continue
@@ -210,8 +220,22 @@ class _CharacteristicRun:
             # other sources are one error shared by every frame: not divided.
             # The Type A excess of the session's epipolar residuals is a bias: its own source,
             # camera_systematic, not divided (budget.camera_terms).
-            terms = [u for t in terms
-                     for u in (_budget.camera_terms(t, n, ctx.camera_excess) if t.source == "camera" else (t,))]
+            # The camera's share of the registration excess, a bias at the controls, goes through the
+            # registration only (crossfield.uncertainty.line_of_sight).
+            control = self.budget.get("control_cmm")
+            if ctx.camera_registration_mm2 is not None and spec.name in ctx.camera_registration_mm2:
+                registration_mm2 = ctx.camera_registration_mm2[spec.name]  # along the lines of sight
+            else:  # no measurer to propagate it: an isotropic error of the same trace, control_cmm's shape
+                registration_mm2 = ctx.camera_registration_excess * max(control[1].mean, 0.0) if control else 0.0
+            epipolar_mm2 = 0.0
+            for t in terms:
+                if t.source == "camera":
+                    epipolar_mm2 = ctx.camera_excess * t.u_mm**2
+            terms = [u for t in terms for u in (
+                _budget.camera_terms(t, n, ctx.camera_excess, registration_mm2) if t.source == "camera" else (t,))]
+            # camera_systematic's dof: its two parts' (GUM eq. (G.2b) on the variance estimate)
+            systematic_dof = parts_dof(
+                ((epipolar_mm2, ctx.camera_dof), (registration_mm2, ctx.registration_dof)))
             random_part = next((t.u_mm for t in terms if t.source == "camera"), 0.0)
         elif self.uncertainty.n:  # a measurer without a budget: its u as one term, not divided
             terms.append(_budget.term("camera", 0.0, "mm", self.uncertainty.mean))
@@ -228,7 +252,7 @@ class _CharacteristicRun:
         dL, u_temp = correction(mean, temp) if spec.kind in LENGTH_KINDS else (0.0, 0.0)
         terms.append(_budget.term("temperature", u_temp / abs(mean) if mean else 0.0, "1", u_temp))
         terms.sort(key=lambda t: _budget.SOURCES.index(t.source))
-        return tuple(terms), dL
+        return tuple(terms), dL, systematic_dof
 
     def summary(self, spec: CharacteristicSpec, ctx: _SessionContext) -> CharacteristicSummary:
         n = self.values.n
@@ -256,12 +280,12 @@ class _CharacteristicRun:
             )
         raw = self.values.mean
         std = math.sqrt(self.values.variance()) if n > 1 else 0.0
-        budget, dL = self._budget(spec, raw, std, ctx)
+        budget, dL, systematic_dof = self._budget(spec, raw, std, ctx)
         mean = raw + dL
         u_c = _budget.combined(budget)
         # Welch-Satterthwaite over the terms the session's data estimated (GUM G.4;
         # crossfield.uncertainty.dof): k for a normal output becomes t_p(nu_eff)
-        dofs = {"camera_systematic": ctx.camera_dof, "control_cmm": ctx.cmm_dof, "reference_cmm": ctx.cmm_dof,
+        dofs = {"camera_systematic": systematic_dof, "control_cmm": ctx.cmm_dof, "reference_cmm": ctx.cmm_dof,
                 "repeatability": float(n - 1) if n > 1 else math.inf, **self.dof}
         budget = tuple(dataclasses.replace(t, dof=dofs.get(t.source, math.inf)) for t in budget)
         nu_eff = effective_dof((t.u_mm, t.dof) for t in budget)
@@ -405,6 +429,12 @@ class SessionAccumulator:
     term reads (:class:`crossfield.recording.calibration_files.CalibrationFile`, as
     the session read them at its start; a replay's are the recorded copies); None:
     the files ``calibration_source`` names, read now.
+    reference: the session's CMM data; its reference lines' fit residuals are the CMM's own
+    Type A evidence (:mod:`crossfield.uncertainty.cmm_evidence`) by which the registration
+    residuals' excess is split between camera and CMM; None: no such evidence.
+    measurer: the session's measure stage, through which the camera's share of that excess is
+    propagated along the controls' lines of sight (:mod:`crossfield.uncertainty.line_of_sight`,
+    once per session, on the first measured frame); None: as an isotropic error at the controls.
     """
 
     def __init__(
@@ -417,6 +447,8 @@ class SessionAccumulator:
         reference_source: str = "",
         calibration_propagation=None,
         calibration_files: Sequence[Any] | None = None,
+        reference: ReferenceData | None = None,
+        measurer: Any = None,
     ) -> None:
         if rows_kept < 0 or errors_kept < 0:
             raise ValueError(f"rows_kept and errors_kept must be >= 0, got {rows_kept}, {errors_kept}")
@@ -445,6 +477,18 @@ class SessionAccumulator:
         #: or None; evaluated once, on the first measured frame
         self._calibration_propagation = calibration_propagation
         self._calibration_mm: dict[str, float] | None = None
+        self._cmm_evidence = CmmEvidence() if reference is None else line_fit_evidence(plan, reference)
+        self._reference = reference
+        self._measurer = measurer
+        #: characteristic -> sum of squared line-of-sight sensitivities at the controls; evaluated once
+        self._line_of_sight: dict[str, float] | None = None
+
+    def set_reference(self, reference: ReferenceData) -> None:
+        """The session's CMM data, when they arrive after the accumulator was made (the viewer of a
+        recording reads them from it): their reference lines' fits are the CMM's own evidence."""
+        self._reference = reference
+        self._cmm_evidence = line_fit_evidence(self.plan, reference)
+        self._line_of_sight = None
 
     @property
     def rows(self) -> tuple[FrameResult, ...]:
@@ -484,7 +528,10 @@ class SessionAccumulator:
     def result(self) -> SessionAggregate:
         """The aggregates of every frame added so far."""
         kept = [f.registration for f in self._rows if f.registration is not None]
-        check = self._consistency.result(self.plan.uncertainty.consistency_alpha, self.reference_source)
+        check = self._consistency.result(
+            self.plan.uncertainty.consistency_alpha, self.reference_source,
+            self._cmm_evidence.statistic, self._cmm_evidence.dof,
+        )
         inflation = 1.0 if check is None else check.cmm_inflation
         stated = self.plan.uncertainty.calibration_scale_u
         per_frame = DEFAULT_SCALE_U if stated is None else stated  # what the measurer used
@@ -497,12 +544,25 @@ class SessionAccumulator:
         camera_dof = cmm_dof = math.inf
         if check is not None:
             # the CMM terms: the stated sigma times f, the excess 1 - 1/f^2 of their variance
-            # estimated with the posterior's dof (crossfield.uncertainty.dof.excess_dof)
-            cmm_dof = excess_dof(PRIOR_DOF + check.dof, 1.0 - 1.0 / check.cmm_inflation**2)
-            if getattr(check, "epipolar_points", 0) > 0:
-                camera_dof = PRIOR_DOF + float(check.epipolar_points)
+            # estimated with the dof of its evidence (crossfield.uncertainty.dof.excess_dof);
+            # camera_systematic is all excess (crossfield.uncertainty.consistency)
+            cmm_dof = excess_dof(check.cmm_excess_dof, 1.0 - 1.0 / check.cmm_inflation**2)
+            camera_dof = check.camera_excess_dof
+        ctx_registration: tuple = (0.0, math.inf, None)
+        if check is not None:
+            along: dict[str, float] | None = None
+            if (check.camera_registration_excess > 0 and self._measurer is not None and self._reference is not None
+                    and self._mc_frames):
+                if self._line_of_sight is None:
+                    first = self._mc_frames[0]
+                    self._line_of_sight = line_of_sight_sensitivities(
+                        self.plan, self._reference, first.points, first.registration, self._measurer)
+                v = per_control_variance(check.camera_registration_excess * check.expected_cmm_ss_mm2,
+                                         (check.dof + 6) // 3)
+                along = {name: v * s2 for name, s2 in self._line_of_sight.items()}
+            ctx_registration = (check.camera_registration_excess, check.registration_excess_dof, along)
         ctx = _SessionContext(self.plan, inflation, ratio, 0.0 if check is None else check.camera_excess,
-                              self._calibration_mm, camera_dof, cmm_dof)
+                              self._calibration_mm, camera_dof, cmm_dof, *ctx_registration)
         return SessionAggregate(
             frames_processed=self.frames_processed,
             frames_failed=self.frames_failed,
@@ -537,6 +597,8 @@ def session_accumulator(info: SessionInfo, reference: ReferenceData, measurer: A
         info.plan,
         calibration_source=info.calibration.source,
         calibration_files=info.calibration_files,
+        reference=reference,
+        measurer=measurer,
         reference_source=describe_reference(
             str((info.plugins.get("reference") or {}).get("name", "")),
             (p.sigma_mm for p in reference.points),

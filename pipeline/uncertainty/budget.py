@@ -93,19 +93,26 @@ def merge(variances: Mapping[str, tuple[float, str, float]]) -> tuple[BudgetTerm
     )
 
 
-def camera_terms(camera: BudgetTerm, n_frames: int, camera_excess: float) -> tuple[BudgetTerm, ...]:
+def camera_terms(
+    camera: BudgetTerm, n_frames: int, camera_excess: float, registration_mm2: float = 0.0
+) -> tuple[BudgetTerm, ...]:
     """The session's camera sources from the per-frame ``camera`` term (RMS over the frames).
 
     ``camera``: the random part, drawn anew in every frame, of the mean of
     ``n_frames``: ``u / sqrt(n)`` (GUM 4.2.3). ``camera_systematic`` (when
     ``camera_excess`` > 0, :mod:`crossfield.uncertainty.type_a`): the part the
     session's epipolar residuals show beyond the model, ``sqrt(camera_excess)``
-    times the per-frame term, a bias fixed for the session: **not** divided by
-    sqrt(n) (a systematic effect does not average out, GUM 3.2.3-3.2.4)."""
+    times the per-frame term, plus ``registration_mm2`` (mm^2), the camera's share of
+    the registration residuals' excess carried through the registration
+    (:mod:`crossfield.uncertainty.consistency`): ``u^2 = camera_excess u_camera^2 +
+    registration_mm2``, a bias fixed for the session: **not** divided by sqrt(n) (a
+    systematic effect does not average out, GUM 3.2.3-3.2.4)."""
     n = max(int(n_frames), 1)
     out = [scaled(camera, 1.0 / math.sqrt(n))]
-    if camera_excess > 0:
-        f = math.sqrt(camera_excess)
-        out.append(BudgetTerm("camera_systematic", camera.u * f, camera.unit, camera.sensitivity, camera.u_mm * f))
+    variance = max(camera_excess, 0.0) * camera.u_mm**2 + max(registration_mm2, 0.0)
+    if variance > 0:
+        u_mm = math.sqrt(variance)
+        # the input u in the camera term's unit, at its sensitivity (u_mm / sensitivity)
+        u = camera.u * u_mm / camera.u_mm if camera.u_mm > 0 else 0.0
+        out.append(BudgetTerm("camera_systematic", u, camera.unit, camera.sensitivity, u_mm))
     return tuple(out)
-

@@ -39,6 +39,7 @@ __all__ = [
     "calibration_uncertainty",
     "point_displacements",
     "registered_displacements",
+    "sqrt_columns",
 ]
 
 
@@ -211,7 +212,7 @@ def _text_string(text: str, key: str) -> str:
         fs.release()
 
 
-def _sqrt_columns(covariance: np.ndarray) -> np.ndarray:
+def sqrt_columns(covariance: np.ndarray) -> np.ndarray:
     """Columns c_l (p, q) with sum_l c_l c_l^T = covariance (symmetric PSD; eigen-decomposition,
     negative rounding clipped, null directions dropped)."""
     w, V = np.linalg.eigh(0.5 * (covariance + covariance.T))
@@ -293,7 +294,7 @@ def calibration_contributions(
     measurement of one frame (``points`` :class:`CameraPoints`, ``registration``), by
     central differences of ``measurer.measure`` along each independent column
     (comment above). A systematic source: the same for every frame of the session."""
-    columns = _sqrt_columns(stated.covariance)
+    columns = sqrt_columns(stated.covariance)
     xyz = np.asarray(points.xyz, dtype=np.float64)
     if columns.shape[1] == 0 or len(xyz) == 0:
         return {}

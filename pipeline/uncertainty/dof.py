@@ -37,7 +37,7 @@ from collections.abc import Iterable
 
 from scipy.stats import norm, t
 
-__all__ = ["coverage_factor", "effective_dof", "excess_dof"]
+__all__ = ["coverage_factor", "effective_dof", "excess_dof", "parts_dof"]
 
 
 def excess_dof(nu: float, excess_fraction: float) -> float:
@@ -49,6 +49,16 @@ def excess_dof(nu: float, excess_fraction: float) -> float:
     if w <= 0 or not nu > 0:
         return math.inf
     return float(nu) / (w * w)
+
+
+def parts_dof(parts: Iterable[tuple[float, float]]) -> float:
+    """The degrees of freedom of a variance estimate made of independently estimated parts
+    ``(variance, nu)``: Welch-Satterthwaite, ``(sum v)^2 / sum (v^2 / nu)`` (GUM eq. (G.2b) with the
+    variances as the estimates); ``math.inf`` when the sum is 0 (nothing estimated)."""
+    parts = [(max(float(v), 0.0), float(nu)) for v, nu in parts]
+    total = sum(v for v, _ in parts)
+    denominator = sum(v * v / nu for v, nu in parts if v > 0 and nu > 0)
+    return total * total / denominator if total > 0 and denominator > 0 else math.inf
 
 
 def effective_dof(terms: Iterable[tuple[float, float]]) -> float:

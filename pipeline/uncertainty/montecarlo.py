@@ -13,13 +13,23 @@ implementation (its ``measure``) give, corrected to 20 degC. One draw
   sigma_line the one per-probe sigma of the linear budget's ``reference_line`` term
   (the line fit's posterior sigma, max(stated, observed): already supported by the
   data, so not inflated again; :func:`reference_draw_sigmas`);
-* one calibration scale shared by every frame: the camera points times
-  ``1 + N(0, u_s^2)``;
+* one calibration error shared by every frame: when the session's budget propagated the
+  calibration file's parameters (its ``std_*`` keys, :mod:`crossfield.uncertainty.calibration`),
+  the parameters drawn ``dtheta = C z``, z ~ N(0, I), C the columns of the stated covariance's
+  square root, and every camera point moved by ``G dtheta`` (G the triangulation's sensitivity
+  to the parameters, :func:`crossfield.uncertainty.calibration.point_displacements`: the first
+  order model the linear term propagates; the registration is fitted again to the moved
+  controls); otherwise a scale, the camera points times ``1 + N(0, u_s^2)``;
 * one eccentricity offset per target (and per control), shared by every frame
   (the same tilted circle): ``N(0, sigma_ecc^2 I)``, the budget's Gaussian
   equivalent of its uniform distribution;
 * one camera bias per target and control ``N(0, camera_excess diag(sigma_xyz^2))``, shared by
   every frame, when the budget has a ``camera_systematic`` term (issue 22);
+* one bias per control along its line of sight ``N(0, v) l_k`` (l_k the unit vector from the
+  upper camera, camera frame), shared by every frame, when the session put a share of the
+  registration residuals' excess on the camera (``camera_registration_excess``;
+  ``v`` of :func:`crossfield.uncertainty.line_of_sight.per_control_variance`, the budget's
+  second part of ``camera_systematic``);
 * per frame, the camera points' own centroid noise ``N(0, diag(sigma_xyz^2))``
   (camera frame), independent from frame to frame;
 * the frames' mean, then the temperature correction through
@@ -106,6 +116,9 @@ class MonteCarloFrame:
     correspondence: Correspondence
     eccentricity_mm: np.ndarray
     labels: tuple[str, ...]
+    #: (N, 3, q) mm: each point's displacement per unit draw of the calibration's q independent
+    #: parameter columns (camera frame); None: the calibration is drawn as a scale
+    calibration_mm: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -119,7 +132,9 @@ class MonteCarloProblem:
     order, kinds their kinds; repeatability_mm: (C,) the budget's repeatability
     terms (mm); temperature: the plan's temperatures; register / measure: the
     implementations' (name, options); camera_excess: the Type A camera excess
-    (``camera_systematic``: a centroid bias per target shared by the frames).
+    (``camera_systematic``: a centroid bias per target shared by the frames);
+    line_of_sight_mm2: the variance v (mm^2) of the bias along each control's line of sight
+    (the camera's share of the registration excess), 0 when none.
     """
 
     plan: MeasurementPlan
@@ -135,6 +150,7 @@ class MonteCarloProblem:
     register: tuple[str, Mapping[str, Any]]
     measure: tuple[str, Mapping[str, Any]]
     camera_excess: float = 0.0
+    line_of_sight_mm2: float = 0.0
 
 
 # --------------------------------------------------------------------------
@@ -142,7 +158,7 @@ class MonteCarloProblem:
 # --------------------------------------------------------------------------
 
 
-def _frame_inputs(frame: Any, plan: MeasurementPlan) -> MonteCarloFrame:
+def _frame_inputs(frame: Any, plan: MeasurementPlan, calibration: tuple | None = None) -> MonteCarloFrame:
     points: CameraPoints = frame.points
     registration: Registration = frame.registration
     spec_u = plan.uncertainty
@@ -163,7 +179,27 @@ def _frame_inputs(frame: Any, plan: MeasurementPlan) -> MonteCarloFrame:
         for tid, g in frame.measurement.target_points.items():
             i = int(np.argmin(np.linalg.norm(global_xyz - np.asarray(g), axis=1)))
             labels[i] = tid
-    return MonteCarloFrame(points, corr, ecc, tuple(labels))
+    displacements = None
+    if calibration is not None and len(xyz):
+        from crossfield.uncertainty.calibration import point_displacements
+
+        stereo, n_dist, columns = calibration
+        displacements = point_displacements(xyz, stereo, n_dist, columns)
+    return MonteCarloFrame(points, corr, ecc, tuple(labels), displacements)
+
+
+def _calibration_columns(summary: Any) -> tuple | None:
+    """(the session's StereoCalibration, n_dist, (p, q) columns of the stated covariance's square
+    root) when the session's budget propagated the calibration file's parameters, else None."""
+    from crossfield.uncertainty.calibration import calibration_covariance, sqrt_columns
+
+    aggregate, info = summary.aggregate, summary.info
+    if not str(getattr(aggregate, "calibration_uncertainty_source", "")).startswith("propagated parameters"):
+        return None
+    stated = calibration_covariance(getattr(info.calibration, "source", ""), getattr(info, "calibration_files", None))
+    if stated is None:
+        return None
+    return info.calibration, stated.n_dist, sqrt_columns(stated.covariance)
 
 
 def _stage(config: Any, name: str) -> tuple[str, dict[str, Any]]:
@@ -185,10 +221,11 @@ def problem_from_summary(summary: Any) -> MonteCarloProblem | None:
         next((t.u_mm for t in c.budget if t.source == "repeatability"), 0.0) for c in characteristics
     ])
     config = summary.info.config
+    calibration = _calibration_columns(summary)
     return MonteCarloProblem(
         plan=plan,
         reference=summary.reference,
-        frames=tuple(_frame_inputs(f, plan) for f in kept),
+        frames=tuple(_frame_inputs(f, plan, calibration) for f in kept),
         camera_scale=math.sqrt(len(kept) / n),
         cmm_inflation=1.0 if aggregate.consistency is None else float(aggregate.consistency.cmm_inflation),
         calibration_scale_u=float(aggregate.calibration_scale_u),
@@ -199,7 +236,18 @@ def problem_from_summary(summary: Any) -> MonteCarloProblem | None:
         register=_stage(config, "register"),
         measure=_stage(config, "measure"),
         camera_excess=0.0 if aggregate.consistency is None else float(getattr(aggregate.consistency, "camera_excess", 0.0)),
+        line_of_sight_mm2=_line_of_sight_variance(aggregate.consistency),
     )
+
+
+def _line_of_sight_variance(check: Any) -> float:
+    """v (mm^2) along each control's line of sight, from the consistency check's camera share."""
+    from crossfield.uncertainty.line_of_sight import per_control_variance
+
+    if check is None:
+        return 0.0
+    excess = float(getattr(check, "camera_registration_excess", 0.0)) * float(check.expected_cmm_ss_mm2)
+    return per_control_variance(excess, (int(check.dof) + 6) // 3)
 
 
 # --------------------------------------------------------------------------
@@ -281,11 +329,18 @@ def draw_chunk(problem: MonteCarloProblem, seed: np.random.SeedSequence, n_draws
     for d in range(n_draws):
         reference = draw_reference(problem.reference, rng, sigmas)  # shared by the frames
         by_label = reference.by_label()
-        scale = 1.0 + rng.normal(0.0, problem.calibration_scale_u)
+        q = next((f.calibration_mm.shape[2] for f in problem.frames if f.calibration_mm is not None), 0)
+        if q:  # the calibration's parameters, one draw for the session
+            z = rng.normal(size=q)
+            scale = 1.0
+        else:
+            scale = 1.0 + rng.normal(0.0, problem.calibration_scale_u)
         offsets = dict(zip(labels, rng.normal(size=(len(labels), 3))))  # eccentricity, per target
         # camera_systematic: a bias per target, shared by the frames (drawn only when the budget has it,
         # so that the draws of a session without it stay as they were)
         biases = dict(zip(labels, rng.normal(size=(len(labels), 3)))) if problem.camera_excess > 0 else {}
+        along = ({label: rng.normal(0.0, math.sqrt(problem.line_of_sight_mm2)) for label in labels}
+                 if problem.line_of_sight_mm2 > 0 else {})
         sums = np.zeros(len(problem.names))
         counts = np.zeros(len(problem.names))
         for frame in problem.frames:
@@ -297,8 +352,13 @@ def draw_chunk(problem: MonteCarloProblem, seed: np.random.SeedSequence, n_draws
             if biases:
                 bias = np.array([biases[label] if label else rng.normal(size=3) for label in frame.labels])
                 xyz = xyz + bias.reshape(xyz0.shape) * np.asarray(frame.points.sigma_xyz) * math.sqrt(problem.camera_excess)
-            xyz = xyz * scale
+            if q and frame.calibration_mm is not None:
+                xyz = xyz + frame.calibration_mm @ z
             corr = frame.correspondence
+            for cid, i in zip(corr.control_ids, corr.camera_index):
+                if cid in along:  # the camera's share of the registration excess, along the line of sight
+                    xyz[int(i)] = xyz[int(i)] + along[cid] * xyz0[int(i)] / np.linalg.norm(xyz0[int(i)])
+            xyz = xyz * scale
             Q = np.array([by_label[c].xyz for c in corr.control_ids])
             fit = registrar.fit(xyz[np.asarray(corr.camera_index)], Q)
             registration = Registration(frame.points.sequence, fit, corr)

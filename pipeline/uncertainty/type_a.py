@@ -44,7 +44,9 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["PRIOR_DOF", "excess", "variance_ratio"]
+from scipy.stats import invgamma
+
+__all__ = ["PRIOR_DOF", "excess", "expected_excess", "variance_ratio"]
 
 #: Degrees of freedom of the prior on the model's variance (scaled-inverse-chi-square at 1).
 PRIOR_DOF = 4.0
@@ -63,3 +65,25 @@ def variance_ratio(statistic: float, dof: float, prior_dof: float = PRIOR_DOF) -
 def excess(statistic: float, dof: float, prior_dof: float = PRIOR_DOF) -> float:
     """``max(0, s^2 - 1)``: the variance the evidence adds to the model's, in units of the model's."""
     return max(0.0, variance_ratio(statistic, dof, prior_dof) - 1.0)
+
+
+def expected_excess(statistic: float, dof: float, prior_dof: float = PRIOR_DOF) -> float:
+    """The posterior mean of the excess ``E[max(0, lambda^2 - 1)]`` (in units of the model's variance).
+
+    The posterior of the variance ratio is Scaled-Inv-chi2(nu', s^2), nu' = prior_dof + dof and
+    s^2 = :func:`variance_ratio`, i.e. an inverse gamma with shape a = nu'/2 and scale
+    b = nu' s^2 / 2 (Gelman et al., BDA3, sec. 2.6 and appendix A), so
+
+        E[(lambda^2 - 1)_+] = b / (a - 1) P(IG(a - 1, b) > 1) - P(IG(a, b) > 1)
+
+    (the first term is E[lambda^2; lambda^2 > 1], by the inverse gamma's density
+    x p_IG(a, b)(x) = b / (a - 1) p_IG(a - 1, b)(x)). Unlike the positive part of s^2 it is
+    never 0 and continuous in the data: it weighs how much excess a source may hold by
+    its own evidence (no evidence, dof 0: the prior's 1.13; 7 dof that agree with the
+    model: 0.33; 14 points at s^2 = 2.4: 1.7). Needs nu' > 2."""
+    nu = prior_dof + (dof if dof > 0 and math.isfinite(statistic) else 0.0)
+    if not nu > 2:
+        raise ValueError(f"expected_excess needs prior_dof + dof > 2, got {nu}")
+    a = nu / 2.0
+    b = nu * variance_ratio(statistic, dof, prior_dof) / 2.0
+    return max(0.0, b / (a - 1.0) * float(invgamma.sf(1.0, a - 1.0, scale=b)) - float(invgamma.sf(1.0, a, scale=b)))

@@ -196,6 +196,7 @@ def log_recording(mcap_path: str | Path, logger: RerunLogger) -> SessionSummary:
             reference = payload
             logger.on_reference(reference=reference)
             accumulator.reference_source = session_accumulator(info, reference).reference_source
+            accumulator.set_reference(reference)  # its line fits: the CMM's own Type A evidence
         elif kind == "frame":
             logger.on_frame(frame=payload)
         elif kind == "done":

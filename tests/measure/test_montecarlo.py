@@ -77,9 +77,13 @@ def test_the_session_budget_is_that_of_the_mean_of_its_frames(demo):
         excess = math.sqrt(max(0.0, type_a**2 - terms["camera"].u_mm ** 2))
         if "camera_systematic" in terms:  # not divided by sqrt(n) (budget.camera_terms)
             per = [next(t.u_mm for t in r.budget if t.source == "camera") for r in per_frame]
-            ratio = math.sqrt(demo.aggregate.consistency.camera_excess)
-            assert terms["camera_systematic"].u_mm == pytest.approx(math.sqrt(np.mean(np.square(per))) * ratio,
-                                                                   rel=1e-12)
+            check = demo.aggregate.consistency
+            # the epipolar part on the camera term, plus the camera's share of the registration excess
+            # (crossfield.uncertainty.line_of_sight: > 0 only when a share was put on the camera)
+            epipolar = np.mean(np.square(per)) * check.camera_excess
+            registration = terms["camera_systematic"].u_mm ** 2 - epipolar
+            assert registration >= -1e-15 * epipolar
+            assert (registration > 1e-18) == (check.camera_registration_excess > 0)
         assert terms["repeatability"].u_mm == pytest.approx(excess, rel=1e-9, abs=1e-15)
         assert c.uncertainty_mm == pytest.approx(math.sqrt(sum(t.u_mm**2 for t in c.budget)), rel=1e-12)
 
