@@ -31,6 +31,7 @@ from crossfield.jsonable import matrix, plain, real, vector
 from crossfield.rigid import rotation_angle
 from crossfield.session import FrameResult, SessionSummary
 from crossfield.uncertainty.budget import SOURCE_TEXT
+from crossfield.uncertainty.type_a import PRIOR_DOF
 
 __all__ = [
     "REGISTRATION_AGGREGATE",
@@ -191,10 +192,21 @@ def _consistency_section(summary: SessionSummary) -> dict[str, Any] | None:
         "epipolar_chi2_per_point": real(check.epipolar_chi2_per_point),
         "camera_ratio": real(check.camera_ratio),
         "camera_excess": real(check.camera_excess),
-        "rule": "Type A evidence through a shrunk variance ratio s^2 = (nu0 + chi2) / (nu0 + dof), nu0 = 8 "
-        "(crossfield.uncertainty.type_a): the camera's from the epipolar residuals (camera_systematic = "
-        "max(0, s_cam^2 - 1) x the model's camera variance, not divided by the frames), then the registration "
-        "residuals' rest on the CMM, f = sqrt(max(1, (s_reg^2 E' - E_cam') / E_cmm)); continuous, no threshold",
+        "camera_registration_excess": real(check.camera_registration_excess),
+        "cmm_evidence_dof": int(check.cmm_evidence_dof),
+        "cmm_ratio": real(check.cmm_ratio),
+        "cmm_line_excess": real(check.cmm_line_excess),
+        "cmm_share": real(check.cmm_share),
+        "camera_excess_dof": real(check.camera_excess_dof),
+        "registration_excess_dof": real(check.registration_excess_dof),
+        "cmm_excess_dof": real(check.cmm_excess_dof),
+        "rule": f"Type A evidence through a shrunk variance ratio s^2 = (nu0 + chi2) / (nu0 + dof), nu0 = {PRIOR_DOF} "
+        "(crossfield.uncertainty.type_a): each source's own evidence first (the camera's epipolar residuals: "
+        "camera_excess a; the CMM's reference-line fits: cmm_line_excess b), then what the registration "
+        "residuals show beyond both, X, split between camera and CMM in proportion to each one's posterior mean "
+        "excess (cmm_share the CMM's part); f = sqrt(1 + b + X_cmm / E_cmm), the camera's part along the "
+        "controls' lines of sight into camera_systematic (crossfield.uncertainty.consistency); continuous, "
+        "no threshold",
         "warning": check.warning,
         "note": check.note,
     }

@@ -149,3 +149,19 @@ def test_the_viewer_summarises_a_recording_as_the_live_run_did(session):
     assert again["uncertainty"]["consistency"] == live["uncertainty"]["consistency"]
     assert again["station_moved"] == live["station_moved"]
     assert shown.aggregate.calibration_scale_u == summary.aggregate.calibration_scale_u
+
+
+def test_report_states_the_split_of_the_registration_excess(session):
+    """report.json carries the camera/CMM split of the registration residuals' excess as the
+    session computed it (crossfield.uncertainty.consistency): on this session the stated arm sigma
+    is too small, so the CMM term is inflated, and the CMM's share lies in [0, 1]."""
+    from crossfield.report.document import build_report
+
+    _, _, summary, _ = session
+    check = summary.aggregate.consistency
+    section = build_report(summary)["uncertainty"]["consistency"]
+    assert section["cmm_share"] == pytest.approx(check.cmm_share) and 0.0 <= section["cmm_share"] <= 1.0
+    assert section["cmm_evidence_dof"] == check.cmm_evidence_dof
+    assert section["camera_registration_excess"] == pytest.approx(check.camera_registration_excess)
+    assert section["cmm_inflation"] == pytest.approx(check.cmm_inflation) and section["cmm_inflation"] > 1.0
+    assert "split between camera and CMM" in section["rule"]
