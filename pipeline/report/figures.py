@@ -25,15 +25,16 @@ from __future__ import annotations
 
 import io
 import re
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
 
+from crossfield.report.figure_pool import reused_figure
 from crossfield.report.thumbnails import KIND_CONTROL, KIND_TARGET
 
 __all__ = [
-    "LABEL_OFFSET", "RESIDUAL_ARROW_FRACTION", "THUMBNAIL_GID", "deviation_chart", "residual_chart", "residual_gain", "svg",
+    "LABEL_OFFSET", "RESIDUAL_ARROW_FRACTION", "THUMBNAIL_GID", "TREND_MARKERS_UP_TO", "deviation_chart", "residual_chart", "residual_gain", "svg",
     "thumbnail_chart", "trend_chart",
 ]
 
@@ -68,6 +69,19 @@ def _figure(width_in: float, height_in: float):
     from matplotlib.figure import Figure
 
     return Figure(figsize=(width_in, height_in))
+
+
+def _pooled(kind: str, width_in: float, height_in: float, add_axes: Callable[[Any], Any]):
+    """This thread's figure of chart ``kind`` (:func:`crossfield.report.figure_pool.reused_figure`),
+    ``width_in`` x ``height_in`` inches; ``add_axes(fig)`` makes its axes the first time."""
+    fig = reused_figure(kind, lambda: _made(_figure(width_in, height_in), add_axes))
+    fig.set_size_inches(width_in, height_in)
+    return fig
+
+
+def _made(fig, add_axes: Callable[[Any], Any]):
+    add_axes(fig)
+    return fig
 
 
 def _text_width_in(texts, fontsize_pt: float, weight: str = "normal") -> float:
@@ -124,10 +138,10 @@ def deviation_chart(report: Mapping[str, Any]) -> str:
         return ""
     n = len(chars)
     names = [c["name"] for c in chars]
-    fig = _figure(7.2, 0.42 * n + 1.1)
+    fig = _pooled("deviation", 7.2, 0.42 * n + 1.1, lambda f: f.add_subplot())
     # left: the widest name (10 pt) + tick and pad; bottom: tick labels + the x label
     _margins(fig, _text_width_in(names, 10.0) + 0.2, 0.25, 0.58, 0.08)
-    ax = fig.add_subplot()
+    (ax,) = fig.axes
     y = np.arange(n)[::-1].astype(float)
     rule = report["uncertainty"]["decision_rule"]
     colours = {"conforms": "#1b7a3a", "does_not_conform": "#b3261e", "not_proven": "#c07a00"}
@@ -225,8 +239,8 @@ def residual_chart(report: Mapping[str, Any], positions: Mapping[str, Any]) -> s
     spread = float(np.ptp(xy, axis=0).max()) or 1.0
     largest = float(np.linalg.norm(rxy, axis=1).max()) or 1.0
     gain = residual_gain(spread, largest)
-    fig = _figure(7.2, 5.0)
-    ax = fig.add_subplot()
+    fig = _pooled("residuals", 7.2, 5.0, lambda f: f.add_subplot())
+    (ax,) = fig.axes
     ax.scatter(xy[:, 0], xy[:, 1], s=30, color="#234e77", zorder=3)
     circles = [Circle((x, yv), gain * c["expected_rms_mm"]) for (x, yv), c in zip(xy, controls)
                if c.get("expected_rms_mm")]
@@ -258,6 +272,10 @@ def residual_chart(report: Mapping[str, Any], positions: Mapping[str, Any]) -> s
     return svg(fig, "residuals", tight=False)
 
 
+#: The trend chart marks each frame on its lines up to this many frames (on 7.2 in, ~7 pt apart).
+TREND_MARKERS_UP_TO = 60
+
+
 def trend_chart(report: Mapping[str, Any]) -> str:
     """Per kept frame: registration RMS (mm) and each characteristic minus its mean (mm);
     the legend (at most 12 characteristics, 5 a row) under the axes. Fixed margins, one draw."""
@@ -268,10 +286,13 @@ def trend_chart(report: Mapping[str, Any]) -> str:
     ncol = min(5, len(names))
     legend_rows = -(-len(names) // ncol) if 0 < len(names) <= 12 else 0
     legend_in = 0.12 + 0.155 * legend_rows if legend_rows else 0.0  # 7 pt rows, the frame's pad
-    fig = _figure(7.2, 4.6 + legend_in)
-    top, bottom = fig.subplots(2, 1, sharex=True)
+    fig = _pooled("trends", 7.2, 4.6 + legend_in, lambda f: f.subplots(2, 1, sharex=True))
+    top, bottom = fig.axes
     seq = [f["sequence"] for f in frames]
-    top.plot(seq, [f["registration_rms_mm"] for f in frames], "o-", ms=3, color="#234e77")
+    # a marker on every frame while they stand apart; denser, the line's vertices are the
+    # frames (SVG draws a marker as one <use> element each: 700 of them at 100 frames)
+    marked = len(frames) <= TREND_MARKERS_UP_TO
+    top.plot(seq, [f["registration_rms_mm"] for f in frames], "o-" if marked else "-", ms=3, color="#234e77")
     top.set_ylabel("registration\nRMS (mm)")
     for name in names:
         values = [
@@ -281,7 +302,8 @@ def trend_chart(report: Mapping[str, Any]) -> str:
         if len(pts) < 2:
             continue
         mean = float(np.mean([v for _, v in pts]))
-        bottom.plot([s for s, _ in pts], [v - mean for _, v in pts], ".-", lw=0.8, ms=3, label=name)
+        bottom.plot([s for s, _ in pts], [v - mean for _, v in pts], ".-" if marked else "-", lw=0.8, ms=3,
+                    label=name)
     bottom.set_ylabel("value - session\nmean (mm)")
     bottom.set_xlabel("frame")
     if legend_rows and bottom.lines:
@@ -314,8 +336,9 @@ def thumbnail_chart(thumb) -> str:
     # 72 SVG units per inch: one unit per thumbnail pixel, and a margin right and
     # below for the labels of targets at the edge (not cropped: one draw, not two)
     W, H = w + _THUMB_MARGIN[0], h + _THUMB_MARGIN[1]
-    fig = _figure(W / 72.0, H / 72.0)
-    ax = fig.add_axes((0.0, 1.0 - h / H, w / W, h / H))
+    fig = _pooled("thumbnail", W / 72.0, H / 72.0, lambda f: f.add_axes((0.0, 0.0, 1.0, 1.0)))
+    (ax,) = fig.axes
+    ax.set_position((0.0, 1.0 - h / H, w / W, h / H))
     image = ax.imshow(thumb.image, cmap="gray", vmin=0, vmax=255, interpolation="none")
     image.set_gid(THUMBNAIL_GID["image"].format(camera=camera))
     uv = thumb.thumbnail_uv()
