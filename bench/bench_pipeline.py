@@ -15,7 +15,8 @@ Measures, in one run on this machine:
   the recorded pipeline's against the unrecorded one;
 * the pipeline without recording (pairs/s, target >= 150), and that session split: the
   frames alone (first frame to last, pairs/s) and the fixed time before the first frame
-  and after the last (the summary and the reports, ~0.5 s of matplotlib figures);
+  and after the last (the summary and the reports, mostly report.html's matplotlib figures);
+  the same split in CPU time (ms per pair of the frames, ms of the session end);
 * the pipeline with lossless MCAP recording (pairs/s, target >= 60);
 * peak RSS growth between a short and a 4x longer session (must not grow with
   length: the session aggregates frame by frame and keeps at most
@@ -86,26 +87,40 @@ class MemoryPlugin:
 
 class PhaseClock:
     """Observer: when the session started, its first frame began, its last frame ended and
-    the session ended (after the summary and the report), perf_counter seconds."""
+    the session ended (after the summary and the report), perf_counter seconds; and the
+    process's CPU time (``time.process_time``, every thread) at the same points, which the
+    load of a shared machine moves far less than the wall clock."""
 
     def __init__(self) -> None:
         self.times: dict[str, float] = {}
+        self.cpu: dict[str, float] = {}
+
+    def _mark(self, name: str, first: bool = False) -> None:
+        if first and name in self.times:
+            return
+        self.times[name], self.cpu[name] = time.perf_counter(), time.process_time()
 
     @hookimpl
     def on_session_start(self, session):
-        self.times = {"start": time.perf_counter()}
+        self.times, self.cpu = {}, {}
+        self._mark("start")
 
     @hookimpl
     def on_frame(self, frame):
-        self.times.setdefault("first_frame", time.perf_counter())
+        self._mark("first_frame", first=True)
 
     @hookimpl
     def on_frame_done(self, result):
-        self.times["last_frame"] = time.perf_counter()
+        self._mark("last_frame")
 
     @hookimpl
     def on_session_end(self, summary):
-        self.times["end"] = time.perf_counter()
+        self._mark("end")
+
+    def cpu_split(self, count: int) -> tuple[float, float]:
+        """(CPU ms per pair from the first frame to the last, CPU ms after the last frame)."""
+        c = self.cpu
+        return 1e3 * (c["last_frame"] - c["first_frame"]) / count, 1e3 * (c["end"] - c["last_frame"])
 
     def split(self, count: int) -> tuple[float, float, float]:
         """(pairs/s from the first frame to the last, ms before the first frame, ms after the last)."""
@@ -193,6 +208,7 @@ def main() -> None:
             cpu = baseline_opencv(pairs, args.frames)
             plain, summary = pipeline_rate(pm, csv, tmp, args.frames, False, f"norec{r}")
             per_pair, before_ms, after_ms = clock.split(args.frames)
+            cpu_pair_ms, cpu_end_ms = clock.cpu_split(args.frames)
             rec, _ = pipeline_rate(pm, csv, tmp, args.frames, True, f"rec{r}")
             rows.append((base, plain, rec, cpu))
             print(
@@ -204,6 +220,10 @@ def main() -> None:
                 f"       unrecorded, split: frames {per_pair:6.1f} pairs/s (x{per_pair / cpu:.3f} OpenCV), "
                 f"{before_ms:.0f} ms before the first frame (reference import), {after_ms:.0f} ms after "
                 f"the last (summary, report.json + report.html with its figures)"
+            )
+            print(
+                f"       unrecorded, CPU: frames {cpu_pair_ms:.2f} ms per pair, {cpu_end_ms:.0f} ms after the last; "
+                f"whole session {args.frames / (args.frames * cpu_pair_ms / 1e3 + cpu_end_ms / 1e3):.1f} pairs/s of CPU"
             )
         base, plain, rec, cpu = np.median(np.array(rows), axis=0)
         record("pipeline.unrecorded_vs_opencv", plain / cpu, "higher")

@@ -289,6 +289,7 @@ def replay_session(
     rerun: bool | None = None,
     observers: Iterable[object] = (),
     recorded: RecordedSession | None = None,
+    reports: bool = True,
 ) -> SessionSummary:
     """Re-run the session recorded in ``path`` from its raw inputs.
 
@@ -299,7 +300,9 @@ def replay_session(
     by default a new session folder ``<id>-replay`` is made next to the
     recorded one (or in ``output_dir``). record: write the MCAP (audit
     replays without). rerun: write session.rrd (default: as recorded).
-    observers: extra observer plugins for this replay. Returns the summary;
+    observers: extra observer plugins for this replay. reports: write the report
+    files (the audit's reproduction compares the recorded results and writes none:
+    :func:`crossfield.chain.runner.run_session`). Returns the summary;
     ``summary.info.parent`` names the recording and the changes.
     """
     recorded = recorded or load_recorded_session(path)
@@ -358,4 +361,5 @@ def replay_session(
         cmm_raw=source.serial_chunks(),
         mcap_path=mcap_path,
         parent=parent,
+        reports=reports,
     )

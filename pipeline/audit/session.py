@@ -17,7 +17,9 @@ Three checks, each with its findings named:
   recorded plugins and options (:mod:`crossfield.replay`), each result
   message rebuilt exactly as the recorder builds it, and compared with the
   recorded message of the same topic, sequence and time, bit for bit.
-  Every difference is listed (for JSON results down to the field).
+  Every difference is listed (for JSON results down to the field). The replay
+  computes the session end and writes no report file (no figure is drawn:
+  ``replay_session(reports=False)``).
   Provenance labels that name the run rather than its results are not
   compared: see :data:`IGNORED`.
 
@@ -197,7 +199,8 @@ def reproduction(path: Path, pm: pluggy.PluginManager, *, limit: int = 500) -> d
     with tempfile.TemporaryDirectory(prefix="crossfield-audit-") as tmp:
         try:
             summary = replay_session(
-                path, pm, output_dir=tmp, record=False, rerun=False, observers=[capture, shown], recorded=recorded
+                path, pm, output_dir=tmp, record=False, rerun=False, reports=False, observers=[capture, shown],
+                recorded=recorded,
             )
         except CrossfieldError as exc:
             return {"passed": False, "error": f"the replay failed: {exc}", "differences": []}

@@ -403,6 +403,7 @@ def run_session(
     cmm_raw: Sequence[SerialChunk] | None = None,
     mcap_path: str | Path | None = None,
     parent: Mapping[str, Any] | None = None,
+    reports: bool = True,
 ) -> SessionSummary:
     """Run one session as configured; returns its summary.
 
@@ -421,6 +422,9 @@ def run_session(
     mcap_path: the MCAP file to write (default ``<session folder>/session.mcap``);
     the session folder is then named after it, next to it.
     parent: the recording a replay re-runs and what it changed (``SessionInfo.parent``).
+    reports: write the report files (the reporter's ``write``: report.json, report.html
+    and its figures); False (the audit's reproduction) computes the session end all the
+    same (summary, report document, recordings ended and sealed) and writes no report.
     """
     stages = Stages.build(pm, config, skip=("acquire",) if source is not None else ())
     owned = source is None
@@ -469,6 +473,7 @@ def run_session(
                 interrupts=interrupts,
                 recorded_stop=getattr(recorded, "recorded_stop", None) if recorded is not None else None,
                 source_errors=recorded is None,
+                reports=reports,
             )
     finally:
         if owned:
@@ -577,6 +582,7 @@ def run_pipeline(
     interrupts: OperatorInterrupts | None = None,
     recorded_stop: SessionStop | None = None,
     source_errors: bool = True,
+    reports: bool = True,
 ) -> SessionSummary:
     """The session's chain, shared by a live run and a replay.
 
@@ -600,7 +606,7 @@ def run_pipeline(
     and the session is finished as INCOMPLETE with the pairs measured so far, every
     result partial. ``recorded_stop``: a replay's recorded stop; the replay stops
     where it says (at the reference import: the recorded bytes are handed on, not
-    decoded) and states the same stop.
+    decoded) and states the same stop. ``reports``: as :func:`run_session`'s.
     """
     hook.on_session_start(session=info)
     planned = _planned_pairs(info)
@@ -687,7 +693,7 @@ def run_pipeline(
     return finish_session(
         hook, stages, info, reference, accumulator,
         _joined(incomplete(), failed, stop.reason if stop is not None else None), recordings=recordings,
-        thumbnails=thumbnails(), station_moved=moved, stop=stop, interrupts=interrupts,
+        thumbnails=thumbnails(), station_moved=moved, stop=stop, interrupts=interrupts, reports=reports,
     )
 
 
@@ -759,6 +765,7 @@ def finish_session(
     station_moved: str | None = None,
     stop: SessionStop | None = None,
     interrupts: OperatorInterrupts | None = None,
+    reports: bool = True,
 ) -> SessionSummary:
     """The session's end (``stop``: why it stopped early, if it did; ``interrupts``:
     a Ctrl-C waits while the recordings are ended; ``station_moved``: the motion test's line when the station
@@ -776,6 +783,8 @@ def finish_session(
     :class:`RecordingError` follows, so the command exits non-zero; what was
     written stays in the file (a truncated recording replays as INCOMPLETE).
     A report that cannot be written is a :class:`RecordingError` naming it.
+    ``reports`` False: everything but the reporter's ``write`` (no report file, no
+    figure drawn); the summary's ``report`` is the document all the same.
     """
     summary = session_summary(
         info, reference, accumulator, incomplete=incomplete, thumbnails=thumbnails, station_moved=station_moved,
@@ -786,7 +795,8 @@ def finish_session(
         summary = dataclasses.replace(summary, monte_carlo=tuple(session_monte_carlo(summary, draws)))
     # The recording lists the report files to come, when the reporter says which they
     # are (ListsReportFiles): it is closed before they exist.
-    planned = tuple(stages.report.report_files(info.out_dir)) if implements(stages.report, ListsReportFiles) else ()
+    listed = reports and implements(stages.report, ListsReportFiles)
+    planned = tuple(stages.report.report_files(info.out_dir)) if listed else ()
     summary = dataclasses.replace(summary, report=build_report(summary))
     seals, failures = [], []
     with _shielded(interrupts):  # a recording is ended whole, or not at all
@@ -807,7 +817,7 @@ def finish_session(
     if seals:
         summary = dataclasses.replace(summary, report=with_seal(summary.report, seals[0]))
     try:
-        files = stages.report.write(summary, info.out_dir)
+        files = stages.report.write(summary, info.out_dir) if reports else []
     except OSError as exc:
         where = exc.filename or info.out_dir
         also = f" (and {'; '.join(failures)})" if failures else ""

@@ -25,15 +25,16 @@ from __future__ import annotations
 
 import io
 import re
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
 
+from crossfield.report.figure_pool import reused_figure
 from crossfield.report.thumbnails import KIND_CONTROL, KIND_TARGET
 
 __all__ = [
-    "LABEL_OFFSET", "RESIDUAL_ARROW_FRACTION", "THUMBNAIL_GID", "deviation_chart", "residual_chart", "residual_gain", "svg",
+    "LABEL_OFFSET", "RESIDUAL_ARROW_FRACTION", "THUMBNAIL_GID", "TREND_MARKERS_UP_TO", "deviation_chart", "residual_chart", "residual_gain", "svg",
     "thumbnail_chart", "trend_chart",
 ]
 
@@ -62,6 +63,44 @@ def _pyplot():
     return plt
 
 
+def _figure(width_in: float, height_in: float):
+    """A bare matplotlib ``Figure`` (``width_in`` x ``height_in`` inches) outside pyplot:
+    no figure manager to register and close; :func:`svg` draws it once on the SVG canvas."""
+    from matplotlib.figure import Figure
+
+    return Figure(figsize=(width_in, height_in))
+
+
+def _pooled(kind: str, width_in: float, height_in: float, add_axes: Callable[[Any], Any]):
+    """This thread's figure of chart ``kind`` (:func:`crossfield.report.figure_pool.reused_figure`),
+    ``width_in`` x ``height_in`` inches; ``add_axes(fig)`` makes its axes the first time."""
+    fig = reused_figure(kind, lambda: _made(_figure(width_in, height_in), add_axes))
+    fig.set_size_inches(width_in, height_in)
+    return fig
+
+
+def _made(fig, add_axes: Callable[[Any], Any]):
+    add_axes(fig)
+    return fig
+
+
+def _text_width_in(texts, fontsize_pt: float, weight: str = "normal") -> float:
+    """The widest of ``texts`` set in the default font at ``fontsize_pt`` (inches), as the
+    SVG backend measures it (``matplotlib.textpath.TextToPath``): the margin a fixed
+    layout leaves for tick labels, instead of a second draw to crop to what is drawn."""
+    from matplotlib.font_manager import FontProperties
+    from matplotlib.textpath import text_to_path
+
+    prop = FontProperties(size=fontsize_pt, weight=weight)
+    return max((text_to_path.get_text_width_height_descent(str(t), prop, False)[0] for t in texts), default=0.0) / 72.0
+
+
+def _margins(fig, left_in: float, right_in: float, bottom_in: float, top_in: float, **kw) -> None:
+    """Place the axes with fixed margins (inches) on all four sides (``Figure.subplots_adjust``)."""
+    w, h = fig.get_size_inches()
+    fig.subplots_adjust(left=left_in / w, right=1.0 - right_in / w, bottom=bottom_in / h, top=1.0 - top_in / h, **kw)
+
+
 _SVG_ID = re.compile(r'\bid="([^"]+)"')
 _SVG_ID_OR_REF = re.compile(r'(\bid="|#)([^"#)\s]+)(?=[")])')  # id="x", href="#x", url(#x)
 _OWN_ID = "thumbnail-"  # the THUMBNAIL_GID ids, set by crossfield and unique already
@@ -69,7 +108,8 @@ _OWN_ID = "thumbnail-"  # the THUMBNAIL_GID ids, set by crossfield and unique al
 
 def svg(fig, prefix: str, tight: bool = True) -> str:
     """The figure as an inline ``<svg>`` element (no XML prolog, no DOCTYPE);
-    ``tight``: cropped to what is drawn (matplotlib draws the figure twice then).
+    ``tight``: cropped to what is drawn (matplotlib draws the figure twice then;
+    the session report's figures lay themselves out and are drawn once).
 
     matplotlib numbers its element ids per file (``figure_1``, ``patch_1``, a
     marker's hash ...), so two figures inlined in one page would repeat them,
@@ -89,33 +129,47 @@ def svg(fig, prefix: str, tight: bool = True) -> str:
 
 
 def deviation_chart(report: Mapping[str, Any]) -> str:
-    """Deviations (mm) with U bars against the zone [-lower_tol, +upper_tol]."""
+    """Deviations (mm) with U bars against the zone [-lower_tol, +upper_tol].
+
+    One artist per kind of mark (the zones, the guarded acceptance zones, the points
+    with U bars of one decision colour), laid out with fixed margins and drawn once."""
     chars = [c for c in report["characteristics"] if c["deviation_mm"] is not None]
     if not chars:
         return ""
-    plt = _pyplot()
     n = len(chars)
-    fig, ax = plt.subplots(figsize=(7.2, 0.42 * n + 1.1))
-    y = np.arange(n)[::-1]
+    names = [c["name"] for c in chars]
+    fig = _pooled("deviation", 7.2, 0.42 * n + 1.1, lambda f: f.add_subplot())
+    # left: the widest name (10 pt) + tick and pad; bottom: tick labels + the x label
+    _margins(fig, _text_width_in(names, 10.0) + 0.2, 0.25, 0.58, 0.08)
+    (ax,) = fig.axes
+    y = np.arange(n)[::-1].astype(float)
     rule = report["uncertainty"]["decision_rule"]
     colours = {"conforms": "#1b7a3a", "does_not_conform": "#b3261e", "not_proven": "#c07a00"}
-    for yi, c in zip(y, chars):
-        lo, hi = -c["lower_tol_mm"], c["upper_tol_mm"]
-        ax.barh(yi, hi - lo, left=lo, height=0.6, color="#e3f4e8", edgecolor="#9cc9a9", linewidth=0.6)
-        U = c["expanded_uncertainty_mm"]
-        if U is not None and rule == "guarded_acceptance" and hi - U > lo + U:
-            ax.barh(yi, (hi - U) - (lo + U), left=lo + U, height=0.6, color="#c3e6cd", linewidth=0)
+    lo = np.array([-c["lower_tol_mm"] for c in chars], dtype=float)
+    hi = np.array([c["upper_tol_mm"] for c in chars], dtype=float)
+    ax.barh(y, hi - lo, left=lo, height=0.6, color="#e3f4e8", edgecolor="#9cc9a9", linewidth=0.6)
+    U = [c["expanded_uncertainty_mm"] for c in chars]
+    guarded = [i for i in range(n) if U[i] is not None and rule == "guarded_acceptance" and hi[i] - U[i] > lo[i] + U[i]]
+    if guarded:
+        g = np.array(guarded)
+        Ug = np.array([U[i] for i in guarded], dtype=float)
+        ax.barh(y[g], (hi[g] - Ug) - (lo[g] + Ug), left=lo[g] + Ug, height=0.6, color="#c3e6cd", linewidth=0)
+    groups: dict[tuple[str, bool], list[int]] = {}
+    for i, c in enumerate(chars):
+        groups.setdefault((colours.get(c["decision"], "#234e77"), U[i] is not None), []).append(i)
+    for (colour, with_u), index in groups.items():
         ax.errorbar(
-            c["deviation_mm"], yi, xerr=U if U is not None else None, fmt="o", ms=4, capsize=3,
-            color=colours.get(c["decision"], "#234e77"), ecolor="#1d2733", elinewidth=1,
+            [chars[i]["deviation_mm"] for i in index], y[index],
+            xerr=[U[i] for i in index] if with_u else None, fmt="o", ms=4, capsize=3,
+            color=colour, ecolor="#1d2733", elinewidth=1,
         )
     ax.axvline(0.0, color="#5b6b7b", linewidth=0.8)
-    ax.set_yticks(y, [c["name"] for c in chars])
+    ax.set_yticks(y, names)
     k = chars[0]["coverage_factor"]
     ax.set_xlabel(f"deviation from nominal (mm); bars: U (k = {k:g}); band: tolerance zone")
     ax.grid(axis="x", color="#c9d2dc", linewidth=0.5)
     ax.set_axisbelow(True)
-    return svg(fig, "deviation")
+    return svg(fig, "deviation", tight=False)
 
 
 #: The residual figure's drawn length of the largest residual, as a fraction of the
@@ -138,11 +192,37 @@ def residual_gain(spread_mm: float, largest_mm: float, fraction: float = RESIDUA
     return _step_below(fraction * spread_mm / largest_mm)
 
 
+def _tick_labels_width_in(axis, fontsize_pt: float | str | None = None) -> float:
+    """The widest major tick label of ``axis`` (inches) as it will be drawn at the current
+    limits: formatted from its locator and formatter, measured as :func:`_text_width_in`
+    does; no draw. ``fontsize_pt``: the tick labels' size (default: the rc value)."""
+    import matplotlib
+
+    size = fontsize_pt or matplotlib.rcParams[f"{axis.axis_name}tick.labelsize"]
+    locs = axis.get_majorticklocs()
+    from matplotlib.font_manager import FontProperties
+
+    points = FontProperties(size=size).get_size_in_points()
+    return _text_width_in(axis.get_major_formatter().format_ticks(locs), points)
+
+
+#: The room left of the y tick labels for an ``n``-line y label of ``fontsize`` pt
+#: (line spacing 1.2, label pad 4 pt, tick 3.5 pt and its pad 3.5 pt, 4 pt to the edge), inches.
+def _ylabel_room_in(lines: int, fontsize_pt: float = 10.0) -> float:
+    return (lines * 1.2 * fontsize_pt + 4.0 + 3.5 + 3.5 + 4.0) / 72.0
+
+
 def residual_chart(report: Mapping[str, Any], positions: Mapping[str, Any]) -> str:
     """Control residual vectors (global mm) at the controls' CMM positions ``positions``
     (id -> (3,) mm), magnified (:func:`residual_gain`) so that the largest is a quarter
     of the controls' spread, with a scale arrow in the corner; the figure is as wide as
-    the report's text at print size (7.2 in, fonts >= 9 pt)."""
+    the report's text at print size (7.2 in, fonts >= 9 pt).
+
+    The residuals and the scale arrow are one ``quiver`` (arrow length = gain x residual,
+    in data units), the expected-RMS circles one ``PatchCollection``; fixed margins, one draw."""
+    from matplotlib.collections import PatchCollection
+    from matplotlib.patches import Circle
+
     reg = report["registration"]
     if reg is None:
         return ""
@@ -159,23 +239,27 @@ def residual_chart(report: Mapping[str, Any], positions: Mapping[str, Any]) -> s
     spread = float(np.ptp(xy, axis=0).max()) or 1.0
     largest = float(np.linalg.norm(rxy, axis=1).max()) or 1.0
     gain = residual_gain(spread, largest)
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7.2, 5.0))
+    fig = _pooled("residuals", 7.2, 5.0, lambda f: f.add_subplot())
+    (ax,) = fig.axes
     ax.scatter(xy[:, 0], xy[:, 1], s=30, color="#234e77", zorder=3)
-    for (x, yv), (dx, dy), c in zip(xy, rxy, controls):
-        ax.annotate("", (x + gain * dx, yv + gain * dy), (x, yv),
-                    arrowprops={"arrowstyle": "-|>", "color": "#b3261e", "lw": 1.8, "mutation_scale": 14})
-        if c.get("expected_rms_mm"):
-            ax.add_patch(plt.Circle((x, yv), gain * c["expected_rms_mm"], fill=False, ls=":", lw=1.2,
-                                    color="#5b6b7b"))
+    circles = [Circle((x, yv), gain * c["expected_rms_mm"]) for (x, yv), c in zip(xy, controls)
+               if c.get("expected_rms_mm")]
+    if circles:
+        ax.add_collection(PatchCollection(circles, facecolors="none", edgecolors="#5b6b7b", linestyles=":",
+                                          linewidths=1.2))
+    for (x, yv), c in zip(xy, controls):
         ax.annotate(c["id"], (x, yv), textcoords="offset points", xytext=(5, 5), fontsize=10, fontweight="bold")
     # scale arrow: a round residual length, drawn with the same magnification
     key_mm = _step_below(largest)
     x0 = float(xy[:, 0].min())
     y0 = float(xy[:, 1].min()) - 0.15 * spread
     ax.plot([x0, x0], [y0 - 0.06 * spread, y0], alpha=0.0)  # room for the key inside the axes
-    ax.annotate("", (x0 + gain * key_mm, y0), (x0, y0),
-                arrowprops={"arrowstyle": "-|>", "color": "#b3261e", "lw": 1.8, "mutation_scale": 14})
+    # every residual and the key: tail at the point, tip at point + gain * vector (data units)
+    tails = np.vstack([xy, [[x0, y0]]])
+    vectors = np.vstack([rxy, [[key_mm, 0.0]]])
+    ax.quiver(tails[:, 0], tails[:, 1], vectors[:, 0], vectors[:, 1], angles="xy", scale_units="xy",
+              scale=1.0 / gain, color="#b3261e", units="inches", width=0.025, headwidth=3.6,
+              headlength=5.0, headaxislength=4.5, zorder=2)
     ax.annotate(f"{key_mm * 1000:g} \u00b5m", (x0 + gain * key_mm, y0), textcoords="offset points",
                 xytext=(6, -4), fontsize=10, va="baseline")
     ax.set_aspect("equal", adjustable="datalim")
@@ -184,20 +268,32 @@ def residual_chart(report: Mapping[str, Any], positions: Mapping[str, Any]) -> s
     ax.tick_params(labelsize=9)
     ax.set_title(f"residual R p + t \u2212 q, magnified {gain:g}x; dotted circles: expected RMS", fontsize=10)
     ax.grid(color="#c9d2dc", linewidth=0.5)
-    return svg(fig, "residuals")
+    _margins(fig, _ylabel_room_in(1) + _tick_labels_width_in(ax.yaxis, 9.0), 0.3, 0.55, 0.3)
+    return svg(fig, "residuals", tight=False)
+
+
+#: The trend chart marks each frame on its lines up to this many frames (on 7.2 in, ~7 pt apart).
+TREND_MARKERS_UP_TO = 60
 
 
 def trend_chart(report: Mapping[str, Any]) -> str:
-    """Per kept frame: registration RMS (mm) and each characteristic minus its mean (mm)."""
+    """Per kept frame: registration RMS (mm) and each characteristic minus its mean (mm);
+    the legend (at most 12 characteristics, 5 a row) under the axes. Fixed margins, one draw."""
     frames = [f for f in report["frames"] if f["registration_rms_mm"] is not None]
     if len(frames) < 2:
         return ""
-    plt = _pyplot()
-    fig, (top, bottom) = plt.subplots(2, 1, figsize=(7.2, 4.6), sharex=True)
-    seq = [f["sequence"] for f in frames]
-    top.plot(seq, [f["registration_rms_mm"] for f in frames], "o-", ms=3, color="#234e77")
-    top.set_ylabel("registration\nRMS (mm)")
     names = [c["name"] for c in report["characteristics"]]
+    ncol = min(5, len(names))
+    legend_rows = -(-len(names) // ncol) if 0 < len(names) <= 12 else 0
+    legend_in = 0.12 + 0.155 * legend_rows if legend_rows else 0.0  # 7 pt rows, the frame's pad
+    fig = _pooled("trends", 7.2, 4.6 + legend_in, lambda f: f.subplots(2, 1, sharex=True))
+    top, bottom = fig.axes
+    seq = [f["sequence"] for f in frames]
+    # a marker on every frame while they stand apart; denser, the line's vertices are the
+    # frames (SVG draws a marker as one <use> element each: 700 of them at 100 frames)
+    marked = len(frames) <= TREND_MARKERS_UP_TO
+    top.plot(seq, [f["registration_rms_mm"] for f in frames], "o-" if marked else "-", ms=3, color="#234e77")
+    top.set_ylabel("registration\nRMS (mm)")
     for name in names:
         values = [
             next((c["measured_mm"] for c in f["characteristics"] if c["name"] == name), None) for f in frames
@@ -206,14 +302,17 @@ def trend_chart(report: Mapping[str, Any]) -> str:
         if len(pts) < 2:
             continue
         mean = float(np.mean([v for _, v in pts]))
-        bottom.plot([s for s, _ in pts], [v - mean for _, v in pts], ".-", lw=0.8, ms=3, label=name)
+        bottom.plot([s for s, _ in pts], [v - mean for _, v in pts], ".-" if marked else "-", lw=0.8, ms=3,
+                    label=name)
     bottom.set_ylabel("value - session\nmean (mm)")
     bottom.set_xlabel("frame")
-    if len(names) <= 12:
-        bottom.legend(fontsize=7, ncol=min(5, len(names)), loc="upper center", bbox_to_anchor=(0.5, -0.3))
+    if legend_rows and bottom.lines:
+        fig.legend(handles=bottom.lines, fontsize=7, ncol=ncol, loc="lower center", bbox_to_anchor=(0.5, 0.0))
     for ax in (top, bottom):
         ax.grid(color="#c9d2dc", linewidth=0.5)
-    return svg(fig, "trends")
+    left = _ylabel_room_in(2) + max(_tick_labels_width_in(ax.yaxis) for ax in (top, bottom))
+    _margins(fig, left, 0.25, 0.5 + legend_in, 0.1, hspace=0.25)
+    return svg(fig, "trends", tight=False)
 
 
 
@@ -232,14 +331,14 @@ def thumbnail_chart(thumb) -> str:
     targets in two colours, unidentified centroids as small grey crosses.
 
     The SVG's parts carry the group ids of :data:`THUMBNAIL_GID`."""
-    plt = _pyplot()
     h, w = thumb.image.shape
     camera = thumb.camera
     # 72 SVG units per inch: one unit per thumbnail pixel, and a margin right and
     # below for the labels of targets at the edge (not cropped: one draw, not two)
     W, H = w + _THUMB_MARGIN[0], h + _THUMB_MARGIN[1]
-    fig = plt.figure(figsize=(W / 72.0, H / 72.0))
-    ax = fig.add_axes((0.0, 1.0 - h / H, w / W, h / H))
+    fig = _pooled("thumbnail", W / 72.0, H / 72.0, lambda f: f.add_axes((0.0, 0.0, 1.0, 1.0)))
+    (ax,) = fig.axes
+    ax.set_position((0.0, 1.0 - h / H, w / W, h / H))
     image = ax.imshow(thumb.image, cmap="gray", vmin=0, vmax=255, interpolation="none")
     image.set_gid(THUMBNAIL_GID["image"].format(camera=camera))
     uv = thumb.thumbnail_uv()
