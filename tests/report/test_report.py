@@ -616,4 +616,3 @@ def test_reporter_options_are_checked():
         impl.create({"decimals": -1})
     with pytest.raises(ConfigError, match="unknown option 'colour'"):
         impl.create({"colour": "blue"})
-
