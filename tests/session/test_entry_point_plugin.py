@@ -70,9 +70,9 @@ def crossfield(site: Path, *args: str) -> subprocess.CompletedProcess:
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory):
     out = tmp_path_factory.mktemp("entry-point-session")
-    # Two pairs and the json report: what the replay and its audit (both re-run the
-    # session in a subprocess) are checked on is the plugin's use, not report.html.
-    record_session(out, "orig", frames=2, report={"plugin": "json"})
+    # Two pairs: what the replay and its audit (both re-run the session in a
+    # subprocess) are checked on is the plugin's use.
+    record_session(out, "orig", frames=2)
     return out / "orig" / "session.mcap"
 
 
