@@ -67,6 +67,8 @@ GIGE_BLOCK_MODULUS = 65535
 #: How long a reader thread waits in one RetrieveResult call (ms); bounds the
 #: time needed to stop the readers.
 READER_POLL_MS = 50
+#: How long stopping waits for a reader thread (s) before it reports the thread stuck.
+READER_STOP_S = 30.0
 
 INSTALL_HINT = "install crossfield[basler] (pip install 'crossfield[basler]', which brings pypylon)"
 
@@ -606,10 +608,25 @@ class BaslerStereoSource:
             self._stop_readers()
 
     def _stop_readers(self) -> None:
+        """Stop the reader threads, then the grabbing.
+
+        A reader is never abandoned: while it may still be inside RetrieveResult or
+        hold a grab result, its camera must not be stopped, closed or destroyed (pylon
+        gives no safety there). Each poll returns within READER_POLL_MS, so the join
+        is short unless the machine starves the thread; a reader still alive after
+        READER_STOP_S is an error and its camera is left open rather than destroyed
+        under it (:meth:`close` reports it again).
+        """
         for reader in self._readers.values():
             reader.stop.set()
         for reader in self._readers.values():
-            reader.join(timeout=5 * READER_POLL_MS / 1000 + 1)
+            reader.join(timeout=READER_STOP_S)
+        stuck = [role for role, reader in self._readers.items() if reader.is_alive()]
+        if stuck:
+            raise PluginError(
+                f"basler source: the {' and '.join(stuck)} camera's reader thread did not stop within "
+                f"{READER_STOP_S:g} s; the camera is left open"
+            )
         for camera in self.cameras.values():
             if camera.instant.IsGrabbing():
                 camera.instant.StopGrabbing()

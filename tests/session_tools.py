@@ -33,11 +33,17 @@ def record_session(
     seed: int = 4,
     **stages: dict[str, Any],
 ) -> SessionSummary:
-    """Run and record a simulator session into ``out/name/session.mcap`` (no .rrd)."""
+    """Run and record a simulator session into ``out/name/session.mcap`` (no .rrd).
+
+    The report is the ``json`` plugin's (report.json only) unless ``report`` says
+    otherwise: report.html's figures cost about 1 s of CPU per session, and every
+    replay and audit of the recording re-runs its report plugin.
+    """
     data: dict[str, Any] = {
         "session": {"output_dir": str(out), "name": name, "rerun": False},
         "acquire": {"plugin": "simulator", "scenario": scenario, "frames": frames, "seed": seed},
         "reference": {"plugin": "romer-serial", "port": "simulator"},
+        "report": {"plugin": "json"},
     }
     for stage, value in stages.items():
         data.setdefault(stage, {}).update(value)

@@ -21,7 +21,10 @@ None of these tests is skipped: without pypylon or the emulation they fail.
 
 from __future__ import annotations
 
+import ctypes
+import faulthandler
 import os
+import signal
 import sys
 import threading
 import time
@@ -36,12 +39,51 @@ from crossfield.camera.calibration_io import write_stereo_calibration
 from crossfield.errors import ConfigError, PluginError
 from crossfield.hookspecs import hookimpl
 from crossfield.chain.registry import get_implementation, make_plugin_manager
+from crossfield.plugins import acquire_basler
 from crossfield.plugins.acquire_basler import BaslerStereoSource, select_device
 from crossfield.plugins.acquire_simulator import SimulatorSource
 
 N_FRAMES = 3
 SEED = 5
 UPPER, LOWER = "0815-0000", "0815-0001"
+
+# pylon's StartGrabbing installs its own SIGALRM handler (its waitable timers,
+# Pylon::CWaitableTimer, use timer_create + SIGALRM and take the signal's value as a
+# pointer; test_pylon_takes_over_sigalrm_when_grabbing pins it). pytest-timeout's
+# default method is a SIGALRM: a test of this module running into the timeout would
+# then segfault in Pylon::WaitObjectEx::Signal() and end the whole run. So no SIGALRM
+# timer here: each test is bounded by the watchdog below (it stops every Basler
+# source still running, so the test fails on its own assertions), and pytest-timeout
+# keeps its signal-free thread method only as the last resort for a hang in C++.
+WATCHDOG_S = 120.0
+pytestmark = pytest.mark.timeout(WATCHDOG_S + 60, method="thread")
+
+
+@pytest.fixture(autouse=True)
+def watchdog(monkeypatch):
+    """Stop every BaslerStereoSource still grabbing after WATCHDOG_S s and fail the test."""
+    running: list[BaslerStereoSource] = []
+    frames = BaslerStereoSource.frames
+
+    def tracked(self):
+        running.append(self)
+        return frames(self)
+
+    monkeypatch.setattr(BaslerStereoSource, "frames", tracked)
+    fired = threading.Event()
+
+    def expire() -> None:
+        fired.set()
+        faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
+        for source in running:
+            source.stop()
+
+    timer = threading.Timer(WATCHDOG_S, expire)
+    timer.daemon = True
+    timer.start()
+    yield
+    timer.cancel()
+    assert not fired.is_set(), f"the test ran longer than {WATCHDOG_S:g} s; its sources were stopped (stacks above)"
 
 
 class FrameCollector:
@@ -218,12 +260,20 @@ def test_frames_arriving_after_the_timeout_are_never_paired(emulation, station):
 
 def test_hardware_trigger_pairs_by_time_and_drops_a_missed_pulse(emulation, station):
     """External triggering, emulated: a pulse thread fires both cameras' (software)
-    frame triggers every 150 ms and skips the lower camera on pulse 2, as a broken
-    trigger wire would. The source only listens and pairs by arrival time."""
+    frame triggers every PULSE_S and skips the lower camera on pulse 2, as a broken
+    trigger wire would. The source only listens and pairs by arrival time.
+
+    The emulator stamps no camera time, so the pairs are made by host arrival, which
+    a loaded machine delays by up to a few 100 ms (measured at load 9: 70-350 ms):
+    max_skew_ms is half the pulse period, so a frame is paired with its own pulse's
+    partner and never with the next one while the delay stays below it. A source
+    that still lacks pairs after the last pulse is stopped, and the test fails on
+    the pairs it got instead of waiting for pulses that never come."""
+    pulse_s = 0.5
     root, frames, _ = station
     source = make_source(
-        root, frames=4, trigger="hardware", trigger_source="Software", trigger_activation="",
-        max_skew_ms=60.0, timeout_ms=1000.0,
+        root, frames=3, trigger="hardware", trigger_source="Software", trigger_activation="",
+        max_skew_ms=pulse_s / 2 * 1000, timeout_ms=1000.0,
     )
     errors = []
 
@@ -233,15 +283,20 @@ def test_hardware_trigger_pairs_by_time_and_drops_a_missed_pulse(emulation, stat
             deadline = time.monotonic() + 10
             while not all(c.IsGrabbing() for c in cams) and time.monotonic() < deadline:
                 time.sleep(0.01)
-            for pulse in range(5):
+            for pulse in range(4):
                 for role, cam in zip(("upper", "lower"), cams):
                     if role == "lower" and pulse == 2:
                         continue
                     assert cam.WaitForFrameTriggerReady(1000, pylon.TimeoutHandling_Return)
                     cam.ExecuteSoftwareTrigger()
-                time.sleep(0.15)
+                time.sleep(pulse_s)
+            deadline = time.monotonic() + 5  # the last frames' way through the emulator and the readers
+            while source.pairs_delivered < 3 and time.monotonic() < deadline:
+                time.sleep(0.01)
         except Exception as exc:  # noqa: BLE001 - reported by the test
             errors.append(exc)
+        finally:
+            source.stop()  # no more pulses: frames() must end, whatever it got
 
     thread = threading.Thread(target=pulses)
     thread.start()
@@ -252,12 +307,72 @@ def test_hardware_trigger_pairs_by_time_and_drops_a_missed_pulse(emulation, stat
         thread.join()
         source.close()
     assert errors == []
-    assert [p.sequence for p in got] == [0, 1, 3, 4]  # upper frame indices: upper frame 2 had no partner
-    lower_index = [0, 1, 2, 3]  # the lower camera's own frame count (it never saw pulse 2)
+    assert [p.sequence for p in got] == [0, 1, 3], incident_keys(info)  # upper frame 2 had no partner
+    lower_index = [0, 1, 2]  # the lower camera's own frame count (it never saw pulse 2)
     for pair, k in zip(got, lower_index):
         np.testing.assert_array_equal(pair.upper, frames[pair.sequence % N_FRAMES].upper)
         np.testing.assert_array_equal(pair.lower, frames[k % N_FRAMES].lower)
     assert incident_keys(info) == [("no_partner", "upper", 2)]
+
+
+def test_frames_returns_only_after_the_readers_have_stopped(emulation, station, monkeypatch):
+    """A reader thread busy when the pairs are done (here: 1.5 s inside the inbox, longer
+    than one reader poll and than the 1.25 s the source used to wait) is waited for, never
+    left running while its camera is stopped, closed and destroyed: a grab result
+    released after that is a use-after-free in pylon."""
+    root, _, _ = station
+    put = acquire_basler._Inbox.put
+
+    def slow_put(self, frame):
+        put(self, frame)
+        if frame.camera == "lower":
+            time.sleep(1.5)  # the frame is handed over; the reader still holds its grab result
+
+    monkeypatch.setattr(acquire_basler._Inbox, "put", slow_put)
+    source = make_source(root, frames=1)
+    try:
+        (pair,) = list(source.frames())
+        alive = [t.name for t in threading.enumerate() if t.name.startswith("basler-reader")]
+    finally:
+        source.close()
+    assert pair.sequence == 0
+    assert alive == []
+
+
+def test_pylon_takes_over_sigalrm_when_grabbing(emulation, station):
+    """Why this module has no SIGALRM timeout (see WATCHDOG_S): after StartGrabbing the
+    process's SIGALRM handler is pylon's, not Python's. If a pylon release stops doing
+    that, this test fails and pytest-timeout's signal method can come back."""
+
+    class SigAction(ctypes.Structure):
+        _fields_ = [("handler", ctypes.c_void_p), ("mask", ctypes.c_ulong * 16), ("flags", ctypes.c_int),
+                    ("restorer", ctypes.c_void_p)]
+
+    class DlInfo(ctypes.Structure):
+        _fields_ = [("fname", ctypes.c_char_p), ("fbase", ctypes.c_void_p), ("sname", ctypes.c_char_p),
+                    ("saddr", ctypes.c_void_p)]
+
+    libc = ctypes.CDLL(None)
+
+    def sigalrm_library() -> str:
+        action, info = SigAction(), DlInfo()
+        assert libc.sigaction(signal.SIGALRM, None, ctypes.byref(action)) == 0
+        assert action.handler and libc.dladdr(ctypes.c_void_p(action.handler), ctypes.byref(info))
+        return Path(info.fname.decode()).name
+
+    assert signal.getitimer(signal.ITIMER_REAL) == (0.0, 0.0)  # no SIGALRM timer armed in this module
+    saved = signal.signal(signal.SIGALRM, lambda *_: None)
+    try:
+        assert sigalrm_library().startswith("libpython")
+        source = make_source(station[0], frames=1)
+        try:
+            list(source.frames())
+            taken = sigalrm_library()
+        finally:
+            source.close()
+    finally:
+        signal.signal(signal.SIGALRM, saved)
+    assert taken.startswith("libpylonbase"), taken
 
 
 def test_skew_beyond_max_skew_ms_refuses_the_pair(emulation, station):
@@ -349,12 +464,14 @@ def test_session_over_emulated_cameras_reports_what_the_simulator_source_reports
 
     root, frames, simulator = station
     common = {"record": False, "rerun": False, "output_dir": str(tmp_path)}
+    report = {"plugin": "json"}  # report.json is what is compared; report.html's figures would only add time
     full = {"simulator": FrameCollector(), "basler": FrameCollector()}
     simulated = run_session(
         parse_config({
             "session": common | {"name": "simulator"},
             "acquire": {"plugin": "simulator", "scenario": "station", "frames": N_FRAMES, "seed": SEED},
             "reference": {"plugin": "romer-serial", "port": "simulator"},
+            "report": report,
         }, "<simulator>"),
         make_plugin_manager(),
         observers=[full["simulator"]],
@@ -370,6 +487,7 @@ def test_session_over_emulated_cameras_reports_what_the_simulator_source_reports
                     "lower_features": emulated_features(root, "lower"),
                 },
                 "reference": {"plugin": "romer-serial", "port": port},
+                "report": report,
             }, "<basler>"),
             make_plugin_manager(),
             observers=[full["basler"]],

@@ -70,7 +70,9 @@ def crossfield(site: Path, *args: str) -> subprocess.CompletedProcess:
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory):
     out = tmp_path_factory.mktemp("entry-point-session")
-    record_session(out, "orig")
+    # Two pairs: what the replay and its audit (both re-run the session in a
+    # subprocess) are checked on is the plugin's use.
+    record_session(out, "orig", frames=2)
     return out / "orig" / "session.mcap"
 
 

@@ -16,6 +16,7 @@ import subprocess
 import sys
 import termios
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -66,21 +67,26 @@ def _on_terminal(argv: list[str], cwd: Path, timeout: float = 300.0) -> tuple[in
     return status, out.decode("utf-8", "replace")
 
 
-RUN = ("run", "--scenario", "table3", "--frames", "2", "--no-record", "--no-rerun", "-o", "out")
+# --report json: the bars are drawn while the pairs run; report.html's figures add only time here.
+RUN = ("run", "--scenario", "table3", "--frames", "2", "--no-record", "--no-rerun", "--report", "json", "-o", "out")
 
 
 def test_run_draws_a_bar_with_eta_on_a_terminal_only(tmp_path: Path) -> None:
-    status, text = _on_terminal(_command(*RUN, "--name", "tty"), tmp_path)
+    # The three runs are independent (own session folders): they run side by side, as two
+    # cores allow, instead of one after the other.
+    with ThreadPoolExecutor(max_workers=3) as pool:
+        tty = pool.submit(_on_terminal, _command(*RUN, "--name", "tty"), tmp_path)
+        quiet = pool.submit(_on_terminal, _command(*RUN, "--name", "quiet", "-q"), tmp_path)
+        piped = pool.submit(subprocess.run, _command(*RUN, "--name", "pipe"), cwd=tmp_path, capture_output=True,
+                            text=True, timeout=300)
+        (status, text), (quiet_status, quiet_text), piped = tty.result(), quiet.result(), piped.result()
     assert status == 0, text
     assert ETA.search(text), text  # the pairs' bar with its ETA, drawn while the pairs run
     assert "Result: PASS" in text
 
-    status, text = _on_terminal(_command(*RUN, "--name", "quiet", "-q"), tmp_path)
-    assert status == 0, text
-    assert "Result: PASS" in text and not BAR.search(text) and "pairs:" not in text, text
+    assert quiet_status == 0, quiet_text
+    assert "Result: PASS" in quiet_text and not BAR.search(quiet_text) and "pairs:" not in quiet_text, quiet_text
 
-    piped = subprocess.run(_command(*RUN, "--name", "pipe"), cwd=tmp_path, capture_output=True, text=True,
-                           timeout=300)
     assert piped.returncode == 0, piped.stderr
     assert "Result: PASS" in piped.stdout
     assert not BAR.search(piped.stderr) and "pairs:" not in piped.stderr and "\r" not in piped.stderr, piped.stderr
