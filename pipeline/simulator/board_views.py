@@ -36,7 +36,7 @@ independent renderer (issue 28) until ``render_mismatch`` lands.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from functools import cached_property, lru_cache
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -68,11 +68,6 @@ class BoardTexture:
     levels: np.ndarray
     origin_mm: tuple[float, float]
     texel_mm: float
-
-    @cached_property
-    def levels_float(self) -> np.ndarray:
-        """``levels`` as float32 (0..255), for the bilinear lookup of :func:`_integrate`."""
-        return self.levels.astype(np.float32)
 
     def sample(self, bx: np.ndarray, by: np.ndarray) -> np.ndarray:
         """Reflectance (0..1) at board-frame points (mm), nearest texel; any shape."""
@@ -171,13 +166,14 @@ def _integrate(texture: BoardTexture, tx: np.ndarray, ty: np.ndarray, n_samples:
     tx_v, tx_u = (g.astype(np.float32) for g in np.gradient(tx))
     ty_v, ty_u = (g.astype(np.float32) for g in np.gradient(ty))
     tx32, ty32 = tx.astype(np.float32), ty.astype(np.float32)
-    acc = np.zeros(tx.shape, np.float32)
-    levels = texture.levels_float
+    acc = np.zeros(tx.shape, np.uint16)
     for du, dv in sample_offsets(n_samples):
         mx = cv2.scaleAdd(tx_v, float(dv), cv2.scaleAdd(tx_u, float(du), tx32))
         my = cv2.scaleAdd(ty_v, float(dv), cv2.scaleAdd(ty_u, float(du), ty32))
-        acc += cv2.remap(levels, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return acc / np.float32(255 * n_samples)
+        # uint8 out: each sample rounded to 1/255 of white (0.2 % of the contrast); a float32 lookup
+        # is 1.4x slower and gives the same corners (0.003-0.004 px from a 64-sample rendering)
+        acc += cv2.remap(texture.levels, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return acc.astype(np.float32) / np.float32(255 * n_samples)
 
 
 def board_height_mm(
