@@ -13,7 +13,9 @@ lookup makes each sub-sample a step, and with 16 sub-samples per pixel the
 pixel's coverage is quantised along a slanted edge: the station's corners
 then carry a deterministic error of 0.011-0.027 px RMS per view against a
 converged (256-sample) rendering; the tent lookup brings it to 0.003-0.004 px
-at 1.3x the lookup time of the nearest one (issue 28, ``tests/calibration/test_board_render.py``). The pixel's coverage is then lit (a vignetted illumination),
+at 1.3x the lookup time of the nearest one (issue 28,
+``tests/calibration/test_board_render.py``). The pixel's coverage is then
+lit (a vignetted illumination),
 blurred with the sensor's Gaussian PSF and noised (shot + read noise,
 :func:`crossfield.simulator.render.add_noise`), like the target images.
 
