@@ -80,12 +80,12 @@ def session_detections(
 ) -> tuple[list[dict[str, BoardDetection | None]], float, tuple[int, int], dict]:
     """Detections of one simulated session (rendered or cached), their corner RMS error vs truth (px)."""
     board = default_board()
-    key = f"peers_v2_s{seed}_n{n_views}_m{int(mismatch)}_x{supersample}.npz"
+    key = f"peers_v3_s{seed}_n{n_views}_m{int(mismatch)}_x{supersample}.npz"
     truth = station_calibration()
     size = truth.upper.image_size
     if cache is not None and not (cache / key).exists():
         # the first n views of a longer cached session are the n-view session (same poses, same noise draws)
-        for longer in sorted(cache.glob(f"peers_v2_s{seed}_n*_m{int(mismatch)}_x{supersample}.npz")):
+        for longer in sorted(cache.glob(f"peers_v3_s{seed}_n*_m{int(mismatch)}_x{supersample}.npz")):
             if int(longer.name.split("_n")[1].split("_")[0]) > n_views:
                 key = longer.name
                 break
