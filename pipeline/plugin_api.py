@@ -31,12 +31,15 @@ from crossfield.camera.pairing import (
 )
 from crossfield.camera.stereo_model import (
     StereoGeometry,
+    centroid_sigmas,
     epipolar_candidates,
     linear_triangulation,
+    paired_observations,
     point_covariance,
     refine_points,
     stereo_geometry,
     undistort,
+    unique_matches,
 )
 from crossfield.cmm.controls import control_problems
 from crossfield.cmm.formats import FORMATS, UNITS, LineFormat
@@ -263,6 +266,7 @@ __all__ = [
     "by_probing_order",
     "camera_covariance",
     "centre_offsets",
+    "centroid_sigmas",
     "check_ratio",
     "check_reflection",
     "check_units",
@@ -295,6 +299,7 @@ __all__ = [
     "off_axis_rad",
     "offset_covariance",
     "pair_skew_ns",
+    "paired_observations",
     "parse_float",
     "pattern_regex",
     "point_covariance",
@@ -322,6 +327,7 @@ __all__ = [
     "tolerance_text",
     "trend_chart",
     "undistort",
+    "unique_matches",
     "unit_name",
     "validate_pairs",
     "weighted_rms",

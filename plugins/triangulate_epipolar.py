@@ -42,28 +42,23 @@ import numpy as np
 
 from crossfield.plugin_api import (
     CameraPoints,
-    CentroidSet,
     StereoCalibration,
     StereoCentroids,
     StereoGeometry,
     View,
     centre_offsets,
+    centroid_sigmas,
     epipolar_candidates,
     fit_circles,
     hookimpl,
     offset_covariance,
+    paired_observations,
     point_covariance,
     refine_points,
     stereo_geometry,
     undistort,
+    unique_matches,
 )
-
-
-def _sigmas(centroids: CentroidSet, default_px: float) -> np.ndarray:
-    """(N, 2) px: the centroids' sigma_uv, ``default_px`` where one is not a positive number."""
-    sigma = centroids.sigma_uv
-    valid = (sigma > 0) & (sigma < np.inf)  # False for nan
-    return sigma if valid.all() else np.where(valid, sigma, default_px)
 
 
 def _names(camera: str, indices) -> str:
@@ -154,9 +149,8 @@ class EpipolarTriangulator:
         """
         geometry = self._geometry(calibration)
         upper, lower = centroids.upper, centroids.lower
-        n, m = len(upper), len(lower)
-        sigma_u = _sigmas(upper, self.default_sigma_px)
-        sigma_l = _sigmas(lower, self.default_sigma_px)
+        sigma_u = centroid_sigmas(upper.sigma_uv, self.default_sigma_px)
+        sigma_l = centroid_sigmas(lower.sigma_uv, self.default_sigma_px)
         xn_u = undistort(upper.uv, geometry.upper)
         xn_l = undistort(lower.uv, geometry.lower)
 
@@ -168,17 +162,13 @@ class EpipolarTriangulator:
             epipolar_k=self.epipolar_k, calibration_px=self.calibration_px,
             z_min_mm=self.z_min_mm, z_max_mm=self.z_max_mm,
         )
-        n_upper = candidate.sum(axis=1)
-        n_lower = candidate.sum(axis=0)
-        accepted = candidate & (n_upper == 1)[:, None] & (n_lower == 1)[None, :]
-        ai, aj = np.nonzero(accepted)  # row-major: sorted by upper index
+        # Accepted: the pairs whose two centroids have exactly one candidate each (sorted by upper index).
+        n_upper, n_lower, ai, aj = unique_matches(candidate)
+        rejected = self._reasons(candidate, n_upper, n_lower, distance, limit, X_pairs[:, :, 2], len(ai))
 
-        rejected = self._reasons(candidate, n_upper, n_lower, distance, limit, X_pairs[:, :, 2])
-
-        # Initial points from the linear triangulation already done for the candidates.
-        X = X_pairs[ai, aj]
-        uv_obs = np.concatenate((upper.uv[ai], lower.uv[aj]), axis=1)  # (K, 4) px
-        weights = 1.0 / np.concatenate((sigma_u[ai], sigma_l[aj]), axis=1) ** 2
+        # Initial points from the linear triangulation already done for the candidates; the
+        # observations [u_upper, v_upper, u_lower, v_lower] (K, 4) px and their weights 1 / sigma^2.
+        X, uv_obs, weights = paired_observations(ai, aj, upper.uv, lower.uv, sigma_u, sigma_l, X_pairs)
         X, residual, J, information = self._refine(X, uv_obs, weights, geometry)
         offset_cov = None
         if self.eccentricity and len(X) and upper.ellipse is not None and lower.ellipse is not None:
@@ -247,9 +237,9 @@ class EpipolarTriangulator:
 
     # ---- reasons -------------------------------------------------------------------------------
 
-    def _reasons(self, candidate, n_upper, n_lower, distance, limit, z_upper) -> list[str]:
+    def _reasons(self, candidate, n_upper, n_lower, distance, limit, z_upper, n_accepted: int) -> list[str]:
         n, m = candidate.shape
-        if n == m == int(np.count_nonzero(candidate)) and n_upper.all() and n_lower.all():
+        if n == m == n_accepted:
             return []  # a one-to-one match: every centroid accepted
         z_range = f"{self.z_min_mm:g}..{self.z_max_mm:g} mm"
         out_of_range: dict[tuple[str, int], tuple[int, float]] = {}

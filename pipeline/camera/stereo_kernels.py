@@ -23,7 +23,18 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["epipolar_candidates", "linear_points", "point_covariances", "project_into", "project_view", "refine", "undistort_points"]
+__all__ = [
+    "all_positive_finite",
+    "epipolar_candidates",
+    "linear_points",
+    "paired_observations",
+    "point_covariances",
+    "project_into",
+    "project_view",
+    "refine",
+    "undistort_points",
+    "unique_matches",
+]
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -257,6 +268,62 @@ def epipolar_candidates(xn_u, xn_l, K_u, K_l, F, sigma_u, sigma_l, R_l, t_l, bas
                 z_lower = x0 * R_l[2, 0] + x1 * R_l[2, 1] + x2 * R_l[2, 2] + t_l[2]
                 candidate[i, j] = x2 >= z_min and x2 <= z_max and z_lower > 0  # False for nan
     return distance, limit, X, candidate
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def unique_matches(candidate):
+    """The one-to-one matches of a candidate table (N, M) bool: each row's and column's count of
+    candidates, n_upper (N,) and n_lower (M,), and the pairs (i, j) whose row and column both hold
+    exactly one candidate, as index arrays upper (K,), lower (K,) in row-major order (sorted by i)."""
+    n, m = candidate.shape
+    n_upper = np.zeros(n, dtype=np.int64)
+    n_lower = np.zeros(m, dtype=np.int64)
+    for i in range(n):
+        for j in range(m):
+            if candidate[i, j]:
+                n_upper[i] += 1
+                n_lower[j] += 1
+    upper = np.empty(n, dtype=np.int64)
+    lower = np.empty(n, dtype=np.int64)
+    count = 0
+    for i in range(n):
+        if n_upper[i] == 1:
+            for j in range(m):
+                if candidate[i, j] and n_lower[j] == 1:
+                    upper[count], lower[count] = i, j
+                    count += 1
+    return n_upper, n_lower, upper[:count].copy(), lower[:count].copy()
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def paired_observations(upper, lower, uv_u, uv_l, sigma_u, sigma_l, X_pairs):
+    """Gather the matched pairs (upper[k], lower[k]) (K,): their linear points X_pairs[i, j] (K, 3)
+    mm, the observations [u_upper, v_upper, u_lower, v_lower] (K, 4) px and the weights
+    1 / sigma^2 (K, 4) px^-2 from uv_u (N, 2), uv_l (M, 2), sigma_u (N, 2), sigma_l (M, 2) px."""
+    count = upper.shape[0]
+    X = np.empty((count, 3))
+    uv = np.empty((count, 4))
+    w = np.empty((count, 4))
+    for k in range(count):
+        i, j = upper[k], lower[k]
+        X[k, 0], X[k, 1], X[k, 2] = X_pairs[i, j, 0], X_pairs[i, j, 1], X_pairs[i, j, 2]
+        uv[k, 0], uv[k, 1], uv[k, 2], uv[k, 3] = uv_u[i, 0], uv_u[i, 1], uv_l[j, 0], uv_l[j, 1]
+        for c in range(2):
+            su, sl = sigma_u[i, c], sigma_l[j, c]
+            w[k, c] = 1.0 / (su * su)
+            w[k, 2 + c] = 1.0 / (sl * sl)
+    return X, uv, w
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def all_positive_finite(values):
+    """Whether every element of the 2-D array ``values`` is > 0 and < inf (False for nan)."""
+    for i in range(values.shape[0]):
+        for c in range(values.shape[1]):
+            v = values[i, c]
+            if not (v > 0.0 and v < np.inf):
+                return False
+    return True
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")

@@ -13,6 +13,8 @@ describes the estimator the pipeline runs.
 * :func:`epipolar_candidates`: each lower point's distance to each upper point's
   epipolar line, its limit from both centroids' sigmas (H&Z 9.2, 4.2.6), and the pairs
   within it triangulated and checked against the working range;
+* :func:`unique_matches`: the candidate pairs whose two centroids have no other
+  candidate, and :func:`paired_observations`: their points, observations and weights;
 * :func:`linear_triangulation`: the linear method (Hartley & Zisserman 12.2,
   inhomogeneous form) in normalised coordinates;
 * :func:`refine_points`: Gauss-Newton on the weighted reprojection error in both
@@ -46,13 +48,16 @@ __all__ = [
     "CameraModel",
     "StereoGeometry",
     "camera_model",
+    "centroid_sigmas",
     "epipolar_candidates",
     "linear_triangulation",
+    "paired_observations",
     "point_covariance",
     "project_pair",
     "refine_points",
     "stereo_geometry",
     "undistort",
+    "unique_matches",
 ]
 
 #: Termination of cv2.undistortPoints' fixed-point iteration (its default is only 5 iterations).
@@ -232,6 +237,57 @@ def epipolar_candidates(
         np.ascontiguousarray(sigma_lower, dtype=np.float64).reshape(-1, 2),
         geometry.lower.R, geometry.lower.t, geometry.baseline_mm,
         float(max_epipolar_px), float(epipolar_k), float(calibration_px), float(z_min_mm), float(z_max_mm),
+    )
+
+
+def centroid_sigmas(sigma_uv: np.ndarray, default_px: float) -> np.ndarray:
+    """(N, 2) px: the centroids' ``sigma_uv``, ``default_px`` where one is not a positive finite number.
+
+    The array itself when every sigma is valid (the common case: one compiled pass, no copy).
+    """
+    sigma = np.asarray(sigma_uv, dtype=np.float64)
+    if stereo_kernels.all_positive_finite(sigma):
+        return sigma
+    valid = (sigma > 0) & (sigma < np.inf)  # False for nan
+    return np.where(valid, sigma, default_px)
+
+
+def unique_matches(candidate: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The one-to-one matches of epipolar matching (docs/triangulation.md, step 2).
+
+    candidate: (N, M) bool, :func:`epipolar_candidates`' table. Returns each upper centroid's
+    count of candidates (N,), each lower centroid's (M,), and the accepted pairs, those whose
+    two centroids each have exactly one candidate, as index arrays upper (K,), lower (K,)
+    int64, sorted by the upper index (compiled: :func:`crossfield.camera.stereo_kernels.unique_matches`).
+    """
+    return stereo_kernels.unique_matches(np.ascontiguousarray(candidate, dtype=np.bool_))
+
+
+def paired_observations(
+    upper_index: np.ndarray,
+    lower_index: np.ndarray,
+    uv_upper: np.ndarray,
+    uv_lower: np.ndarray,
+    sigma_upper: np.ndarray,
+    sigma_lower: np.ndarray,
+    X_pairs: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The matched pairs' inputs to :func:`refine_points`.
+
+    upper_index, lower_index (K,): the pairs (:func:`unique_matches`); uv_upper (N, 2), uv_lower
+    (M, 2) px: the centroids (distorted pixels); sigma_upper (N, 2), sigma_lower (M, 2) px;
+    X_pairs (N, M, 3) mm: :func:`epipolar_candidates`' linear points. Returns the pairs' linear
+    points (K, 3) mm, observations ``[u_upper, v_upper, u_lower, v_lower]`` (K, 4) px and weights
+    ``1 / sigma^2`` (K, 4) px^-2 (compiled: :func:`crossfield.camera.stereo_kernels.paired_observations`).
+    """
+    return stereo_kernels.paired_observations(
+        np.ascontiguousarray(upper_index, dtype=np.int64),
+        np.ascontiguousarray(lower_index, dtype=np.int64),
+        np.ascontiguousarray(uv_upper, dtype=np.float64).reshape(-1, 2),
+        np.ascontiguousarray(uv_lower, dtype=np.float64).reshape(-1, 2),
+        np.ascontiguousarray(sigma_upper, dtype=np.float64).reshape(-1, 2),
+        np.ascontiguousarray(sigma_lower, dtype=np.float64).reshape(-1, 2),
+        np.ascontiguousarray(X_pairs, dtype=np.float64),
     )
 
 

@@ -151,3 +151,50 @@ def test_triangulation_equals_the_numpy_path_to_rounding():
     assert np.array_equal(order[points.lower_index], upper)  # the shuffled lower set matched back
     assert np.max(np.abs(points.xyz - Xk[upper])) < 1e-9  # mm (measured: ~5e-13)
     assert np.max(np.abs(points.cov_xyz - cov[upper])) < 1e-9 * np.max(np.abs(cov))
+
+
+# ---- matching glue (issue 25 item 4, round 4): the compiled gathers against the NumPy they replaced ----
+
+
+def test_unique_matches_equal_the_numpy_counts_and_nonzero():
+    rng = np.random.default_rng(11)
+    for n, m, density in [(0, 0, 0.5), (0, 4, 0.5), (5, 0, 0.5), (1, 1, 1.0)] + [
+        (int(rng.integers(1, 30)), int(rng.integers(1, 30)), float(rng.uniform(0.0, 0.3))) for _ in range(300)
+    ]:
+        candidate = rng.random((n, m)) < density
+        n_upper, n_lower, upper, lower = stereo_model.unique_matches(candidate)
+        want_upper, want_lower = candidate.sum(axis=1), candidate.sum(axis=0)
+        accepted = candidate & (want_upper == 1)[:, None] & (want_lower == 1)[None, :]
+        want_i, want_j = np.nonzero(accepted)
+        np.testing.assert_array_equal(n_upper, want_upper)
+        np.testing.assert_array_equal(n_lower, want_lower)
+        np.testing.assert_array_equal(upper, want_i)
+        np.testing.assert_array_equal(lower, want_j)
+        assert upper.dtype == lower.dtype == np.int64
+
+
+def test_paired_observations_equal_the_numpy_gather_bit_for_bit():
+    rng = np.random.default_rng(12)
+    n, m = 17, 13
+    uv_u, uv_l = rng.uniform(0, 2000, (n, 2)), rng.uniform(0, 2000, (m, 2))
+    sigma_u, sigma_l = rng.uniform(0.005, 0.3, (n, 2)), rng.uniform(0.005, 0.3, (m, 2))
+    X_pairs = rng.normal(0, 300, (n, m, 3))
+    i, j = np.array([0, 3, 4, 16]), np.array([12, 0, 5, 2])
+    X, uv, w = stereo_model.paired_observations(i, j, uv_u, uv_l, sigma_u, sigma_l, X_pairs)
+    assert np.array_equal(X, X_pairs[i, j])
+    assert np.array_equal(uv, np.concatenate((uv_u[i], uv_l[j]), axis=1))
+    assert np.array_equal(w, 1.0 / np.concatenate((sigma_u[i], sigma_l[j]), axis=1) ** 2)
+    empty = stereo_model.paired_observations(i[:0], j[:0], uv_u, uv_l, sigma_u, sigma_l, X_pairs)
+    assert [a.shape for a in empty] == [(0, 3), (0, 4), (0, 4)]
+
+
+@pytest.mark.parametrize("bad", [np.nan, 0.0, -0.01, np.inf])
+def test_centroid_sigmas_replace_only_the_invalid_ones(bad):
+    sigma = np.full((6, 2), 0.02)
+    assert stereo_model.centroid_sigmas(sigma, 0.05) is sigma  # all valid: the array itself, no copy
+    sigma[4, 1] = bad
+    out = stereo_model.centroid_sigmas(sigma, 0.05)
+    expected = np.full((6, 2), 0.02)
+    expected[4, 1] = 0.05
+    assert np.array_equal(out, expected)
+    assert stereo_model.centroid_sigmas(np.zeros((0, 2)), 0.05).shape == (0, 2)
