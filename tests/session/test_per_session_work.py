@@ -66,3 +66,21 @@ def test_plugin_distributions_are_looked_up_once_per_process():
     assert first["measure"]["plan"].package == "crossfield"
     assert first["measure"]["plan"].version == metadata.version("crossfield")
 
+
+def test_a_warm_process_repeats_no_per_process_work(tmp_path):
+    cold = station_session(tmp_path, "cold")
+    versions, distributions = counting_metadata(), counting_metadata()
+    with (
+        mock.patch.object(provenance, "metadata", versions),
+        mock.patch.object(registry, "metadata", distributions),
+        mock.patch.object(geometry, "fit_cylinder_axis", wraps=geometry.fit_cylinder_axis) as cylinder,
+        mock.patch.object(geometry, "fit_line", wraps=geometry.fit_line) as line,
+    ):
+        warm = station_session(tmp_path, "warm")
+    # before: 17 version lookups, 19 distribution lookups and 2 cylinder fits per session
+    assert versions.version.call_count == 0
+    assert distributions.version.call_count == 0
+    assert cylinder.call_count == 0 and line.call_count == 0
+    assert warm.frames_processed == cold.frames_processed == 2
+    for a, b in zip(cold.characteristics, warm.characteristics, strict=True):
+        assert (a.name, a.measured_mm, a.uncertainty_mm) == (b.name, b.measured_mm, b.uncertainty_mm)
