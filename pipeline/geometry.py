@@ -406,7 +406,7 @@ def fit_reference_element(element: ReferenceLineSpec, points: Iterable[ProbedPoi
     Fits are cached for the process (:func:`_fit_probes`), keyed on the element's
     id and fit kind, its probes' coordinates (bytes) and the a-priori sigma: the
     measurement, the session's CMM evidence, the report and the viewer fit the same
-    probes, and a cylinder fit takes ~25 ms. The result is shared between callers:
+    probes, and a cylinder fit of 12 probes takes ~14 ms. The result is shared between callers:
     :class:`AxisFit` is frozen and its arrays are read-only.
     """
     probes = element_probes(element.id, points)
@@ -429,7 +429,7 @@ def _fit_probes(element_id: str, fit: str, xyz_bytes: bytes, sigma_mm: float) ->
     mm, C order) with a-priori sigma ``sigma_mm`` (mm): :func:`fit_reference_element`.
 
     Cached: a station session fitted the same probes twice (the measurement and the
-    session's CMM evidence, ~52-67 ms a session under cProfile, issue 25), and again
+    session's CMM evidence, 47-52 ms a session under cProfile, issue 25), and again
     in every later session of the process with the same reference. The key holds
     every input of the fit, so a hit returns what the fit would; the result is
     immutable (frozen :class:`AxisFit`, read-only arrays). Bounded: a Monte Carlo
