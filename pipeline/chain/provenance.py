@@ -10,6 +10,7 @@ recording and its audit name versions the same way.
 
 from __future__ import annotations
 
+import functools
 import os
 import platform
 import socket
@@ -47,14 +48,26 @@ UNKNOWN_VERSION = "0+unknown"
 
 def package_versions() -> dict[str, str]:
     """Python's version and each of :data:`RECORDED_PACKAGES`' installed version
-    ("not installed" when absent): the ``crossfield.packages`` record."""
-    versions = {"python": sys.version.split()[0]}
+    ("not installed" when absent): the ``crossfield.packages`` record.
+
+    The versions are looked up once per process (:func:`_installed_versions`); each
+    call returns a new dict, so a caller that changes its copy changes no other's."""
+    return dict(_installed_versions())
+
+
+@functools.cache
+def _installed_versions() -> tuple[tuple[str, str], ...]:
+    # One importlib.metadata lookup per package scans sys.path's dist-info folders:
+    # 19-24 ms a session under cProfile, 7.9 ms without (issue 25). Cached for the process: the
+    # installed versions do not change while it runs (an upgrade takes effect in a
+    # new process, whose imported modules are the new ones).
+    versions = [("python", sys.version.split()[0])]
     for name in RECORDED_PACKAGES:
         try:
-            versions[name] = metadata.version(name)
+            versions.append((name, metadata.version(name)))
         except metadata.PackageNotFoundError:
-            versions[name] = "not installed"
-    return versions
+            versions.append((name, "not installed"))
+    return tuple(versions)
 
 
 def crossfield_version(packages: Mapping[str, str] | None = None) -> str:

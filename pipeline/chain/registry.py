@@ -231,7 +231,14 @@ def _packages_distributions() -> dict[str, list[str]]:
     return metadata.packages_distributions()
 
 
+@functools.cache
 def _distribution_of(module_name: str) -> tuple[str, str]:
+    """The (distribution, version) a plugin module ``module_name`` comes from.
+
+    Cached per module name for the process: each ``metadata.version`` reads a
+    dist-info folder (19 lookups, 12-14 ms a session under cProfile,
+    issue 25), and what is installed does not change while the process runs (the
+    module-to-distribution map above is read once per process already)."""
     top = module_name.split(".")[0]
     for dist_name in _packages_distributions().get(top, []):
         try:

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from dataclasses import FrozenInstanceError, replace
+from unittest import mock
+
 import numpy as np
 import pytest
 
@@ -243,6 +246,42 @@ def test_reference_element_fit_errors_name_the_element():
         fit_reference_element(plan.reference_lines[0], few.points)
     with pytest.raises(ValueError, match=r"reference line L4: 0 of 6 probes imported"):
         fit_reference_element(plan.reference_lines[1], few.points)
+
+
+def test_reference_element_fits_are_cached_per_process_and_immutable():
+    """The same probes are fitted once per process (issue 25: the measurement and the
+    session's CMM evidence fitted them twice a session, ~25 ms a cylinder fit); the
+    shared result cannot be changed by a caller; other probes or sigma are refitted."""
+    from crossfield.geometry import element_probes, fit_reference_element
+    from crossfield.plan import parse_plan
+    from crossfield.types import ProbedPoint
+
+    plan = parse_plan(REFERENCE_PLAN, "plan.toml")
+    cyl_spec, line_spec = plan.reference_lines
+    points = reference_data(np.random.default_rng(7)).points
+    same = tuple(ProbedPoint(p.label, np.array(p.xyz), p.sigma_mm) for p in points)  # equal, not the same
+    first = fit_reference_element(cyl_spec, points)
+    with mock.patch("crossfield.geometry.fit_cylinder_axis", wraps=fit_cylinder_axis) as fits:
+        again = fit_reference_element(cyl_spec, same)
+        assert fits.call_count == 0  # before: 1, a fit per call
+        assert again is first
+        moved = tuple(replace(p, xyz=p.xyz + [0.0, 0.0, 1e-9]) if p.label == "L3.5" else p for p in points)
+        fit_reference_element(cyl_spec, moved)
+        fit_reference_element(cyl_spec, tuple(replace(p, sigma_mm=0.02) for p in points))
+        assert fits.call_count == 2
+    xyz = np.array([p.xyz for p in element_probes("L3", points)])
+    direct = fit_cylinder_axis(xyz, sigma_mm=0.01)
+    assert np.array_equal(first.residuals_mm, direct.residuals_mm) and first.sigma_mm == direct.sigma_mm
+    assert np.array_equal(first.covariance, direct.covariance) and first.radius_mm == direct.radius_mm
+    for array in (first.residuals_mm, first.covariance, *first.basis, first.line.point, first.line.direction):
+        with pytest.raises(ValueError, match="read-only"):
+            array[0] = 0.0
+    with pytest.raises(FrozenInstanceError):
+        first.sigma_mm = 1.0  # type: ignore[misc]
+    coincident = tuple(replace(p, xyz=np.array(LINE_POINT)) if p.label.startswith("L4.") else p for p in points)
+    for _ in range(2):  # a failed fit is not cached: it raises every time, naming the line
+        with pytest.raises(ValueError, match="reference line L4: line fit: all points coincide"):
+            fit_reference_element(line_spec, coincident)
 
 
 @pytest.mark.parametrize("bad_probe", [None, ("L3.13", [np.nan, 0.0, 0.0])])
