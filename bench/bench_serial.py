@@ -23,7 +23,8 @@ pair, romer-serial over the simulated arm's pty) where the arm sends
 ``--flood-mb`` MB of stray ``$`` bytes, or of random bytes, before its third
 point, against the same session without a flood: the session's time, the
 bytes it wrote (session folder) beyond the flood's own bytes (which are
-recorded on ``/cmm/raw`` as read), and its count of reference problems.
+recorded on ``/cmm/raw`` as read; these sessions record uncompressed, so that
+the flood's bytes are in the file as they are), and its count of reference problems.
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ import socket  # noqa: E402
 import tempfile  # noqa: E402
 import threading  # noqa: E402
 
+import crossfield.plugins.acquire_simulator as acquire_simulator  # noqa: E402
 import crossfield.simulator.arm as arm_module  # noqa: E402
 from crossfield.cmm.protocol import SerialTransport  # noqa: E402
 from crossfield.config import parse_config  # noqa: E402
@@ -146,12 +148,13 @@ def flood_session(out: Path, name: str, flood: bytes) -> tuple[float, int, int]:
             faults = {2: lambda sentence: flood + sentence} if flood else {}
             super().__init__(probes, faults=faults, **kwargs)
 
-    real = arm_module.SimulatedArm
-    arm_module.SimulatedArm = FloodArm
+    # the simulator acquisition serves the arm it imported (through crossfield.plugin_api): patch that name
+    real = acquire_simulator.SimulatedArm
+    acquire_simulator.SimulatedArm = FloodArm
     try:
         config = parse_config(
             {
-                "session": {"output_dir": str(out), "name": name, "rerun": False},
+                "session": {"output_dir": str(out), "name": name, "rerun": False, "compression": "none"},
                 "acquire": {"plugin": "simulator", "scenario": "table3", "frames": 1, "seed": 4},
                 "reference": {"plugin": "romer-serial", "port": "simulator", "timeout_s": 60.0},
             },
@@ -161,7 +164,7 @@ def flood_session(out: Path, name: str, flood: bytes) -> tuple[float, int, int]:
         summary = run_session(config, make_plugin_manager())
         elapsed = time.perf_counter() - t0
     finally:
-        arm_module.SimulatedArm = real
+        acquire_simulator.SimulatedArm = real
     folder = summary.info.out_dir
     written = sum(f.stat().st_size for f in folder.rglob("*") if f.is_file())
     return elapsed, written, len(summary.reference.problems)
