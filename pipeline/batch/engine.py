@@ -142,6 +142,13 @@ def client(
     # 4 MB image array is a fresh mmap whose pages fault in again: 2.6 -> 8.6 ms per
     # decoded-and-thresholded image (measured), the in-worker slowdown of issue 25. Unset
     # for the embedded cluster (None unsets a pre-spawn variable, distributed.nanny).
+    # MALLOC_ARENA_MAX=1: a worker runs its task on an executor thread, whose allocations
+    # glibc serves from a per-thread arena. Decoding an lz4 image and converting it on a new
+    # thread faulted 10570 pages in per 20 images with that arena, 2385-3407 with one arena,
+    # 3019 on a process's main thread (one process each, 2026-12-04). Measured on the task:
+    # a 2-pair audit 173-183 -> 142-144 ms inside a worker, and 2 workers 1.21-1.23 ->
+    # 1.41-1.53x the sequential loop (bench/bench_batch.py, alternating twice; docs/batch.md).
+    # A worker has one task thread, so one arena adds no lock contention worth measuring.
     # Each worker process starts a session of its own (setsid), so that Linux's autogroup
     # scheduler gives it its own CPU share instead of one share for the client and all
     # its workers: two workers in the client's group ran at 0.90-0.95x the sequential
@@ -158,6 +165,7 @@ def client(
         "distributed.admin.tick.interval": TICK_INTERVAL,
         "distributed.worker.profile.enabled": False,
         "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
+        "distributed.nanny.pre-spawn-environ.MALLOC_ARENA_MAX": 1,
         "distributed.worker.preload": ["crossfield.batch.worker_session"],
     }):
         cluster = LocalCluster(

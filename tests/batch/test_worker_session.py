@@ -16,6 +16,11 @@ def _session_and_group() -> tuple[int, str | None]:
     return os.getsid(0), words[0] if words else None
 
 
+def _malloc_environ() -> dict[str, str | None]:
+    """The glibc malloc variables of this process's environment."""
+    return {name: os.environ.get(name) for name in ("MALLOC_ARENA_MAX", "MALLOC_TRIM_THRESHOLD_")}
+
+
 def _tick_interval_s(dask_worker) -> float:
     """The worker's event-loop health check interval (s), as its server read it from the Dask config."""
     return float(dask_worker._tick_interval)
@@ -29,6 +34,9 @@ def test_embedded_workers_lead_their_own_sessions_and_autogroups():
         workers = c.run(_session_and_group)
         pids = c.run(os.getpid)
         ticks = c.run(_tick_interval_s)
+        malloc = c.run(_malloc_environ)
+    # one malloc arena for the task thread and no fixed trim threshold (crossfield.batch.engine.client)
+    assert set(map(str, malloc.values())) == {str({"MALLOC_ARENA_MAX": "1", "MALLOC_TRIM_THRESHOLD_": None})}
     # the event-loop health check wakes a worker (and takes the task's GIL) once a second, not every 20 ms
     assert set(ticks.values()) == {1.0}
     assert len(workers) == 2
