@@ -45,7 +45,6 @@ import tempfile  # noqa: E402
 import threading  # noqa: E402
 
 import crossfield.plugins.acquire_simulator as acquire_simulator  # noqa: E402
-import crossfield.simulator.arm as arm_module  # noqa: E402
 from crossfield.cmm.protocol import SerialTransport  # noqa: E402
 from crossfield.config import parse_config  # noqa: E402
 from crossfield.plan import parse_plan  # noqa: E402
@@ -143,7 +142,7 @@ def flood_session(out: Path, name: str, flood: bytes) -> tuple[float, int, int]:
     """(seconds, bytes written in the session folder, reference problems) of a one-pair
     simulator session whose arm sends ``flood`` before its third point."""
 
-    class FloodArm(arm_module.SimulatedArm):
+    class FloodArm(SimulatedArm):
         def __init__(self, probes, **kwargs):
             faults = {2: lambda sentence: flood + sentence} if flood else {}
             super().__init__(probes, faults=faults, **kwargs)

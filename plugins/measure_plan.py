@@ -155,12 +155,11 @@ class PlanMeasurer:
             self._eccentricity_cov(xyz, ecc_factor, spec_u.target_radius_mm, spec_u.max_tilt_deg)
             for xyz in points.xyz
         ]
-        ecc_cov = ecc_covs.__getitem__
 
-        C_reg, g_bar, consistency = self._registration_covariance(reference, points, registration, ecc_cov)
+        C_reg, g_bar, consistency = self._registration_covariance(reference, points, registration, ecc_covs)
 
         def camera_point(index: int) -> _Point:
-            cov = {"camera": camera_covariance(R, points.sigma_xyz[index]), "eccentricity": ecc_cov(index)}
+            cov = {"camera": camera_covariance(R, points.sigma_xyz[index]), "eccentricity": ecc_covs[index]}
             J = registration_jacobian(global_xyz[index], g_bar)
             return _Point(global_xyz[index], cov, J, global_xyz[index] - g_bar)
 
@@ -242,10 +241,11 @@ class PlanMeasurer:
         return found, missing
 
     def _registration_covariance(
-        self, reference: ReferenceData, points: CameraPoints, registration: Registration, ecc_cov
+        self, reference: ReferenceData, points: CameraPoints, registration: Registration, ecc_covs
     ) -> tuple[dict[str, np.ndarray], np.ndarray, RegistrationConsistency | None]:
         """Per budget source, the (6, 6) covariance of (dtheta, dt); the control centroid
-        g_bar (3,), global mm; the residuals against the stated sigmas."""
+        g_bar (3,), global mm; the residuals against the stated sigmas. ``ecc_covs``: each
+        camera point's (3, 3) mm^2 eccentricity covariance, by camera index."""
         corr = registration.correspondence
         by_label = reference.by_label()
         pairs = [(cid, int(i)) for cid, i in zip(corr.control_ids, corr.camera_index) if cid in by_label]
@@ -268,7 +268,7 @@ class PlanMeasurer:
             J = registration_jacobian(g, g_bar)
             S = {
                 "camera": camera_covariance(R, points.sigma_xyz[index]),
-                "eccentricity": ecc_cov(index),
+                "eccentricity": ecc_covs[index],
                 "control_cmm": by_label[cid].sigma_mm ** 2 * np.eye(3),
             }
             JtJ += J.T @ J
