@@ -83,12 +83,12 @@ from crossfield.recording.integrity import INTEGRITY_FORMAT, IntegrityChain
 from crossfield.report.document import document_of
 from crossfield.types import CAMERAS, CameraPoints
 
-#: Chunk compression by name (lossless; ``[session] compression``). zstd (level 3, the
-#: mcap library's) is the default since issue 27: a simulated 12-bit image shrinks to
-#: 0.43 of its size (lz4: 0.70), at ~11 ms of CPU per 4 MB image in the writer thread
-#: (lz4 ~9 ms) on an idle core of this machine: ~45 pairs/s from one writer thread,
-#: enough for the 14 Hz cameras; "lz4" or "none" where the rate matters more than the
-#: disk (bench/bench_recording.py, docs/recording.md).
+#: Chunk compression by name (lossless; ``[session] compression``). lz4 (the mcap
+#: library's frame defaults) is the default since issue 27: a simulated 12-bit image
+#: shrinks to 0.70 of its size at ~10 ms of CPU per 4 MB image in the writer thread
+#: (zstd level 3: 0.42 at ~25-27 ms), enough for the 14 Hz cameras; "none" where the rate
+#: matters more than the disk, "zstd" where the disk matters most (bench/bench_recording.py,
+#: docs/recording.md).
 COMPRESSIONS = {"none": CompressionType.NONE, "lz4": CompressionType.LZ4, "zstd": CompressionType.ZSTD}
 #: The compression of a recording unless told otherwise.
 DEFAULT_COMPRESSION = "lz4"
