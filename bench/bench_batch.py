@@ -4,11 +4,15 @@ Run on demand (never part of the tests)::
 
     .venv/bin/python bench/bench_batch.py [--sessions 6] [--frames 2] [--kind audit] [--tick 20ms]
 
-Records ``--sessions`` simulator sessions (table3, ``--frames`` stereo pairs, no .rrd),
-then times, in one run:
+Records ``--sessions`` simulator sessions (table3, ``--frames`` stereo pairs, no .rrd) in a
+child process (so that neither the loop's process nor a worker starts with their reference
+fits cached, :func:`crossfield.geometry.fit_reference_element`), then times, in one run:
 
 * sequential: :func:`crossfield.batch.tasks.run_task` called in this process for each
-  session, one after the other (the baseline);
+  session, one after the other (the baseline), with the workers' malloc settings
+  (:data:`crossfield.batch.engine.WORKER_MALLOC`, applied with ``mallopt``): a fresh
+  process's dynamic thresholds faulted ~17000 pages in per 2-pair audit, a process that
+  had recorded sessions none, so the loop's rate depended on what the process did before;
 * 1 worker, 2 workers: an embedded ``LocalCluster`` of that many worker processes
   (one thread each; started and warmed up outside the timing: imports, plugin manager and
   one audit, :func:`crossfield.batch.tasks.warm_up`; the sequential loop is warmed the same way), the same tasks through
@@ -68,6 +72,30 @@ def record(root: Path, n: int, frames: int) -> list[str]:
         run_session(config, make_plugin_manager())
         paths.append(str(root / f"s{i}" / "session.mcap"))
     return paths
+
+
+def record_elsewhere(root: Path, n: int, frames: int) -> list[str]:
+    """:func:`record` in a child process (spawned: nothing of it stays in this one)."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+        return pool.submit(record, root, n, frames).result()
+
+
+#: mallopt(3) parameters of the glibc environment variables of WORKER_MALLOC
+_MALLOPT = {"MALLOC_TRIM_THRESHOLD_": -1, "MALLOC_MMAP_THRESHOLD_": -3, "MALLOC_ARENA_MAX": -8}
+
+
+def heap_like_workers() -> None:
+    """Give this process the embedded workers' malloc settings (engine.WORKER_MALLOC), which
+    they get from their environment at start, with glibc's ``mallopt``."""
+    import ctypes
+
+    libc = ctypes.CDLL("libc.so.6")
+    for name, value in engine.WORKER_MALLOC.items():
+        if value is not None and not libc.mallopt(_MALLOPT[name], int(value)):
+            raise RuntimeError(f"mallopt({name}={value}) failed")
 
 
 def _switches() -> int:
@@ -141,7 +169,8 @@ def main() -> int:
     load_start = os.getloadavg()[0]
     work = Path(tempfile.mkdtemp(prefix="crossfield-bench-batch-"))
     try:
-        paths = record(work / "archive", args.sessions, args.frames)
+        paths = record_elsewhere(work / "archive", args.sessions, args.frames)
+        heap_like_workers()
         n = len(paths)
         print(f"{n} sessions of {args.frames} stereo pair(s), batch {args.kind}, {os.cpu_count()} core(s), "
               f"tick {args.tick}, load {load_start:.1f}")

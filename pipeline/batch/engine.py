@@ -39,6 +39,14 @@ logger = logging.getLogger(__name__)
 DEFAULT_MEMORY_LIMIT = "auto"
 #: The embedded cluster's event-loop health check interval (Dask's default: 20 ms), see :func:`client`.
 TICK_INTERVAL = "1s"
+#: glibc malloc settings of each embedded worker's environment (see :func:`client`): one
+#: arena, and fixed mmap (32 MiB) and trim (64 MiB) thresholds, so that the images a task
+#: decodes reuse the worker's heap instead of faulting their pages in again.
+WORKER_MALLOC = {
+    "MALLOC_ARENA_MAX": "1",
+    "MALLOC_MMAP_THRESHOLD_": str(32 << 20),
+    "MALLOC_TRIM_THRESHOLD_": str(64 << 20),
+}
 
 
 def add_engine_flags(parser: argparse.ArgumentParser) -> None:
@@ -140,8 +148,13 @@ def client(
     # Dask's nanny starts each worker with MALLOC_TRIM_THRESHOLD_=65536 (to hand freed
     # memory back to the OS); setting it disables glibc's dynamic mmap threshold, so every
     # 4 MB image array is a fresh mmap whose pages fault in again: 2.6 -> 8.6 ms per
-    # decoded-and-thresholded image (measured), the in-worker slowdown of issue 25. Unset
-    # for the embedded cluster (None unsets a pre-spawn variable, distributed.nanny).
+    # decoded-and-thresholded image (measured), the in-worker slowdown of issue 25.
+    # Left unset (glibc's dynamic thresholds), what a process faults in depends on what it
+    # did before: per 2-pair audit ~1000-2400 pages in a warm worker, ~17000 in a fresh
+    # process, none in one that had recorded sessions. Both thresholds fixed (mallopt(3):
+    # mmap 32 MiB, the largest glibc takes, so an image array always comes from the heap;
+    # trim 64 MiB of free heap top kept, the worker's RSS +10-17 MB): 4-21 faults per task
+    # (WORKER_MALLOC; docs/batch.md "Throughput").
     # MALLOC_ARENA_MAX=1: a worker runs its task on an executor thread, whose allocations
     # glibc serves from a per-thread arena. Decoding an lz4 image and converting it on a new
     # thread faulted 10570 pages in per 20 images with that arena, 2385-3407 with one arena,
@@ -164,8 +177,7 @@ def client(
     with dask.config.set({
         "distributed.admin.tick.interval": TICK_INTERVAL,
         "distributed.worker.profile.enabled": False,
-        "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
-        "distributed.nanny.pre-spawn-environ.MALLOC_ARENA_MAX": 1,
+        **{f"distributed.nanny.pre-spawn-environ.{name}": value for name, value in WORKER_MALLOC.items()},
         "distributed.worker.preload": ["crossfield.batch.worker_session"],
     }):
         cluster = LocalCluster(

@@ -18,7 +18,7 @@ def _session_and_group() -> tuple[int, str | None]:
 
 def _malloc_environ() -> dict[str, str | None]:
     """The glibc malloc variables of this process's environment."""
-    return {name: os.environ.get(name) for name in ("MALLOC_ARENA_MAX", "MALLOC_TRIM_THRESHOLD_")}
+    return {name: os.environ.get(name) for name in ("MALLOC_ARENA_MAX", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_")}
 
 
 def _tick_interval_s(dask_worker) -> float:
@@ -35,8 +35,10 @@ def test_embedded_workers_lead_their_own_sessions_and_autogroups():
         pids = c.run(os.getpid)
         ticks = c.run(_tick_interval_s)
         malloc = c.run(_malloc_environ)
-    # one malloc arena for the task thread and no fixed trim threshold (crossfield.batch.engine.client)
-    assert set(map(str, malloc.values())) == {str({"MALLOC_ARENA_MAX": "1", "MALLOC_TRIM_THRESHOLD_": None})}
+    # one malloc arena for the task thread, and the mmap and trim thresholds fixed high enough that
+    # a decoded image reuses the heap (crossfield.batch.engine.client), not Dask's 64 KiB trim threshold
+    expected = {"MALLOC_ARENA_MAX": "1", "MALLOC_MMAP_THRESHOLD_": str(32 << 20), "MALLOC_TRIM_THRESHOLD_": str(64 << 20)}
+    assert list(malloc.values()) == [expected, expected]
     # the event-loop health check wakes a worker (and takes the task's GIL) once a second, not every 20 ms
     assert set(ticks.values()) == {1.0}
     assert len(workers) == 2
