@@ -127,9 +127,11 @@ def validate_pairs(
             f"registration needs at least 3 corresponding points (with positive weight), got {used}"
         )
     w = w / w.sum()
-    for name, X in (("camera", P), ("global", Q)):
-        centred = (X - w @ X) * np.sqrt(w)[:, None]
-        s = np.linalg.svd(centred, compute_uv=False)
+    # Both sets' weighted centred points in one stacked SVD (2, N, 3): per matrix the same
+    # LAPACK call as one at a time, at half the Python overhead.
+    root_w = np.sqrt(w)[:, None]
+    spreads = np.linalg.svd(np.stack(((P - w @ P) * root_w, (Q - w @ Q) * root_w)), compute_uv=False)
+    for name, s in zip(("camera", "global"), spreads.tolist()):
         if s[0] == 0.0 or s[1] <= COLLINEAR_RATIO * s[0]:
             raise RegistrationError(
                 f"the {name} points are collinear (or coincident): the rotation about their line "

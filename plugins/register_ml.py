@@ -27,6 +27,8 @@ are right.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from crossfield.plugin_api import (
@@ -39,7 +41,6 @@ from crossfield.plugin_api import (
     kabsch,
     point_set_size,
     residual_rms,
-    skew,
     validate_pairs,
 )
 
@@ -51,12 +52,40 @@ STEP_TOLERANCE = 1e-10
 
 
 def _exp_so3(omega: np.ndarray) -> np.ndarray:
-    """Rodrigues' formula: exp([omega]x), (3,) rad -> (3, 3)."""
-    angle = float(np.linalg.norm(omega))
-    K = skew(omega)
+    """Rodrigues' formula: exp([omega]x), (3,) rad -> (3, 3).
+
+    ``I + sin(a) / a K + (1 - cos a) / a^2 K^2`` with K = [omega]x, a = |omega|
+    (``I + K`` below 1e-12 rad)."""
+    angle = math.sqrt(omega.dot(omega))  # = np.linalg.norm(omega), the same sqrt of the same dot
+    w0, w1, w2 = omega.tolist()
+    K = np.array([[0.0, -w2, w1], [w2, 0.0, -w0], [-w1, w0, 0.0]])  # [omega]x
     if angle < 1e-12:
-        return np.eye(3) + K
-    return np.eye(3) + np.sin(angle) / angle * K + (1 - np.cos(angle)) / angle**2 * (K @ K)
+        return _I3 + K
+    return _I3 + np.sin(angle) / angle * K + (1 - np.cos(angle)) / angle**2 * (K @ K)
+
+
+def _jacobian(g: np.ndarray) -> np.ndarray:
+    """dr_i / d(omega, tau) = [-[g_i]x, I]: (M, 3, 6) of g (M, 3) mm (global frame).
+
+    -[g]x = [[0, g2, -g1], [-g2, 0, g0], [g1, -g0, 0]]: its six entries are written as
+    ``g[:, k] * (+-1)`` (exact) into a copy of the constant [0, I] part."""
+    J = np.tile(_J_CONSTANT, (len(g), 1))
+    J[:, _J_ENTRIES] = g[:, _J_SOURCES] * _J_SIGNS
+    return J.reshape(len(g), 3, 6)
+
+
+#: The constant part of :func:`_jacobian` (the I block, row-major 3x6 flattened) and where
+#: its -[g]x entries go: flat index, component of g, sign.
+_J_CONSTANT = np.zeros((1, 18))
+_J_CONSTANT[0, [3, 10, 17]] = 1.0
+_J_ENTRIES = np.array([1, 2, 6, 8, 12, 13])
+_J_SOURCES = np.array([2, 1, 2, 0, 1, 0])
+_J_SIGNS = np.array([1.0, -1.0, -1.0, 1.0, 1.0, -1.0])
+
+
+#: The 3x3 identity (read only), built once.
+_I3 = np.eye(3)
+_I3.flags.writeable = False
 
 
 class MaximumLikelihoodRegistrar:
@@ -107,47 +136,45 @@ class MaximumLikelihoodRegistrar:
             C = np.zeros((n, 3, 3))
             s2 = 1.0 / np.where(raw > 0, raw, 1.0)  # zero-weight pairs are left out below
         use = w > 0
-
-        def covariances(R: np.ndarray) -> np.ndarray:
-            S = R @ C @ R.T + s2[:, None, None] * np.eye(3)
-            return S
+        n_use = int(use.sum())
+        C_use, s2I, Q_use = C[use], (s2[:, None, None] * _I3)[use], Q[use]  # s2I: s_i^2 I (M, 3, 3)
 
         # Kabsch start with weights 1 / tr(S_i), and the shared reflection test on it.
-        S0 = covariances(np.eye(3))  # trace is rotation invariant
-        w0 = np.where(use, 1.0 / np.maximum(np.trace(S0, axis1=1, axis2=2), 1e-300), 0.0)
+        # tr(S_i) at R = I: tr(C_i + s_i^2 I) (trace is rotation invariant), summed as np.trace does.
+        trace = (C[:, 0, 0] + s2) + (C[:, 1, 1] + s2) + (C[:, 2, 2] + s2)
+        w0 = np.where(use, 1.0 / np.maximum(trace, 1e-300), 0.0)
         R, t, R_m, t_m = kabsch(P, Q, w0)
         w0n = w0 / w0.sum()
-        rms = float(np.sqrt(w0n @ np.sum((P @ R.T + t - Q) ** 2, axis=1)))
-        rms_m = float(np.sqrt(w0n @ np.sum((P @ R_m.T + t_m - Q) ** 2, axis=1)))
+        rms = float(np.sqrt(w0n @ ((P @ R.T + t - Q) ** 2).sum(axis=1)))
+        rms_m = float(np.sqrt(w0n @ ((P @ R_m.T + t_m - Q) ** 2).sum(axis=1)))
         check_reflection(rms, rms_m, point_set_size(P, w0n), self.reflection_ratio, "ml")
 
-        I3 = np.eye(3)
         for _ in range(self.max_iterations):
-            g = P @ R.T + t
-            r = g - Q
-            Winv = np.linalg.inv(covariances(R)[use])
-            J = np.concatenate([-skew(g[use]), np.broadcast_to(I3, (int(use.sum()), 3, 3))], axis=2)  # (M, 3, 6)
-            JtW = np.swapaxes(J, 1, 2) @ Winv
-            H = np.sum(JtW @ J, axis=0)
-            b = np.sum(JtW @ r[use][:, :, None], axis=0)[:, 0]
+            g = (P @ R.T + t)[use]  # g_i = R p_i + t
+            Winv = np.linalg.inv(R @ C_use @ R.T + s2I)  # S_i^-1, S_i = R C_i R^T + s_i^2 I
+            J = _jacobian(g)
+            JtW = np.swapaxes(J, 1, 2) @ Winv  # (M, 6, 3)
+            H = (JtW @ J).sum(axis=0)  # sum_i J_i^T S_i^-1 J_i
+            b = (JtW @ (g - Q_use)[:, :, None]).sum(axis=0)[:, 0]  # sum_i J_i^T S_i^-1 r_i
             step = -np.linalg.solve(H, b)
             E = _exp_so3(step[:3])
             R = E @ R
             t = E @ t + step[3:]
-            if np.max(np.abs(step)) < STEP_TOLERANCE:
+            if np.abs(step).max() < STEP_TOLERANCE:
                 break
         # re-orthonormalise (products of exponentials drift by ~1e-16 per step)
         U, _, Vt = np.linalg.svd(R)
         R = U @ Vt
         g = P @ R.T + t
         residuals = g - Q
-        Winv = np.linalg.inv(covariances(R)[use])
-        J = np.concatenate([-skew(g[use]), np.broadcast_to(I3, (int(use.sum()), 3, 3))], axis=2)
-        JtW = np.swapaxes(J, 1, 2) @ Winv
-        H = np.sum(JtW @ J, axis=0)
-        chi2 = float(np.einsum("ni,nij,nj->", residuals[use], Winv, residuals[use]))
+        g = g[use]
+        Winv = np.linalg.inv(R @ C_use @ R.T + s2I)
+        J = _jacobian(g)
+        H = (np.swapaxes(J, 1, 2) @ Winv @ J).sum(axis=0)
+        r_use = residuals[use]
+        chi2 = float(np.einsum("ni,nij,nj->", r_use, Winv, r_use))
         covariance = np.linalg.inv(H)
-        dof = 3 * int(use.sum()) - 6
+        dof = 3 * n_use - 6
         if not absolute and dof > 0:
             covariance = covariance * (chi2 / dof)
         return RigidFit(
