@@ -13,7 +13,7 @@ Computer", ch. 4):
    a != b are *compatible* when ``| |c_i - c_j| - |g_a - g_b| | <= tolerance``.
    The correspondence is a largest set of pairwise compatible nodes (a
    clique of the association graph).
-2. Pruning (vectorised, N*M nodes): a node in a clique of size k has
+2. Pruning (compiled, N*M nodes): a node in a clique of size k has
    compatible partners for at least k - 1 other controls. Nodes with
    partners for fewer than 2 controls (no clique of 3) are dropped; a clique
    is then grown greedily from the best-supported node and verified (step
@@ -46,6 +46,13 @@ smallest difference between control-point distances that must be told apart
 (keep control layouts irregular, with distances differing by > 1 mm).
 Loosening it lets more chance coincidences with strays through the pruning,
 which the clique search and the fit verification then have to reject.
+
+Implementation: steps 1-4 (the table, the pruning, the greedy clique, the
+fast path and the verification fits) are numba kernels; their work is per
+node and tiny (~6000 table entries for 10 camera points and 8 controls), where
+NumPy spent ~0.2 ms per frame in call overhead. Bron-Kerbosch stays Python on
+integer bitsets. The outcome is discrete: the same as the NumPy formulation's,
+which ``tests/triangulate/test_correspondence_kernels.py`` keeps as the reference.
 """
 
 from __future__ import annotations
