@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from crossfield.stages import AcceptsCovariance, Registrar
+from crossfield.stages import Registrar
 from crossfield.types import RigidFit
 
 __all__ = ["VARIANCE_FLOOR_MM2", "fit_registration", "registration_weights"]
@@ -57,8 +57,14 @@ def fit_registration(
     camera_cov: (N, 3, 3) camera-point covariances (mm^2), given to a registrar that
     accepts them (with the CMM sigmas), else only the weights are."""
     weights = registration_weights(camera_var_mm2, control_sigma_mm)
-    if camera_cov is not None and isinstance(registrar, AcceptsCovariance) and registrar.accepts_covariance:
+    if camera_cov is not None and _accepts_covariance(registrar):
         return registrar.fit(
             camera_xyz, control_xyz, weights, camera_cov=camera_cov, control_sigma=np.asarray(control_sigma_mm)
         )
     return registrar.fit(camera_xyz, control_xyz, weights)
+
+
+def _accepts_covariance(registrar: Registrar) -> bool:
+    """``isinstance(registrar, stages.AcceptsCovariance) and registrar.accepts_covariance``, by the
+    protocol's two members directly: the runtime protocol check cost ~20 us per stereo pair."""
+    return hasattr(registrar, "fit") and bool(getattr(registrar, "accepts_covariance", False))
