@@ -132,13 +132,22 @@ class EpipolarTriangulator:
         self.eccentricity = eccentricity
         self._cached_calibration: StereoCalibration | None = None
         self._cached_geometry: StereoGeometry | None = None
+        self._cached_views: tuple[View, View] | None = None
 
     def _geometry(self, calibration: StereoCalibration) -> StereoGeometry:
         # Cache keyed on the calibration object's identity (holding a reference, so the id cannot be reused).
         if calibration is not self._cached_calibration:
             self._cached_geometry = stereo_geometry(calibration)
             self._cached_calibration = calibration
+            self._cached_views = None
         return self._cached_geometry
+
+    def _views(self, geometry: StereoGeometry) -> tuple[View, View]:
+        """The eccentricity module's (upper, lower) :class:`View` of the cached geometry, made once
+        per calibration (the same objects every frame: the module caches its lens arrays by identity)."""
+        if self._cached_views is None:
+            self._cached_views = tuple(View(c.K, c.dist, c.R, c.t) for c in (geometry.upper, geometry.lower))
+        return self._cached_views
 
     def triangulate(self, centroids: StereoCentroids, calibration: StereoCalibration) -> CameraPoints:
         """Match and triangulate one stereo pair's centroids.
@@ -205,11 +214,7 @@ class EpipolarTriangulator:
         Returns X, residual, J, information as :meth:`_refine` does, and the (K, 4, 4) px^2
         covariance of the offsets taken off [u_upper, v_upper, u_lower, v_lower].
         """
-
-        views = (
-            View(geometry.upper.K, geometry.upper.dist, geometry.upper.R, geometry.upper.t),
-            View(geometry.lower.K, geometry.lower.dist, geometry.lower.R, geometry.lower.t),
-        )
+        views = self._views(geometry)
         ellipses = (upper.ellipse[ai], lower.ellipse[aj])
         covs = (
             upper.ellipse_cov[ai] if upper.ellipse_cov is not None else None,

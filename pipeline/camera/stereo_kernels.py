@@ -30,6 +30,7 @@ __all__ = [
     "paired_observations",
     "point_covariances",
     "project_into",
+    "project_point",
     "project_view",
     "refine",
     "undistort_points",
@@ -418,24 +419,31 @@ def undistort_points(uv, fx, fy, cx, cy, k, max_iterations, tolerance):
     return out, converged
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def project_point(X0, X1, X2, fx, fy, cx, cy, k):
+    """One view-frame point (X0, X1, X2) mm -> its distorted pixel (u, v): OpenCV's lens model
+    with the coefficients k (12,) (as :func:`_project_one`), without skew; the body of
+    :func:`project_view`, for the kernels that project points they compute (eccentricity)."""
+    k1, k2, p1, p2, k3, k4, k5, k6 = k[0], k[1], k[2], k[3], k[4], k[5], k[6], k[7]
+    s1, s2, s3, s4 = k[8], k[9], k[10], k[11]
+    inv_z = 1.0 / X2
+    x = X0 * inv_z
+    y = X1 * inv_z
+    xx, yy, xy = x * x, y * y, x * y
+    r2 = xx + yy
+    radial = (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1.0 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+    xd = x * radial + 2.0 * p1 * xy + p2 * (r2 + 2.0 * xx) + (s1 * r2 + s2 * r2 * r2)
+    yd = y * radial + p1 * (r2 + 2.0 * yy) + 2.0 * p2 * xy + (s3 * r2 + s4 * r2 * r2)
+    return fx * xd + cx, fy * yd + cy
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def project_view(X, fx, fy, cx, cy, k):
     """View-frame points X (N, 3) mm -> distorted pixels (N, 2), OpenCV's lens model with the
-    coefficients k (12,) (as :func:`_project_one`), without skew, as ``cv2.projectPoints`` with
+    coefficients k (12,) (:func:`project_point`), without skew, as ``cv2.projectPoints`` with
     rvec = tvec = 0 (which ignores K[0, 1] and computes no Jacobian here)."""
-    k1, k2, p1, p2, k3, k4, k5, k6 = k[0], k[1], k[2], k[3], k[4], k[5], k[6], k[7]
-    s1, s2, s3, s4 = k[8], k[9], k[10], k[11]
     n = X.shape[0]
     uv = np.empty((n, 2))
     for i in range(n):
-        inv_z = 1.0 / X[i, 2]
-        x = X[i, 0] * inv_z
-        y = X[i, 1] * inv_z
-        xx, yy, xy = x * x, y * y, x * y
-        r2 = xx + yy
-        radial = (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1.0 + r2 * (k4 + r2 * (k5 + r2 * k6)))
-        xd = x * radial + 2.0 * p1 * xy + p2 * (r2 + 2.0 * xx) + (s1 * r2 + s2 * r2 * r2)
-        yd = y * radial + p1 * (r2 + 2.0 * yy) + 2.0 * p2 * xy + (s3 * r2 + s4 * r2 * r2)
-        uv[i, 0] = fx * xd + cx
-        uv[i, 1] = fy * yd + cy
+        uv[i, 0], uv[i, 1] = project_point(X[i, 0], X[i, 1], X[i, 2], fx, fy, cx, cy, k)
     return uv
