@@ -781,7 +781,7 @@ def _identify_targets(
     in plan order. A target's candidates are the camera points not used as controls within its
     search radius of its nominal position (global mm); it is found when it has one and no
     other target claims that point."""
-    free = np.setdiff1d(np.arange(len(global_xyz)), registration.correspondence.camera_index)
+    free = _free_points(len(global_xyz), registration.correspondence.camera_index)
     ids = session.target_ids
     if not len(free) or not ids:
         return {}, list(ids)
@@ -798,6 +798,15 @@ def _identify_targets(
         else:
             missing.append(tid)
     return found, missing
+
+
+def _free_points(n: int, control_index) -> np.ndarray:
+    """The camera indices (ascending, int64) of n points not used as controls:
+    ``np.setdiff1d(np.arange(n), control_index)`` by a mask (indices outside 0 .. n-1 ignored)."""
+    index = np.asarray(control_index, dtype=np.int64)
+    free = np.ones(n, dtype=bool)
+    free[index[(index >= 0) & (index < n)]] = False
+    return np.flatnonzero(free).astype(np.int64, copy=False)
 
 
 def _fit_dof(fit: AxisFit, stated_mm: float) -> float:

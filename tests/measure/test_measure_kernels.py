@@ -245,3 +245,18 @@ def test_a_line_without_a_fit_is_the_same_error():
             impl.measure(station.plan, reference, points, registration, None)
         messages.append(str(err.value))
     assert messages[0] == messages[1]
+
+
+def test_merge_is_term_by_term():
+    """budget.merge makes its terms inline (issue 25): the same as term() of each known source."""
+    from crossfield.uncertainty.budget import SOURCES, merge, term
+
+    def reference(variances):  # merge as it was
+        return tuple(term(s, variances[s][0], variances[s][1], math.sqrt(max(variances[s][2], 0.0)))
+                     for s in SOURCES if s in variances)
+
+    for _ in range(200):
+        table = {s: (float(RNG.choice([0.0, -1.0, 1.0]) * abs(scaled(()))), "mm", float(scaled(())))
+                 for s in RNG.permutation(SOURCES)[: RNG.integers(0, len(SOURCES))]}
+        table["not_a_source"] = (1.0, "mm", 1.0)  # left out by both
+        assert_same_value(merge(table), reference(table), "merge")
