@@ -453,13 +453,15 @@ class _Session:
         self.cmm_var = np.array(var, dtype=np.float64)
         self.cmm_u = u
         self.target_ids = [t.id for t in plan.targets]
-        self.target_nominal = np.array([np.asarray(t.nominal, dtype=np.float64) for t in plan.targets]).reshape(-1, 3)
+        nominal = [np.asarray(t.nominal, dtype=np.float64) for t in plan.targets]
+        self.target_nominal = np.array(nominal).reshape(-1, 3)
         self.target_radius = np.array([t.search_radius_mm for t in plan.targets], dtype=np.float64)
         self.characteristics = self._characteristics(measurer, plan, reference)
         spec_u = plan.uncertainty
         self.ecc_factor = spec_u.eccentricity_residual if spec_u.eccentricity_corrected else 1.0
         self.ecc_radius, self.ecc_tilt = spec_u.target_radius_mm, spec_u.max_tilt_deg
-        self.calibration_u = DEFAULT_SCALE_U if spec_u.calibration_scale_u is None else spec_u.calibration_scale_u
+        stated_u = spec_u.calibration_scale_u
+        self.calibration_u = DEFAULT_SCALE_U if stated_u is None else stated_u
 
     def _characteristics(self, measurer, plan, reference) -> list[_Characteristic]:
         lines: dict[str, int] = {}
@@ -481,8 +483,10 @@ class _Session:
                 direction.append(fit.line.direction)
                 basis.append(np.array(fit.basis))
                 cov.append(fit.covariance)
-            stated = max((p.sigma_mm for p in reference.points if p.label.startswith(f"{spec.b}.")), default=0.0)
-            out.append(_Characteristic(spec, 1, lines[spec.b], None, elements, fit.sigma_mm, _fit_dof(fit, stated)))
+            probes = f"{spec.b}."
+            stated = max((p.sigma_mm for p in reference.points if p.label.startswith(probes)), default=0.0)
+            dof = _fit_dof(fit, stated)
+            out.append(_Characteristic(spec, 1, lines[spec.b], None, elements, fit.sigma_mm, dof))
         self.line_point = np.array(point, dtype=np.float64).reshape(-1, 3)
         self.line_dir = np.array(direction, dtype=np.float64).reshape(-1, 3)
         self.line_basis = np.array(basis, dtype=np.float64).reshape(-1, 2, 3)
@@ -587,7 +591,8 @@ class PlanMeasurer:
         sigma = np.ascontiguousarray(points.sigma_xyz, dtype=np.float64).reshape(-1, 3)
         # each camera point's eccentricity variance (its covariance is that times I), once per frame
         ecc_var = session.eccentricity_variances(np.asarray(points.xyz, dtype=np.float64).reshape(-1, 3))
-        C_reg, g_bar, consistency = self._registration_covariance(session, points, registration, sigma, ecc_var)
+        C_reg, g_bar, consistency = self._registration_covariance(
+            session, points, registration, sigma, ecc_var)
         found, missing = _identify_targets(session, global_xyz, registration)
         n = len(points.xyz)
         inputs = {
@@ -596,7 +601,8 @@ class PlanMeasurer:
             "calibration": (session.calibration_u, "1"),
             "control_cmm": (session.control_sigma(registration.correspondence.control_ids), "mm"),
         }
-        results = self._evaluate(session, found, global_xyz, sigma, ecc_var, R, g_bar, C_reg, ground_truth, inputs)
+        results = self._evaluate(
+            session, found, global_xyz, sigma, ecc_var, R, g_bar, C_reg, ground_truth, inputs)
         return Measurement(
             sequence=points.sequence,
             characteristics=tuple(results),
@@ -650,7 +656,8 @@ class PlanMeasurer:
                 expected_camera_ss_mm2=factor * (trace_cam + trace_ecc),
                 expected_cmm_ss_mm2=factor * trace_cmm,
                 dof=3 * n - 6,
-                expected_residual_mm={cid: math.sqrt(factor * t) for (cid, _), t in zip(pairs, trace_k.tolist())},
+                expected_residual_mm={
+                    cid: math.sqrt(factor * t) for (cid, _), t in zip(pairs, trace_k.tolist())},
                 pose_cov_camera=pose_camera,
                 pose_cov_cmm=pose_cmm,
                 **_epipolar_evidence(points),
@@ -711,8 +718,8 @@ def _element(name: str, cmm_index: dict[str, int], found: dict[str, int]) -> tup
     return None
 
 
-def _result(char: _Characteristic, refs, measured: float, variance: list[float], c_cal: float, line_var: float,
-            session: _Session, truth: GroundTruth | None, inputs) -> CharacteristicResult:
+def _result(char: _Characteristic, refs, measured: float, variance: list[float], c_cal: float,
+            line_var: float, session: _Session, truth: GroundTruth | None, inputs) -> CharacteristicResult:
     """One characteristic's result from the kernel's value (mm) and per-source variances (mm^2)."""
     spec = char.spec
     actual = None

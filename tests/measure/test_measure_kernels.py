@@ -229,7 +229,8 @@ def test_registrations_without_cmm_controls_and_with_two():
     assert m.consistency is None
     # two of its controls in the CMM data: a covariance, no consistency test (n <= 2)
     kept = set(corr.control_ids[:2])
-    fewer = station.reference(np.random.default_rng(8), drop=tuple(c for c in corr.control_ids if c not in kept))
+    dropped = tuple(c for c in corr.control_ids if c not in kept)
+    fewer = station.reference(np.random.default_rng(8), drop=dropped)
     m = assert_same_measurement(station.plan, fewer, points, registration, station.truth)
     assert m.consistency is None and math.isfinite(m.characteristics[0].uncertainty_mm)
 
