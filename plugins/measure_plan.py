@@ -41,20 +41,40 @@ Budget (``docs/uncertainty.md``): the variance is split by independent source
 control-point CMM, reference CMM); each source's contribution holds the
 correlations of the shared registration, and the squares add up to
 ``uncertainty_mm**2``.
+
+Implementation (issue 25): what depends only on the plan and the CMM data (the
+CMM points, their covariances, the targets' nominal positions, the fitted lines
+and their dof) is prepared once per session (:class:`_Session`); per frame the
+eccentricity covariances of all camera points are one vectorised evaluation,
+the targets are identified in one broadcast, and the registration's normal
+equations, its covariance and every characteristic's budget are three numba
+kernels instead of ~250 small NumPy calls. The kernels carry out the very
+floating-point operations the NumPy formulation made, in the same order: each
+small product is summed as OpenBLAS's kernels sum it (measured on this
+machine's kernels, ``tests/measure/test_measure_kernels.py``): a dot product, a
+matrix product (dgemm, dsyrk) and a 3-wide vector-matrix product as one fused
+multiply-add chain over the inner index, the wider vector-matrix products
+(dgemv_n) in the blocks its micro-kernels use (:func:`_vecmat`). The reports
+are bit-identical with the NumPy formulation.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+import math
+from dataclasses import dataclass
 
+import numba
 import numpy as np
+from llvmlite import ir
+from numba.core import cgutils
+from numba.core import types as nb_types
+from numba.extending import intrinsic
 
 from crossfield.plugin_api import (
     DEFAULT_SCALE_U,
     AxisFit,
     CameraPoints,
     CharacteristicResult,
-    CharacteristicSpec,
     GroundTruth,
     Measurement,
     MeasurementError,
@@ -62,34 +82,449 @@ from crossfield.plugin_api import (
     ReferenceData,
     Registration,
     RegistrationConsistency,
-    camera_covariance,
     combined,
-    eccentricity_sigma_mm,
     excess_dof,
     fit_reference_element,
     hookimpl,
     merge,
-    off_axis_rad,
-    point_line_distance,
-    registration_jacobian,
 )
 
 #: Budget sources of a point's own covariance and of the registration covariance.
 _POINT_SOURCES = ("camera", "eccentricity", "reference_cmm")
 _REGISTRATION_SOURCES = ("camera", "eccentricity", "control_cmm")
 
+#: Characteristic kinds, as the budget kernel numbers them.
+_KINDS = {"point_point": 0, "point_line": 1, "depth": 2}
+#: Element references of the budget kernel: a camera point (index into CameraPoints) or a
+#: CMM point (index into :attr:`_Session.cmm_xyz`).
+_CAMERA, _CMM = 0, 1
+
+_njit = numba.njit(cache=True, nogil=True, error_model="numpy")
+
+
+# --------------------------------------------------------------------------
+# Scalar kernels: the arithmetic of NumPy's (OpenBLAS's) small products
+# --------------------------------------------------------------------------
+
+
+@intrinsic
+def _fma(typingctx, a, b, c):
+    """``a * b + c`` rounded once (IEEE 754 fusedMultiplyAdd; LLVM ``llvm.fma.f64``)."""
+    sig = nb_types.float64(nb_types.float64, nb_types.float64, nb_types.float64)
+
+    def codegen(context, builder, signature, args):
+        d = ir.DoubleType()
+        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(d, [d, d, d]), "llvm.fma.f64")
+        return builder.call(fn, args)
+
+    return sig, codegen
+
+
+@_njit
+def _dot(x, y):
+    """``x @ y`` of two (n,) vectors as OpenBLAS's ddot sums a short one: from +0.0,
+    ``acc = fma(x_q, y_q, acc)`` for q = 0 .. n-1 (a sum of zeros is +0.0)."""
+    acc = 0.0
+    for q in range(x.shape[0]):
+        acc = _fma(x[q], y[q], acc)
+    return acc
+
+
+@_njit
+def _matmul(A, B):
+    """``A @ B`` (m, k) x (k, n) as OpenBLAS's small dgemm / dsyrk kernels sum each entry:
+    from +0.0, ``acc = fma(A[i, q], B[q, j], acc)`` for q = 0 .. k-1."""
+    m, k = A.shape
+    n = B.shape[1]
+    C = np.empty((m, n))
+    for i in range(m):
+        for j in range(n):
+            acc = 0.0
+            for q in range(k):
+                acc = _fma(A[i, q], B[q, j], acc)
+            C[i, j] = acc
+    return C
+
+
+@_njit
+def _matmul_bt(A, B):
+    """``A @ B.T`` (m, k) x (n, k) -> (m, n), summed as :func:`_matmul`."""
+    m, k = A.shape
+    n = B.shape[0]
+    C = np.empty((m, n))
+    for i in range(m):
+        for j in range(n):
+            acc = 0.0
+            for q in range(k):
+                acc = _fma(A[i, q], B[j, q], acc)
+            C[i, j] = acc
+    return C
+
+
+@_njit
+def _matmul_at(A, B):
+    """``A.T @ B`` (k, m) x (k, n) -> (m, n), summed as :func:`_matmul`."""
+    k, m = A.shape
+    n = B.shape[1]
+    C = np.empty((m, n))
+    for i in range(m):
+        for j in range(n):
+            acc = 0.0
+            for q in range(k):
+                acc = _fma(A[q, i], B[q, j], acc)
+            C[i, j] = acc
+    return C
+
+
+@_njit
+def _vecmat(x, B):
+    """``x @ B``, x (k,), B (k, n) C-ordered, as OpenBLAS's dgemv_n sums it (the column-major
+    ``B^T x``): outputs ``j < n & -4`` in the 4-row micro-kernels, the k terms in blocks of 4
+    (``fma(x0 b0, x1 b1)``, then ``+ x2 b2``, ``+ x3 b3`` fused), of 2 (``fma(x0 b0, x1 b1)``)
+    and of 1 (``x0 b0``), each block added to the output; the last ``n % 4`` outputs one
+    fused chain as :func:`_dot`. Checked for the shapes used here: (3, 3), (3, 6), (4, 4),
+    (6, 6)."""
+    k, n = B.shape
+    y = np.empty(n)
+    n_main = n & -4
+    for j in range(n_main):
+        acc = 0.0
+        q = 0
+        while q + 4 <= k:
+            t = _fma(x[q], B[q, j], x[q + 1] * B[q + 1, j])
+            t = _fma(x[q + 2], B[q + 2, j], t)
+            t = _fma(x[q + 3], B[q + 3, j], t)
+            acc = acc + t
+            q += 4
+        if k - q >= 2:
+            acc = acc + _fma(x[q], B[q, j], x[q + 1] * B[q + 1, j])
+            q += 2
+        if k - q == 1:
+            acc = acc + x[q] * B[q, j]
+        y[j] = acc
+    for j in range(n_main, n):
+        acc = 0.0
+        for q in range(k):
+            acc = _fma(x[q], B[q, j], acc)
+        y[j] = acc
+    return y
+
+
+@_njit
+def _quadratic(g, C):
+    """``g @ C @ g``: ``(g @ C) @ g``, as :func:`_vecmat` and :func:`_dot`."""
+    return _dot(_vecmat(g, C), g)
+
+
+@_njit
+def _jacobian(p, g_bar):
+    """``J = [-[p - g_bar]_x, I_3]`` (3, 6), entry for entry as
+    ``crossfield.covariance.registration_jacobian`` (its diagonal -0.0 included)."""
+    y0, y1, y2 = p[0] - g_bar[0], p[1] - g_bar[1], p[2] - g_bar[2]
+    J = np.zeros((3, 6))
+    J[0, 0], J[0, 1], J[0, 2] = -0.0, y2, -y1
+    J[1, 0], J[1, 1], J[1, 2] = -y2, -0.0, y0
+    J[2, 0], J[2, 1], J[2, 2] = y1, -y0, -0.0
+    J[0, 3] = J[1, 4] = J[2, 5] = 1.0
+    return J
+
+
+@_njit
+def _camera_cov(A, sigma):
+    """``A diag(sigma^2) A^T`` (3, 3) mm^2 (``crossfield.covariance.camera_covariance``):
+    ``(A * sigma^2) @ A.T``."""
+    M = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            M[i, j] = A[i, j] * (sigma[j] * sigma[j])
+    return _matmul_bt(M, A)
+
+
+@_njit
+def _isotropic(var):
+    """``var * I_3`` (3, 3), as ``var * np.eye(3)`` (off-diagonal ``var * 0.0``)."""
+    S = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            S[i, j] = var * (1.0 if i == j else 0.0)
+    return S
+
+
+# --------------------------------------------------------------------------
+# Frame kernels
+# --------------------------------------------------------------------------
+
+
+@_njit
+def _normal_equations(G, g_bar, A, sigma, ecc_var, cmm_var):
+    """The registration's linearised least squares over its K matched controls.
+
+    G (K, 3): the controls' CMM positions (global mm); g_bar (3,) their centroid; A (3, 3)
+    ``scale R`` (global <- camera); sigma (K, 3) mm: the controls' camera points' per-axis
+    sigmas (camera frame); ecc_var (K,) mm^2 their eccentricity variances; cmm_var (K,) mm^2
+    the CMM variances (``sigma_mm**2``). With J_k = [-[g_k - g_bar]_x, I] and per source
+    S_k (camera ``A diag(sigma^2) A^T``, eccentricity and CMM isotropic), returns
+    ``sum_k J_k^T J_k`` (6, 6), ``sum_k J_k^T S_k J_k`` (3, 6, 6) in the order of
+    ``_REGISTRATION_SOURCES``, ``sum_k tr S_k`` (3,) mm^2 and per control
+    ``tr S_cam + tr S_ecc + tr S_cmm`` (K,) mm^2 (the sums in control order)."""
+    K = G.shape[0]
+    JtJ = np.zeros((6, 6))
+    JtSJ = np.zeros((3, 6, 6))
+    trace = np.zeros(3)
+    trace_k = np.empty(K)
+    S = np.empty((3, 3, 3))
+    for k in range(K):
+        J = _jacobian(G[k], g_bar)
+        S[0] = _camera_cov(A, sigma[k])
+        S[1] = _isotropic(ecc_var[k])
+        S[2] = _isotropic(cmm_var[k])
+        JtJ += _matmul_at(J, J)
+        total = 0.0
+        for s in range(3):
+            JtSJ[s] += _matmul(_matmul_at(J, S[s]), J)
+            tr = (S[s, 0, 0] + S[s, 1, 1]) + S[s, 2, 2]  # np.trace
+            trace[s] = trace[s] + tr
+            total = total + tr
+        trace_k[k] = total
+    return JtJ, JtSJ, trace, trace_k
+
+
+@_njit
+def _sandwich(inverse, JtSJ):
+    """``Cov(xi)_src = (J^T J)^+ (J^T S_src J) (J^T J)^+`` (3, 6, 6) for the pseudo-inverse
+    ``inverse`` (6, 6) and the (3, 6, 6) middle terms."""
+    C = np.empty((3, 6, 6))
+    for s in range(3):
+        C[s] = _matmul(_matmul(inverse, JtSJ[s]), inverse)
+    return C
+
+
+@_njit
+def _pose_covariances(t, g_bar, C):
+    """The covariances (6, 6) of the pose (rotation, t_global_camera), camera side (camera +
+    eccentricity) and CMM side, from the registration's ``C`` (3, 6, 6): ``T Cov T^T`` with
+    ``T = [[I, 0], J(t)]`` (t (3,) mm, where the camera origin goes, moves by J(t) xi)."""
+    to_pose = np.zeros((6, 6))
+    to_pose[0, 0] = to_pose[1, 1] = to_pose[2, 2] = 1.0
+    to_pose[3:, :] = _jacobian(t, g_bar)
+    camera_side = C[0] + C[1]
+    return (_matmul_bt(_matmul(to_pose, camera_side), to_pose),
+            _matmul_bt(_matmul(to_pose, C[2]), to_pose))
+
+
+@_njit
+def _point_line(p, point, direction, e1, e2, cov):
+    """Distance (mm) of p (3,) to the line (point, unit direction), the variance (mm^2) of the
+    line's own parameters along it and the gradient d(dist)/dp (3,): the arithmetic of
+    ``crossfield.geometry.point_line_distance`` without a point covariance (its
+    ``g_l^T C_l g_l``, g_l = -(n^.e1, n^.e2, (v.u) n^.e1, (v.u) n^.e2), C_l (4, 4))."""
+    v = p - point
+    along = _dot(v, direction)
+    normal = v - along * direction
+    d = math.sqrt(_dot(normal, normal))
+    g_p = normal / d if d > 0 else np.zeros(3)
+    n1, n2 = _dot(g_p, e1), _dot(g_p, e2)
+    g_l = np.array([-n1, -n2, -along * n1, -along * n2])
+    return d, _quadratic(g_l, cov), g_p
+
+
+@_njit
+def _characteristics(kinds, refs, lines, X, sigma, ecc_var, A, g_bar, cmm_xyz, cmm_var,
+                     line_point, line_dir, line_basis, line_cov, C_reg):
+    """Value and budget variances of M characteristics (global frame, mm).
+
+    kinds (M,): ``_KINDS``; refs (M, 2, 2): per element a (kind, index), ``_CAMERA`` into
+    X (N, 3) (the camera points, global), sigma (N, 3) and ecc_var (N,), ``_CMM`` into
+    cmm_xyz (P, 3), cmm_var (P,); lines (M,): the line of a point_line into line_point,
+    line_dir (L, 3), line_basis (L, 2, 3), line_cov (L, 4, 4). A (3, 3) ``scale R``, g_bar (3,)
+    the control centroid, C_reg (3, 6, 6) the registration covariance per source.
+
+    With g_j = dy/dp_j (``u, -u`` for |a - b|, the line normal, e_z for a depth), GUM eq. (13):
+    ``var_src = sum_j g_j^T Sigma_src,j g_j + (sum_j g_j^T J_j) C_src (sum_j J_j^T g_j)``,
+    J_j = [-[p_j - g_bar]_x, I] for camera points, 0 for CMM points, and the calibration
+    sensitivity ``c_cal = sum_j g_j . (p_j - g_bar)`` (camera points).
+
+    Returns measured (M,) mm, variances (M, 4) mm^2 (camera, eccentricity, control_cmm,
+    reference_cmm), c_cal (M,) mm and the line's own variance (M,) mm^2 (0 off point_line)."""
+    M = kinds.shape[0]
+    measured = np.empty(M)
+    variance = np.zeros((M, 4))
+    c_cal = np.zeros(M)
+    line_var = np.zeros(M)
+    zero_J = np.zeros((3, 6))
+    zero3 = np.zeros(3)
+    grads = np.empty((2, 3))
+    for c in range(M):
+        pa = X[refs[c, 0, 1]] if refs[c, 0, 0] == _CAMERA else cmm_xyz[refs[c, 0, 1]]
+        n_grad = 1
+        if kinds[c] == 0:  # point_point: |a - b|
+            pb = X[refs[c, 1, 1]] if refs[c, 1, 0] == _CAMERA else cmm_xyz[refs[c, 1, 1]]
+            diff = pa - pb
+            value = math.sqrt(_dot(diff, diff))
+            u = diff / value if value > 0 else np.zeros(3)
+            grads[0] = u
+            grads[1] = -u
+            n_grad = 2
+        elif kinds[c] == 1:  # point_line
+            ln = lines[c]
+            value, own, g_p = _point_line(
+                pa, line_point[ln], line_dir[ln], line_basis[ln, 0], line_basis[ln, 1], line_cov[ln])
+            line_var[c] = own
+            grads[0] = g_p
+        else:  # depth: global Z
+            value = pa[2]
+            grads[0, 0], grads[0, 1], grads[0, 2] = 0.0, 0.0, 1.0
+        measured[c] = value
+        J_sum = np.zeros(6)
+        cal = 0.0
+        for e in range(n_grad):
+            g = grads[e]
+            index = refs[c, e, 1]
+            if refs[c, e, 0] == _CAMERA:
+                variance[c, 0] += _quadratic(g, _camera_cov(A, sigma[index]))
+                variance[c, 1] += _quadratic(g, _isotropic(ecc_var[index]))
+                J = _jacobian(X[index], g_bar)
+                d_cal = X[index] - g_bar
+            else:
+                variance[c, 3] += _quadratic(g, _isotropic(cmm_var[index]))
+                J = zero_J
+                d_cal = zero3
+            J_sum = J_sum + _vecmat(g, J)
+            cal = cal + _dot(g, d_cal)
+        c_cal[c] = cal
+        for s in range(3):
+            variance[c, s] += _quadratic(J_sum, C_reg[s])
+    return measured, variance, c_cal, line_var
+
+
+@_njit
+def _row_norms(X):
+    """|x| (N,) of the rows of X (N, 3), as ``np.linalg.norm`` of one (``sqrt(x @ x)``)."""
+    out = np.empty(X.shape[0])
+    for i in range(X.shape[0]):
+        out[i] = math.sqrt(_dot(X[i], X[i]))
+    return out
+
+
+# --------------------------------------------------------------------------
+# Per session
+# --------------------------------------------------------------------------
+
 
 @dataclass(frozen=True)
-class _Point:
-    """A point of a characteristic, global frame: xyz (3,) mm; its own covariance
-    (3, 3) mm^2 per budget source; its Jacobian (3, 6) with respect to the
-    registration error (dtheta, dt); d_cal (3,) mm, how it moves per unit relative
-    scale error of the calibration (``p - g_bar`` for camera points, 0 for CMM points)."""
+class _Characteristic:
+    """A plan characteristic as the frames evaluate it: its kind number, the line index of a
+    point_line (-1 otherwise) or the reason its line has no fit, its elements' names, and for a
+    point_line the fit's sigma (mm) and dof (:func:`_fit_dof`)."""
 
-    xyz: np.ndarray
-    cov: dict[str, np.ndarray]
-    J_reg: np.ndarray
-    d_cal: np.ndarray
+    spec: object
+    kind: int
+    line: int
+    line_error: str | None
+    elements: tuple[str, ...]
+    line_sigma: float = 0.0
+    line_dof: float = math.inf
+
+
+class _Session:
+    """What one (plan, reference) pair fixes for every frame: the CMM points the plan uses
+    (positions (P, 3) mm, variances ``sigma_mm**2`` and sigmas (P,)), the control points' CMM
+    positions and variances by label, the targets' nominal positions (T, 3) mm and search radii
+    (T,), the fitted reference lines as arrays, each characteristic's kind and line, and the
+    eccentricity model's constants."""
+
+    def __init__(self, measurer: PlanMeasurer, plan: MeasurementPlan, reference: ReferenceData):
+        self.plan, self.reference = plan, reference
+        by_label = self.by_label = reference.by_label()
+        self.control_xyz = {label: np.array(p.xyz, dtype=np.float64) for label, p in by_label.items()}
+        self.control_var = {label: p.sigma_mm ** 2 for label, p in by_label.items()}
+        self._control_sigma: dict[tuple[str, ...], float] = {}
+        # the CMM points of the plan (controls, reference points): a later id replaces an earlier one
+        self.cmm_index: dict[str, int] = {}
+        xyz, var, u = [], [], []
+        for pid in list(plan.control_ids) + list(plan.reference_point_ids):
+            if pid in by_label:
+                probe = by_label[pid]
+                self.cmm_index[pid] = len(xyz)
+                xyz.append(np.array(probe.xyz))
+                var.append(probe.sigma_mm**2)
+                u.append(float(np.sqrt(probe.sigma_mm**2 * 1.0)))  # sqrt of its covariance's (0, 0)
+        self.cmm_xyz = np.array(xyz, dtype=np.float64).reshape(-1, 3)
+        self.cmm_var = np.array(var, dtype=np.float64)
+        self.cmm_u = u
+        self.target_ids = [t.id for t in plan.targets]
+        nominal = [np.asarray(t.nominal, dtype=np.float64) for t in plan.targets]
+        self.target_nominal = np.array(nominal).reshape(-1, 3)
+        self.target_radius = np.array([t.search_radius_mm for t in plan.targets], dtype=np.float64)
+        self.characteristics = self._characteristics(measurer, plan, reference)
+        spec_u = plan.uncertainty
+        self.ecc_factor = spec_u.eccentricity_residual if spec_u.eccentricity_corrected else 1.0
+        self.ecc_radius, self.ecc_tilt = spec_u.target_radius_mm, spec_u.max_tilt_deg
+        stated_u = spec_u.calibration_scale_u
+        self.calibration_u = DEFAULT_SCALE_U if stated_u is None else stated_u
+
+    def _characteristics(self, measurer, plan, reference) -> list[_Characteristic]:
+        lines: dict[str, int] = {}
+        point, direction, basis, cov = [], [], [], []
+        out = []
+        for spec in plan.characteristics:
+            elements = (spec.a,) + ((spec.b,) if spec.b else ())
+            if spec.kind != "point_line":
+                out.append(_Characteristic(spec, _KINDS[spec.kind], -1, None, elements))
+                continue
+            try:
+                fit = measurer.reference_line(plan, reference, spec.b)
+            except MeasurementError as exc:
+                out.append(_Characteristic(spec, 1, -1, str(exc), elements))
+                continue
+            if spec.b not in lines:
+                lines[spec.b] = len(point)
+                point.append(fit.line.point)
+                direction.append(fit.line.direction)
+                basis.append(np.array(fit.basis))
+                cov.append(fit.covariance)
+            probes = f"{spec.b}."
+            stated = max((p.sigma_mm for p in reference.points if p.label.startswith(probes)), default=0.0)
+            dof = _fit_dof(fit, stated)
+            out.append(_Characteristic(spec, 1, lines[spec.b], None, elements, fit.sigma_mm, dof))
+        self.line_point = np.array(point, dtype=np.float64).reshape(-1, 3)
+        self.line_dir = np.array(direction, dtype=np.float64).reshape(-1, 3)
+        self.line_basis = np.array(basis, dtype=np.float64).reshape(-1, 2, 3)
+        self.line_cov = np.array(cov, dtype=np.float64).reshape(-1, 4, 4)
+        return out
+
+    def control_sigma(self, control_ids) -> float:
+        """The mean CMM sigma (mm) of the matched controls ``control_ids`` (0 for none)."""
+        key = tuple(control_ids)
+        sigma = self._control_sigma.get(key)
+        if sigma is None:
+            sigmas = [self.by_label[c].sigma_mm for c in key if c in self.by_label]
+            sigma = self._control_sigma[key] = float(np.mean(sigmas)) if sigmas else 0.0
+        return sigma
+
+    def eccentricity_variances(self, xyz: np.ndarray) -> np.ndarray:
+        """Per camera point (camera frame, xyz (N, 3) mm) its eccentricity variance (N,) mm^2:
+        ``(factor * eccentricity_sigma_mm(|xyz|, r, tilt_max, off_axis_rad(xyz)))**2``, the
+        diagonal of its isotropic covariance (``crossfield.uncertainty.eccentricity``), the same
+        operations on all points at once (Python's ``**`` where it took a square)."""
+        n = len(xyz)
+        if n == 0:
+            return np.zeros(0)
+        radius, tilt = self.ecc_radius, self.ecc_tilt
+        if radius <= 0 or tilt <= 0:
+            sigma = np.zeros(n)
+        else:
+            distance = _row_norms(xyz)
+            phi = np.arctan2(np.hypot(xyz[:, 0], xyz[:, 1]), xyz[:, 2])  # off_axis_rad
+            c = float(np.cos(np.radians(min(tilt, 90.0))))
+            mean_sin2_tilt = (2.0 / 3.0 - c + c**3 / 3.0) / (1.0 - c)
+            sin2_phi = np.array([s**2 for s in np.sin(phi).tolist()])
+            mean_sin2_theta = sin2_phi + mean_sin2_tilt * (1.0 - sin2_phi - sin2_phi / 2.0)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                depth = distance * np.cos(phi)
+                sigma = radius**2 / depth * np.sqrt(mean_sin2_theta / 2.0)
+            sigma = np.where(distance <= 0, 0.0, sigma)
+        return np.array([s**2 for s in (self.ecc_factor * sigma).tolist()])
 
 
 class PlanMeasurer:
@@ -108,6 +543,7 @@ class PlanMeasurer:
         self.registration_uncertainty = registration_uncertainty
         self._lines_for: ReferenceData | None = None
         self._lines: dict[str, AxisFit | str] = {}
+        self._session: _Session | None = None
 
     # ---- reference lines (cached per ReferenceData) -------------------------
 
@@ -130,6 +566,13 @@ class PlanMeasurer:
         except ValueError as exc:
             return str(exc)
 
+    def _session_for(self, plan: MeasurementPlan, reference: ReferenceData) -> _Session:
+        """The per-session constants of (plan, reference), made on their first frame."""
+        session = self._session
+        if session is None or session.plan is not plan or session.reference is not reference:
+            session = self._session = _Session(self, plan, reference)
+        return session
+
     # ---- per frame -----------------------------------------------------------
 
     def measure(
@@ -141,145 +584,59 @@ class PlanMeasurer:
         ground_truth: GroundTruth | None,
     ) -> Measurement:
         """Evaluate ``plan``'s characteristics for one stereo pair (all lengths mm, global frame)."""
+        session = self._session_for(plan, reference)
         fit = registration.fit
         R = fit.R * fit.scale
         global_xyz = fit.apply(points.xyz)
-        spec_u = plan.uncertainty
-        ecc_factor = spec_u.eccentricity_residual if spec_u.eccentricity_corrected else 1.0
-
-        # The eccentricity covariance (3, 3) mm^2 of each camera point, computed once per
-        # point and frame: the budget inputs, the registration's controls and the targets
-        # asked 20 times for 10 points (~0.25 ms a pair under cProfile, issue 25).
-        # Read-only: the same array goes to every use.
-        ecc_covs = [
-            self._eccentricity_cov(xyz, ecc_factor, spec_u.target_radius_mm, spec_u.max_tilt_deg)
-            for xyz in points.xyz
-        ]
-
-        C_reg, g_bar, consistency = self._registration_covariance(reference, points, registration, ecc_covs)
-
-        def camera_point(index: int) -> _Point:
-            cov = {"camera": camera_covariance(R, points.sigma_xyz[index]), "eccentricity": ecc_covs[index]}
-            J = registration_jacobian(global_xyz[index], g_bar)
-            return _Point(global_xyz[index], cov, J, global_xyz[index] - g_bar)
-
-        found, missing = self._identify_targets(plan, global_xyz, registration)
-        elements: dict[str, _Point] = {tid: camera_point(i) for tid, i in found.items()}
-        by_label = reference.by_label()
-        for pid in list(plan.control_ids) + list(plan.reference_point_ids):
-            if pid in by_label:
-                probe = by_label[pid]
-                cov = {"reference_cmm": probe.sigma_mm**2 * np.eye(3)}
-                elements[pid] = _Point(np.array(probe.xyz), cov, np.zeros((3, 6)), np.zeros(3))
+        sigma = np.ascontiguousarray(points.sigma_xyz, dtype=np.float64).reshape(-1, 3)
+        # each camera point's eccentricity variance (its covariance is that times I), once per frame
+        ecc_var = session.eccentricity_variances(np.asarray(points.xyz, dtype=np.float64).reshape(-1, 3))
+        C_reg, g_bar, consistency = self._registration_covariance(
+            session, points, registration, sigma, ecc_var)
+        found, missing = _identify_targets(session, global_xyz, registration)
+        n = len(points.xyz)
         inputs = {
-            "camera": (float(np.mean(points.sigma_xyz)) if len(points.xyz) else 0.0, "mm"),
-            "eccentricity": (float(np.sqrt(np.mean([cov[0, 0] for cov in ecc_covs])))
-                             if len(points.xyz) else 0.0, "mm"),
-            "calibration": (self._calibration_u(plan), "1"),
-            "control_cmm": (self._control_sigma(reference, registration), "mm"),
+            "camera": (float(np.mean(points.sigma_xyz)) if n else 0.0, "mm"),
+            "eccentricity": (float(np.sqrt(np.mean(ecc_var))) if n else 0.0, "mm"),
+            "calibration": (session.calibration_u, "1"),
+            "control_cmm": (session.control_sigma(registration.correspondence.control_ids), "mm"),
         }
-
-        results = []
-        for spec in plan.characteristics:
-            result = self._evaluate(spec, plan, reference, elements, C_reg, ground_truth, inputs)
-            if result is not None:
-                results.append(result)
+        results = self._evaluate(
+            session, found, global_xyz, sigma, ecc_var, R, g_bar, C_reg, ground_truth, inputs)
         return Measurement(
             sequence=points.sequence,
             characteristics=tuple(results),
-            target_points={tid: tuple(float(v) for v in global_xyz[i]) for tid, i in found.items()},
+            target_points={tid: tuple(global_xyz[i].tolist()) for tid, i in found.items()},
             missing_targets=tuple(missing),
             consistency=consistency,
         )
 
-    @staticmethod
-    def _eccentricity_cov(
-        xyz: np.ndarray, factor: float, radius_mm: float, max_tilt_deg: float
-    ) -> np.ndarray:
-        """The eccentricity covariance (3, 3) mm^2, isotropic, of a circle centre at camera
-        point ``xyz`` (3,) mm (targets of radius ``radius_mm``, tilted up to ``max_tilt_deg``):
-        ``(factor * eccentricity_sigma_mm)^2 I``, read-only."""
-        s_e = factor * eccentricity_sigma_mm(
-            float(np.linalg.norm(xyz)), radius_mm, max_tilt_deg, off_axis_rad(xyz)
-        )
-        cov = s_e**2 * np.eye(3)
-        cov.flags.writeable = False
-        return cov
-
-    @staticmethod
-    def _calibration_u(plan: MeasurementPlan) -> float:
-        u = plan.uncertainty.calibration_scale_u
-        return DEFAULT_SCALE_U if u is None else u
-
-    @staticmethod
-    def _control_sigma(reference: ReferenceData, registration: Registration) -> float:
-        by_label = reference.by_label()
-        sigmas = [by_label[c].sigma_mm for c in registration.correspondence.control_ids if c in by_label]
-        return float(np.mean(sigmas)) if sigmas else 0.0
-
-    @staticmethod
-    def _identify_targets(
-        plan: MeasurementPlan, global_xyz: np.ndarray, registration: Registration
-    ) -> tuple[dict[str, int], list[str]]:
-        """Target id -> camera index for unambiguous targets; the others (missing or ambiguous)."""
-        free = np.setdiff1d(np.arange(len(global_xyz)), registration.correspondence.camera_index)
-        candidates: dict[str, list[int]] = {}
-        for target in plan.targets:
-            d = np.linalg.norm(global_xyz[free] - target.nominal, axis=1) if len(free) else np.zeros(0)
-            candidates[target.id] = [int(i) for i in free[d <= target.search_radius_mm]]
-        claimed: dict[int, int] = {}
-        for indices in candidates.values():
-            for i in indices:
-                claimed[i] = claimed.get(i, 0) + 1
-        found, missing = {}, []
-        for target in plan.targets:
-            indices = candidates[target.id]
-            if len(indices) == 1 and claimed[indices[0]] == 1:
-                found[target.id] = indices[0]
-            else:
-                missing.append(target.id)
-        return found, missing
-
     def _registration_covariance(
-        self, reference: ReferenceData, points: CameraPoints, registration: Registration, ecc_covs
-    ) -> tuple[dict[str, np.ndarray], np.ndarray, RegistrationConsistency | None]:
-        """Per budget source, the (6, 6) covariance of (dtheta, dt); the control centroid
-        g_bar (3,), global mm; the residuals against the stated sigmas. ``ecc_covs``: each
-        camera point's (3, 3) mm^2 eccentricity covariance, by camera index."""
+        self, session: _Session, points: CameraPoints, registration: Registration, sigma: np.ndarray,
+        ecc_var: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, RegistrationConsistency | None]:
+        """The (3, 6, 6) covariance of (dtheta, dt) per source of ``_REGISTRATION_SOURCES``;
+        the control centroid g_bar (3,), global mm; the residuals against the stated sigmas.
+        ``sigma`` (N, 3) mm and ``ecc_var`` (N,) mm^2: each camera point's per-axis sigma
+        (camera frame) and eccentricity variance, by camera index."""
         corr = registration.correspondence
-        by_label = reference.by_label()
+        by_label = session.by_label
         pairs = [(cid, int(i)) for cid, i in zip(corr.control_ids, corr.camera_index) if cid in by_label]
-        zero = {src: np.zeros((6, 6)) for src in _REGISTRATION_SOURCES}
         if not pairs:
-            return zero, np.zeros(3), None
-        G = np.array([by_label[cid].xyz for cid, _ in pairs])
+            return np.zeros((3, 6, 6)), np.zeros(3), None
+        G = np.array([session.control_xyz[cid] for cid, _ in pairs])
         g_bar = G.mean(axis=0)
+        index = np.array([i for _, i in pairs], dtype=np.int64)
         # Linearised least squares (equal weights): the residual of control k moves by
         # J_k xi with J_k = [-[y_k]x, I], xi = (dtheta, dt), y_k = g_k - g_bar, and its
         # noise e_k has covariance S_k = R Sigma_cam,k R^T + Sigma_ecc,k + sigma_cmm,k^2 I,
         # so Cov(xi) = (J^T J)^-1 (J^T S J) (J^T J)^-1 (sandwich form), linear in S:
         # one sandwich per independent source.
         R = registration.fit.R * registration.fit.scale
-        JtJ = np.zeros((6, 6))
-        JtSJ = {src: np.zeros((6, 6)) for src in _REGISTRATION_SOURCES}
-        trace = dict.fromkeys(_REGISTRATION_SOURCES, 0.0)
-        trace_k: dict[str, float] = {}
-        for g, (cid, index) in zip(G, pairs):
-            J = registration_jacobian(g, g_bar)
-            S = {
-                "camera": camera_covariance(R, points.sigma_xyz[index]),
-                "eccentricity": ecc_covs[index],
-                "control_cmm": by_label[cid].sigma_mm ** 2 * np.eye(3),
-            }
-            JtJ += J.T @ J
-            for src in _REGISTRATION_SOURCES:
-                JtSJ[src] += J.T @ S[src] @ J
-                trace[src] += float(np.trace(S[src]))
-            trace_k[cid] = float(sum(np.trace(S[src]) for src in _REGISTRATION_SOURCES))
+        cmm_var = np.array([session.control_var[cid] for cid, _ in pairs])
+        JtJ, JtSJ, trace, trace_k = _normal_equations(G, g_bar, R, sigma[index], ecc_var[index], cmm_var)
         inverse = np.linalg.pinv(JtJ)
-        cov = {src: inverse @ JtSJ[src] @ inverse for src in _REGISTRATION_SOURCES}
-        if not self.registration_uncertainty:
-            cov = zero
+        cov = _sandwich(inverse, JtSJ) if self.registration_uncertainty else np.zeros((3, 6, 6))
         # Residuals against the stated sigmas: E sum |r_k|^2 = (1 - 6 / 3n) sum tr S_k
         # (3n coordinates, 6 parameters); the test is made over the session
         # (crossfield.uncertainty.consistency).
@@ -289,120 +646,174 @@ class PlanMeasurer:
             residuals = np.asarray(registration.fit.residuals)
             keep = [k for k, cid in enumerate(corr.control_ids) if cid in by_label]
             factor = 1.0 - 2.0 / n
+            trace_cam, trace_ecc, trace_cmm = trace.tolist()
             # The pose (R, t_global_camera): t is where the camera origin goes, a point
             # moved by J(t) xi (crossfield.covariance.registration_jacobian).
-            J_t = registration_jacobian(registration.fit.t, g_bar)
-            to_pose = np.vstack([np.hstack([np.eye(3), np.zeros((3, 3))]), J_t])
-            camera_side = cov["camera"] + cov["eccentricity"]
+            pose_camera, pose_cmm = _pose_covariances(
+                np.asarray(registration.fit.t, dtype=np.float64), g_bar, cov)
             consistency = RegistrationConsistency(
                 observed_ss_mm2=float(np.sum(residuals[keep] ** 2)),
-                expected_camera_ss_mm2=factor * (trace["camera"] + trace["eccentricity"]),
-                expected_cmm_ss_mm2=factor * trace["control_cmm"],
+                expected_camera_ss_mm2=factor * (trace_cam + trace_ecc),
+                expected_cmm_ss_mm2=factor * trace_cmm,
                 dof=3 * n - 6,
-                expected_residual_mm={cid: float(np.sqrt(factor * t)) for cid, t in trace_k.items()},
-                pose_cov_camera=to_pose @ camera_side @ to_pose.T,
-                pose_cov_cmm=to_pose @ cov["control_cmm"] @ to_pose.T,
+                expected_residual_mm={
+                    cid: math.sqrt(factor * t) for (cid, _), t in zip(pairs, trace_k.tolist())},
+                pose_cov_camera=pose_camera,
+                pose_cov_cmm=pose_cmm,
                 **_epipolar_evidence(points),
             )
         return cov, g_bar, consistency
 
     def _evaluate(
         self,
-        spec: CharacteristicSpec,
-        plan: MeasurementPlan,
-        reference: ReferenceData,
-        elements: dict[str, _Point],
-        C_reg: dict[str, np.ndarray],
+        session: _Session,
+        found: dict[str, int],
+        global_xyz: np.ndarray,
+        sigma: np.ndarray,
+        ecc_var: np.ndarray,
+        R: np.ndarray,
+        g_bar: np.ndarray,
+        C_reg: np.ndarray,
         truth: GroundTruth | None,
         inputs: dict[str, tuple[float, str]],
-    ) -> CharacteristicResult | None:
-        if spec.a not in elements or (spec.kind == "point_point" and spec.b not in elements):
-            return None  # a target not found or a CMM point not imported: nothing to report
-        a = elements[spec.a]
-        actual = None
-        line_var = 0.0
-        line_sigma = 0.0
-        line_dof = float("inf")
-        if spec.kind == "point_point":
-            b = elements[spec.b]
-            diff = a.xyz - b.xyz
-            measured = float(np.linalg.norm(diff))
-            u = diff / measured if measured > 0 else np.zeros(3)
-            gradients = [(a, u), (b, -u)]
-            if truth is not None and spec.a in truth.points_global and spec.b in truth.points_global:
-                true_a, true_b = truth.points_global[spec.a], truth.points_global[spec.b]
-                actual = float(np.linalg.norm(np.asarray(true_a) - np.asarray(true_b)))
-        elif spec.kind == "point_line":
-            line = self.reference_line(plan, reference, spec.b)
-            measured, line_sd, g_p = point_line_distance(a.xyz, line, None)
-            line_var = line_sd**2  # the axis fit's own covariance (its CMM probes, posterior sigma)
-            line_sigma = line.sigma_mm  # max(stated, observed): geometry.fit_cylinder_axis
-            stated = max((p.sigma_mm for p in reference.points if p.label.startswith(f"{spec.b}.")), default=0.0)
-            line_dof = _fit_dof(line, stated)
-            gradients = [(a, g_p)]
-            if truth is not None and spec.a in truth.points_global and spec.b in truth.lines_global:
-                actual = truth.lines_global[spec.b].distance(truth.points_global[spec.a])
-        else:  # depth: global Z of a
-            measured = float(a.xyz[2])
-            gradients = [(a, np.array([0.0, 0.0, 1.0]))]
-            if truth is not None and spec.a in truth.points_global:
-                actual = float(truth.points_global[spec.a][2])
-        budget = self._budget(spec, gradients, C_reg, inputs, line_var, line_sigma, elements)
-        if spec.kind == "point_line":  # the fit's own residuals set its sigma: Type A with the fit's dof
-            budget = tuple(replace(t, dof=line_dof) if t.source == "reference_line" else t for t in budget)
-        deviation = measured - spec.nominal_mm
-        return CharacteristicResult(
-            name=spec.name,
-            kind=spec.kind,
-            measured_mm=measured,
-            nominal_mm=spec.nominal_mm,
-            tolerance_mm=spec.tolerance_mm,
-            deviation_mm=deviation,
-            passed=bool(-spec.lower_tol_mm <= deviation <= spec.upper_tol_mm),
-            uncertainty_mm=combined(budget),
-            actual_mm=actual,
-            error_mm=None if actual is None else measured - actual,
-            elements=(spec.a,) + ((spec.b,) if spec.b else ()),
-            budget=budget,
+    ) -> list[CharacteristicResult]:
+        """The characteristics whose elements this frame has (a target found, a CMM point
+        imported), in plan order, with their budgets (:func:`_characteristics`, :func:`_budget`)."""
+        cmm_index = session.cmm_index
+        chosen, kinds, refs, lines = [], [], [], []
+        for char in session.characteristics:
+            spec = char.spec
+            a = _element(spec.a, cmm_index, found)
+            b = _element(spec.b, cmm_index, found) if char.kind == 0 else (_CAMERA, 0)
+            if a is None or b is None:
+                continue  # a target not found or a CMM point not imported: nothing to report
+            if char.line_error is not None:
+                raise MeasurementError(char.line_error)
+            chosen.append(char)
+            kinds.append(char.kind)
+            refs.append((a, b))
+            lines.append(char.line)
+        if not chosen:
+            return []
+        measured, variance, c_cal, line_var = _characteristics(
+            np.array(kinds, dtype=np.int64), np.array(refs, dtype=np.int64), np.array(lines, dtype=np.int64),
+            np.ascontiguousarray(global_xyz), sigma, ecc_var, R, g_bar, session.cmm_xyz, session.cmm_var,
+            session.line_point, session.line_dir, session.line_basis, session.line_cov, C_reg,
         )
+        results = []
+        for c, char in enumerate(chosen):
+            results.append(_result(char, refs[c], float(measured[c]), variance[c].tolist(), float(c_cal[c]),
+                                   float(line_var[c]), session, truth, inputs))
+        return results
 
-    def _budget(
-        self,
-        spec: CharacteristicSpec,
-        gradients: list[tuple[_Point, np.ndarray]],
-        C_reg: dict[str, np.ndarray],
-        inputs: dict[str, tuple[float, str]],
-        line_var: float,
-        line_sigma: float,
-        elements: dict[str, _Point],
-    ) -> tuple:
-        """Per-source variance of the characteristic y = f(points): with g_j = dy/dp_j,
-        ``var_src = sum_j g_j^T Sigma_src,j g_j + (sum_j g_j^T J_j) C_src (sum_j J_j^T g_j)``
-        (the registration is shared by the points: its effect enters through the sum of
-        their Jacobians, GUM eq. (13)); calibration ``(u_s sum_j g_j . d_cal,j)^2``."""
-        variance = dict.fromkeys(("camera", "eccentricity", "control_cmm", "reference_cmm"), 0.0)
-        J_sum = np.zeros(6)
-        c_cal = 0.0
-        for point, g in gradients:
-            for src, cov in point.cov.items():
-                variance[src] += float(g @ cov @ g)
-            J_sum += g @ point.J_reg
-            c_cal += float(g @ point.d_cal)
-        for src in _REGISTRATION_SOURCES:
-            variance[src] += float(J_sum @ C_reg[src] @ J_sum)
-        cmm_points = [p for p, _ in gradients if "reference_cmm" in p.cov]
-        ref_u = max([float(np.sqrt(p.cov["reference_cmm"][0, 0])) for p in cmm_points], default=0.0)
-        u_cal = inputs["calibration"][0]
-        table = {
-            "camera": (*inputs["camera"], variance["camera"]),
-            "eccentricity": (*inputs["eccentricity"], variance["eccentricity"]),
-            "calibration": (u_cal, "1", (c_cal * u_cal) ** 2),
-            "control_cmm": (*inputs["control_cmm"], variance["control_cmm"]),
-            "reference_cmm": (ref_u, "mm", variance["reference_cmm"]),
-        }
-        if spec.kind == "point_line":  # the axis fit's own covariance, its sigma data-supported
-            table["reference_line"] = (line_sigma, "mm", line_var)
+
+def _element(name: str, cmm_index: dict[str, int], found: dict[str, int]) -> tuple[int, int] | None:
+    """A characteristic's element as the budget kernel refers to it: (``_CMM``, index) for a
+    CMM point of the plan (these take precedence), (``_CAMERA``, camera index) for a target
+    found in this frame, None otherwise."""
+    if name in cmm_index:
+        return (_CMM, cmm_index[name])
+    if name in found:
+        return (_CAMERA, found[name])
+    return None
+
+
+def _result(char: _Characteristic, refs, measured: float, variance: list[float], c_cal: float,
+            line_var: float, session: _Session, truth: GroundTruth | None, inputs) -> CharacteristicResult:
+    """One characteristic's result from the kernel's value (mm) and per-source variances (mm^2)."""
+    spec = char.spec
+    actual = None
+    if char.kind == 0:
+        if truth is not None and spec.a in truth.points_global and spec.b in truth.points_global:
+            true_a, true_b = truth.points_global[spec.a], truth.points_global[spec.b]
+            actual = float(np.linalg.norm(np.asarray(true_a) - np.asarray(true_b)))
+        n_points = 2
+    elif char.kind == 1:
+        if truth is not None and spec.a in truth.points_global and spec.b in truth.lines_global:
+            actual = truth.lines_global[spec.b].distance(truth.points_global[spec.a])
+        n_points = 1
+    else:
+        if truth is not None and spec.a in truth.points_global:
+            actual = float(truth.points_global[spec.a][2])
+        n_points = 1
+    ref_u = max([session.cmm_u[index] for kind, index in refs[:n_points] if kind == _CMM], default=0.0)
+    budget = _budget(spec, char, variance, c_cal, line_var, ref_u, inputs)
+    deviation = measured - spec.nominal_mm
+    return CharacteristicResult(
+        name=spec.name,
+        kind=spec.kind,
+        measured_mm=measured,
+        nominal_mm=spec.nominal_mm,
+        tolerance_mm=spec.tolerance_mm,
+        deviation_mm=deviation,
+        passed=bool(-spec.lower_tol_mm <= deviation <= spec.upper_tol_mm),
+        uncertainty_mm=combined(budget),
+        actual_mm=actual,
+        error_mm=None if actual is None else measured - actual,
+        elements=char.elements,
+        budget=budget,
+    )
+
+
+def _budget(spec, char: _Characteristic, variance: list[float], c_cal: float, line_var: float, ref_u: float,
+            inputs: dict[str, tuple[float, str]]) -> tuple:
+    """The budget terms of one characteristic from its per-source variances (mm^2; camera,
+    eccentricity, control_cmm, reference_cmm, :func:`_characteristics`), its calibration
+    sensitivity ``c_cal`` (mm: the term is ``(u_s c_cal)^2``) and, for a point_line, the axis
+    fit's own variance ``line_var`` (mm^2; its sigma data-supported: a Type A term with the
+    fit's dof)."""
+    u_cal = inputs["calibration"][0]
+    table = {
+        "camera": (*inputs["camera"], variance[0]),
+        "eccentricity": (*inputs["eccentricity"], variance[1]),
+        "calibration": (u_cal, "1", (c_cal * u_cal) ** 2),
+        "control_cmm": (*inputs["control_cmm"], variance[2]),
+        "reference_cmm": (ref_u, "mm", variance[3]),
+    }
+    if char.kind != 1:
         return merge(table)
+    line_sd = math.sqrt(max(line_var, 0.0))
+    table["reference_line"] = (char.line_sigma, "mm", line_sd**2)
+    budget = merge(table)
+    if char.line_dof == math.inf:
+        return budget
+    return tuple(type(t)(t.source, t.u, t.unit, t.sensitivity, t.u_mm, char.line_dof)
+                 if t.source == "reference_line" else t for t in budget)
+
+
+def _identify_targets(
+    session: _Session, global_xyz: np.ndarray, registration: Registration
+) -> tuple[dict[str, int], list[str]]:
+    """Target id -> camera index for unambiguous targets; the others (missing or ambiguous),
+    in plan order. A target's candidates are the camera points not used as controls within its
+    search radius of its nominal position (global mm); it is found when it has one and no
+    other target claims that point."""
+    free = _free_points(len(global_xyz), registration.correspondence.camera_index)
+    ids = session.target_ids
+    if not len(free) or not ids:
+        return {}, list(ids)
+    d = np.linalg.norm(global_xyz[free][None, :, :] - session.target_nominal[:, None, :], axis=2)  # (T, F)
+    within = d <= session.target_radius[:, None]
+    per_target = within.sum(axis=1).tolist()
+    claims = within.sum(axis=0).tolist()
+    first = within.argmax(axis=1).tolist()
+    free_list = free.tolist()
+    found, missing = {}, []
+    for t, tid in enumerate(ids):
+        if per_target[t] == 1 and claims[first[t]] == 1:
+            found[tid] = int(free_list[first[t]])
+        else:
+            missing.append(tid)
+    return found, missing
+
+
+def _free_points(n: int, control_index) -> np.ndarray:
+    """The camera indices (ascending, int64) of n points not used as controls:
+    ``np.setdiff1d(np.arange(n), control_index)`` by a mask (indices outside 0 .. n-1 ignored)."""
+    index = np.asarray(control_index, dtype=np.int64)
+    free = np.ones(n, dtype=bool)
+    free[index[(index >= 0) & (index < n)]] = False
+    return np.flatnonzero(free).astype(np.int64, copy=False)
 
 
 def _fit_dof(fit: AxisFit, stated_mm: float) -> float:

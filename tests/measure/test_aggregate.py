@@ -449,3 +449,21 @@ def test_a_failure_after_the_kept_rows_fails_the_session(tmp_path):
 def test_bounds_are_checked():
     with pytest.raises(ValueError, match="rows_kept"):
         SessionAccumulator(PLAN, rows_kept=-1)
+
+
+def test_vector_stats_are_running_stats_bit_for_bit():
+    """VectorStats (Python floats per component, issue 25) against RunningStats((3,)) (NumPy)."""
+    from crossfield.chain.aggregate import VectorStats
+
+    rng = np.random.default_rng(11)
+    for scale, offset in ((0.01, 0.0), (0.02, -312.5), (1e-6, 1e3)):
+        fast, reference = VectorStats(3), RunningStats((3,))
+        assert np.array_equal(fast.mean, reference.mean) and np.array_equal(fast.variance(), reference.variance())
+        for k in range(60):
+            x = offset + rng.normal(scale=scale, size=3)
+            fast.add(x if k % 2 else tuple(x))
+            reference.add(x)
+            assert fast.n == reference.n
+            for a, b in ((fast.mean, reference.mean), (fast.m2, reference.m2),
+                         (fast.variance(), reference.variance())):
+                assert np.array_equal(a.view(np.uint64), np.asarray(b, dtype=np.float64).view(np.uint64))

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from unittest import mock
 
 import numpy as np
 import pytest
@@ -14,7 +13,6 @@ from crossfield.geometry import perpendicular_basis
 from crossfield.plan import parse_plan
 from crossfield.chain.registry import implementations, make_plugin_manager
 from crossfield.stages import Measurer
-from crossfield.uncertainty.eccentricity import eccentricity_sigma_mm
 from crossfield.types import CameraPoints, GroundTruth, Line3D, ProbedPoint, ReferenceData, Registration
 from crossfield.plugins.register_svd import SvdRegistrar
 
@@ -232,25 +230,6 @@ def test_line_fits_are_cached_per_reference():
     assert impl.reference_line(station.plan, reference, "L3") is first
     other = station.reference(np.random.default_rng(3))
     assert impl.reference_line(station.plan, other, "L3") is not first
-
-
-def test_eccentricity_is_evaluated_once_per_camera_point_and_frame():
-    """Issue 25: the budget inputs, the registration's controls and the targets each asked
-    for a point's eccentricity covariance (22 evaluations for these 12 points); now 12."""
-    station = Station()
-    rng = np.random.default_rng(4)
-    reference = station.reference(rng)
-    points = station.camera_points(rng=rng)
-    registration = register(points, reference, station.plan)
-    impl = measurer()
-    expected = impl.measure(station.plan, reference, points, registration, station.truth)
-    with mock.patch(
-        "crossfield.plugins.measure_plan.eccentricity_sigma_mm", wraps=eccentricity_sigma_mm
-    ) as sigma:
-        m = impl.measure(station.plan, reference, points, registration, station.truth)
-    assert sigma.call_count == len(points.xyz) == 12
-    assert m.characteristics == expected.characteristics  # the same numbers, budgets included
-    assert np.array_equal(m.consistency.pose_cov_camera, expected.consistency.pose_cov_camera)
 
 
 def test_undetermined_reference_line_is_an_error():
