@@ -19,6 +19,7 @@ Usage::
         register("mine", MyCentroids, "my sub-pixel step")
 """
 
+from crossfield.blas_order import dot, matmul, matmul_at, matmul_bt, quadratic, vecmat
 from crossfield.camera.calibration_io import read_stereo_calibration
 from crossfield.camera.pair_files import pattern_regex
 from crossfield.camera.pairing import (
@@ -278,6 +279,7 @@ __all__ = [
     "decision_text",
     "deviation_chart",
     "document_of",
+    "dot",
     "dumps",
     "eccentricity_sigma_mm",
     "edge_profile",
@@ -295,6 +297,9 @@ __all__ = [
     "in_volume",
     "kabsch",
     "linear_triangulation",
+    "matmul",
+    "matmul_at",
+    "matmul_bt",
     "merge",
     "off_axis_rad",
     "offset_covariance",
@@ -305,6 +310,7 @@ __all__ = [
     "point_covariance",
     "point_line_distance",
     "point_set_size",
+    "quadratic",
     "quoted",
     "read_stereo_calibration",
     "refine_points",
@@ -330,5 +336,6 @@ __all__ = [
     "unique_matches",
     "unit_name",
     "validate_pairs",
+    "vecmat",
     "weighted_rms",
 ]

@@ -54,7 +54,7 @@ small product is summed as OpenBLAS's kernels sum it (measured on this
 machine's kernels, ``tests/measure/test_measure_kernels.py``): a dot product, a
 matrix product (dgemm, dsyrk) and a 3-wide vector-matrix product as one fused
 multiply-add chain over the inner index, the wider vector-matrix products
-(dgemv_n) in the blocks its micro-kernels use (:func:`_vecmat`). The reports
+(dgemv_n) in the blocks its micro-kernels use (:func:`vecmat`). The reports
 are bit-identical with the NumPy formulation.
 """
 
@@ -65,12 +65,14 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
-from llvmlite import ir
-from numba.core import cgutils
-from numba.core import types as nb_types
-from numba.extending import intrinsic
 
 from crossfield.plugin_api import (
+    dot,
+    matmul,
+    matmul_at,
+    matmul_bt,
+    quadratic,
+    vecmat,
     DEFAULT_SCALE_U,
     AxisFit,
     CameraPoints,
@@ -102,120 +104,6 @@ _CAMERA, _CMM = 0, 1
 _njit = numba.njit(cache=True, nogil=True, error_model="numpy")
 
 
-# --------------------------------------------------------------------------
-# Scalar kernels: the arithmetic of NumPy's (OpenBLAS's) small products
-# --------------------------------------------------------------------------
-
-
-@intrinsic
-def _fma(typingctx, a, b, c):
-    """``a * b + c`` rounded once (IEEE 754 fusedMultiplyAdd; LLVM ``llvm.fma.f64``)."""
-    sig = nb_types.float64(nb_types.float64, nb_types.float64, nb_types.float64)
-
-    def codegen(context, builder, signature, args):
-        d = ir.DoubleType()
-        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(d, [d, d, d]), "llvm.fma.f64")
-        return builder.call(fn, args)
-
-    return sig, codegen
-
-
-@_njit
-def _dot(x, y):
-    """``x @ y`` of two (n,) vectors as OpenBLAS's ddot sums a short one: from +0.0,
-    ``acc = fma(x_q, y_q, acc)`` for q = 0 .. n-1 (a sum of zeros is +0.0)."""
-    acc = 0.0
-    for q in range(x.shape[0]):
-        acc = _fma(x[q], y[q], acc)
-    return acc
-
-
-@_njit
-def _matmul(A, B):
-    """``A @ B`` (m, k) x (k, n) as OpenBLAS's small dgemm / dsyrk kernels sum each entry:
-    from +0.0, ``acc = fma(A[i, q], B[q, j], acc)`` for q = 0 .. k-1."""
-    m, k = A.shape
-    n = B.shape[1]
-    C = np.empty((m, n))
-    for i in range(m):
-        for j in range(n):
-            acc = 0.0
-            for q in range(k):
-                acc = _fma(A[i, q], B[q, j], acc)
-            C[i, j] = acc
-    return C
-
-
-@_njit
-def _matmul_bt(A, B):
-    """``A @ B.T`` (m, k) x (n, k) -> (m, n), summed as :func:`_matmul`."""
-    m, k = A.shape
-    n = B.shape[0]
-    C = np.empty((m, n))
-    for i in range(m):
-        for j in range(n):
-            acc = 0.0
-            for q in range(k):
-                acc = _fma(A[i, q], B[j, q], acc)
-            C[i, j] = acc
-    return C
-
-
-@_njit
-def _matmul_at(A, B):
-    """``A.T @ B`` (k, m) x (k, n) -> (m, n), summed as :func:`_matmul`."""
-    k, m = A.shape
-    n = B.shape[1]
-    C = np.empty((m, n))
-    for i in range(m):
-        for j in range(n):
-            acc = 0.0
-            for q in range(k):
-                acc = _fma(A[q, i], B[q, j], acc)
-            C[i, j] = acc
-    return C
-
-
-@_njit
-def _vecmat(x, B):
-    """``x @ B``, x (k,), B (k, n) C-ordered, as OpenBLAS's dgemv_n sums it (the column-major
-    ``B^T x``): outputs ``j < n & -4`` in the 4-row micro-kernels, the k terms in blocks of 4
-    (``fma(x0 b0, x1 b1)``, then ``+ x2 b2``, ``+ x3 b3`` fused), of 2 (``fma(x0 b0, x1 b1)``)
-    and of 1 (``x0 b0``), each block added to the output; the last ``n % 4`` outputs one
-    fused chain as :func:`_dot`. Checked for the shapes used here: (3, 3), (3, 6), (4, 4),
-    (6, 6)."""
-    k, n = B.shape
-    y = np.empty(n)
-    n_main = n & -4
-    for j in range(n_main):
-        acc = 0.0
-        q = 0
-        while q + 4 <= k:
-            t = _fma(x[q], B[q, j], x[q + 1] * B[q + 1, j])
-            t = _fma(x[q + 2], B[q + 2, j], t)
-            t = _fma(x[q + 3], B[q + 3, j], t)
-            acc = acc + t
-            q += 4
-        if k - q >= 2:
-            acc = acc + _fma(x[q], B[q, j], x[q + 1] * B[q + 1, j])
-            q += 2
-        if k - q == 1:
-            acc = acc + x[q] * B[q, j]
-        y[j] = acc
-    for j in range(n_main, n):
-        acc = 0.0
-        for q in range(k):
-            acc = _fma(x[q], B[q, j], acc)
-        y[j] = acc
-    return y
-
-
-@_njit
-def _quadratic(g, C):
-    """``g @ C @ g``: ``(g @ C) @ g``, as :func:`_vecmat` and :func:`_dot`."""
-    return _dot(_vecmat(g, C), g)
-
-
 @_njit
 def _jacobian(p, g_bar):
     """``J = [-[p - g_bar]_x, I_3]`` (3, 6), entry for entry as
@@ -237,7 +125,7 @@ def _camera_cov(A, sigma):
     for i in range(3):
         for j in range(3):
             M[i, j] = A[i, j] * (sigma[j] * sigma[j])
-    return _matmul_bt(M, A)
+    return matmul_bt(M, A)
 
 
 @_njit
@@ -278,10 +166,10 @@ def _normal_equations(G, g_bar, A, sigma, ecc_var, cmm_var):
         S[0] = _camera_cov(A, sigma[k])
         S[1] = _isotropic(ecc_var[k])
         S[2] = _isotropic(cmm_var[k])
-        JtJ += _matmul_at(J, J)
+        JtJ += matmul_at(J, J)
         total = 0.0
         for s in range(3):
-            JtSJ[s] += _matmul(_matmul_at(J, S[s]), J)
+            JtSJ[s] += matmul(matmul_at(J, S[s]), J)
             tr = (S[s, 0, 0] + S[s, 1, 1]) + S[s, 2, 2]  # np.trace
             trace[s] = trace[s] + tr
             total = total + tr
@@ -295,7 +183,7 @@ def _sandwich(inverse, JtSJ):
     ``inverse`` (6, 6) and the (3, 6, 6) middle terms."""
     C = np.empty((3, 6, 6))
     for s in range(3):
-        C[s] = _matmul(_matmul(inverse, JtSJ[s]), inverse)
+        C[s] = matmul(matmul(inverse, JtSJ[s]), inverse)
     return C
 
 
@@ -308,8 +196,8 @@ def _pose_covariances(t, g_bar, C):
     to_pose[0, 0] = to_pose[1, 1] = to_pose[2, 2] = 1.0
     to_pose[3:, :] = _jacobian(t, g_bar)
     camera_side = C[0] + C[1]
-    return (_matmul_bt(_matmul(to_pose, camera_side), to_pose),
-            _matmul_bt(_matmul(to_pose, C[2]), to_pose))
+    return (matmul_bt(matmul(to_pose, camera_side), to_pose),
+            matmul_bt(matmul(to_pose, C[2]), to_pose))
 
 
 @_njit
@@ -319,13 +207,13 @@ def _point_line(p, point, direction, e1, e2, cov):
     ``crossfield.geometry.point_line_distance`` without a point covariance (its
     ``g_l^T C_l g_l``, g_l = -(n^.e1, n^.e2, (v.u) n^.e1, (v.u) n^.e2), C_l (4, 4))."""
     v = p - point
-    along = _dot(v, direction)
+    along = dot(v, direction)
     normal = v - along * direction
-    d = math.sqrt(_dot(normal, normal))
+    d = math.sqrt(dot(normal, normal))
     g_p = normal / d if d > 0 else np.zeros(3)
-    n1, n2 = _dot(g_p, e1), _dot(g_p, e2)
+    n1, n2 = dot(g_p, e1), dot(g_p, e2)
     g_l = np.array([-n1, -n2, -along * n1, -along * n2])
-    return d, _quadratic(g_l, cov), g_p
+    return d, quadratic(g_l, cov), g_p
 
 
 @_njit
@@ -360,7 +248,7 @@ def _characteristics(kinds, refs, lines, X, sigma, ecc_var, A, g_bar, cmm_xyz, c
         if kinds[c] == 0:  # point_point: |a - b|
             pb = X[refs[c, 1, 1]] if refs[c, 1, 0] == _CAMERA else cmm_xyz[refs[c, 1, 1]]
             diff = pa - pb
-            value = math.sqrt(_dot(diff, diff))
+            value = math.sqrt(dot(diff, diff))
             u = diff / value if value > 0 else np.zeros(3)
             grads[0] = u
             grads[1] = -u
@@ -381,19 +269,19 @@ def _characteristics(kinds, refs, lines, X, sigma, ecc_var, A, g_bar, cmm_xyz, c
             g = grads[e]
             index = refs[c, e, 1]
             if refs[c, e, 0] == _CAMERA:
-                variance[c, 0] += _quadratic(g, _camera_cov(A, sigma[index]))
-                variance[c, 1] += _quadratic(g, _isotropic(ecc_var[index]))
+                variance[c, 0] += quadratic(g, _camera_cov(A, sigma[index]))
+                variance[c, 1] += quadratic(g, _isotropic(ecc_var[index]))
                 J = _jacobian(X[index], g_bar)
                 d_cal = X[index] - g_bar
             else:
-                variance[c, 3] += _quadratic(g, _isotropic(cmm_var[index]))
+                variance[c, 3] += quadratic(g, _isotropic(cmm_var[index]))
                 J = zero_J
                 d_cal = zero3
-            J_sum = J_sum + _vecmat(g, J)
-            cal = cal + _dot(g, d_cal)
+            J_sum = J_sum + vecmat(g, J)
+            cal = cal + dot(g, d_cal)
         c_cal[c] = cal
         for s in range(3):
-            variance[c, s] += _quadratic(J_sum, C_reg[s])
+            variance[c, s] += quadratic(J_sum, C_reg[s])
     return measured, variance, c_cal, line_var
 
 
@@ -402,7 +290,7 @@ def _row_norms(X):
     """|x| (N,) of the rows of X (N, 3), as ``np.linalg.norm`` of one (``sqrt(x @ x)``)."""
     out = np.empty(X.shape[0])
     for i in range(X.shape[0]):
-        out[i] = math.sqrt(_dot(X[i], X[i]))
+        out[i] = math.sqrt(dot(X[i], X[i]))
     return out
 
 

@@ -43,7 +43,7 @@ and their covariance (:func:`_offset_covariance_rows`). What NumPy computes with
 inverse and Cholesky factor of the conics' covariance, eigh of the observed shapes, pinv of
 J^T J) and with its own SIMD arccos, log and exp stays in NumPy between the kernels. The
 kernels do the NumPy formulation's floating-point operations in the same order (its small
-matmuls as the fused multiply-add chains OpenBLAS computes them, :func:`_fma`; its row sums
+matmuls as the fused multiply-add chains OpenBLAS computes them, :func:`crossfield.blas_order.fma`; its row sums
 left to right), so the results are the NumPy path's bit for bit (:func:`_fit_circles_numpy`,
 :func:`_offset_covariance_numpy`, kept for lenses that need ``cv2.projectPoints``, the
 tilted-sensor model); tests/triangulate/test_eccentricity_kernels.py. Against the NumPy
@@ -62,10 +62,8 @@ from dataclasses import dataclass
 import cv2
 import numba
 import numpy as np
-from llvmlite import ir
-from numba import types
-from numba.core.extending import intrinsic
 
+from crossfield.blas_order import fma
 from crossfield.camera import stereo_kernels
 
 __all__ = [
@@ -436,22 +434,9 @@ def _jacobians(p, n0, b1, b2, Xv, R, S_obs, W, h):
 # of a frame its ~250 small-array calls were ~1 ms of overhead per pair. The same floating-point
 # operations in the same order: NumPy's small stacked matmuls (OpenBLAS' dgemm kernels on this
 # machine) sum each product as a chain of fused multiply-adds in k order,
-# fma(a_k, b_k, ... fma(a_1, b_1, a_0 b_0)), which :func:`_fma` reproduces; NumPy's row sums and
+# fma(a_k, b_k, ... fma(a_1, b_1, a_0 b_0)), which :func:`crossfield.blas_order.fma` reproduces; NumPy's row sums and
 # norms add left to right. What NumPy computes with LAPACK (inv, cholesky, eigh, pinv) or with its
 # own SIMD arccos / log / exp stays in NumPy, between the kernels.
-
-
-@intrinsic
-def _fma(typingctx, a, b, c):
-    """a * b + c rounded once (LLVM's llvm.fma.f64), for float64 a, b, c."""
-    sig = types.float64(types.float64, types.float64, types.float64)
-
-    def codegen(context, builder, signature, args):
-        d = ir.DoubleType()
-        fn = builder.module.declare_intrinsic("llvm.fma", [d], ir.FunctionType(d, [d, d, d]))
-        return builder.call(fn, args)
-
-    return sig, codegen
 
 
 #: forward-difference steps of (w1, w2, log r) in the circle fit's Jacobian
@@ -509,13 +494,13 @@ def _sandwich(M, s00, s01, s11):
     """vec(M^T S M) = (uu, uv, vv) of the symmetric 2 x 2 S = [[s00, s01], [s01, s11]] and M (2, 2):
     (M^T S) then (.) M, each entry an fma chain as NumPy's stacked matmul computes it."""
     # P = M^T S: P[r, c] = M[0, r] S[0, c] + M[1, r] S[1, c]
-    p00 = _fma(M[1, 0], s01, M[0, 0] * s00)
-    p01 = _fma(M[1, 0], s11, M[0, 0] * s01)
-    p10 = _fma(M[1, 1], s01, M[0, 1] * s00)
-    p11 = _fma(M[1, 1], s11, M[0, 1] * s01)
+    p00 = fma(M[1, 0], s01, M[0, 0] * s00)
+    p01 = fma(M[1, 0], s11, M[0, 0] * s01)
+    p10 = fma(M[1, 1], s01, M[0, 1] * s00)
+    p11 = fma(M[1, 1], s11, M[0, 1] * s01)
     # (P M)[r, c] = P[r, 0] M[0, c] + P[r, 1] M[1, c]; the (0, 0), (0, 1), (1, 1) entries
-    return (_fma(p01, M[1, 0], p00 * M[0, 0]), _fma(p01, M[1, 1], p00 * M[0, 1]),
-            _fma(p11, M[1, 1], p10 * M[0, 1]))
+    return (fma(p01, M[1, 0], p00 * M[0, 0]), fma(p01, M[1, 1], p00 * M[0, 1]),
+            fma(p11, M[1, 1], p10 * M[0, 1]))
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -573,10 +558,10 @@ def _observed_rows(Xv, S_u, S_l, cov_u, cov_l, has_cov, intr, coeffs, h):
                                                       1.0 if j == 2 else 0.0)
             for r in range(3):  # TC = T cov, then cov_n = TC T^T (fma chains in k)
                 for q in range(3):
-                    TC[r, q] = _fma(T[r, 2], cov[i, 2, q], _fma(T[r, 1], cov[i, 1, q], T[r, 0] * cov[i, 0, q]))
+                    TC[r, q] = fma(T[r, 2], cov[i, 2, q], fma(T[r, 1], cov[i, 1, q], T[r, 0] * cov[i, 0, q]))
             for r in range(3):
                 for q in range(3):
-                    cov_n[v, i, r, q] = _fma(TC[r, 2], T[q, 2], _fma(TC[r, 1], T[q, 1], TC[r, 0] * T[q, 0]))
+                    cov_n[v, i, r, q] = fma(TC[r, 2], T[q, 2], fma(TC[r, 1], T[q, 1], TC[r, 0] * T[q, 0]))
             top = _max3(abs(cov_n[v, i, 0, 0]), abs(cov_n[v, i, 1, 1]), abs(cov_n[v, i, 2, 2]))
             for r in range(3):
                 for q in range(3):
@@ -674,7 +659,7 @@ def _fit_rows(X, R, Xv, S_n, W, evecs, theta, r0, h, iterations):
         for i in range(n):
             e0, e1 = evecs[v, i, 0, 0], evecs[v, i, 1, 0]
             for c in range(3):  # [e0, e1, 0] @ R_v: the major axis in the upper frame
-                m[c] = _fma(0.0, R[v, 2, c], _fma(e1, R[v, 1, c], e0 * R[v, 0, c]))
+                m[c] = fma(0.0, R[v, 2, c], fma(e1, R[v, 1, c], e0 * R[v, 0, c]))
             along = m[0] * n0[i, 0] + m[1] * n0[i, 1] + m[2] * n0[i, 2]
             for c in range(3):
                 m[c] -= along * n0[i, c]
@@ -713,7 +698,7 @@ def _fit_rows(X, R, Xv, S_n, W, evecs, theta, r0, h, iterations):
             for q in range(3):
                 acc = J[i, 0, r] * J[i, 0, q]
                 for m6 in range(1, 6):
-                    acc = _fma(J[i, m6, r], J[i, m6, q], acc)
+                    acc = fma(J[i, m6, r], J[i, m6, q], acc)
                 JTJ[i, r, q] = acc
         _normal_row(n0[i], b1[i], b2[i], best_p[i, 0], best_p[i, 1], normal[i])
     return best_p, best_cost, JTJ, normal
@@ -942,10 +927,10 @@ def _offset_covariance_rows(X, params, radius, radius_step, cov, R, t, intr, coe
                 D[r, j] = (every[1 + j, r] - every[0, r]) / h[j]
         for r in range(4):  # (D cov) D^T, fma chains as NumPy's matmul
             for q in range(3):
-                DC[r, q] = _fma(D[r, 2], cov[i, 2, q], _fma(D[r, 1], cov[i, 1, q], D[r, 0] * cov[i, 0, q]))
+                DC[r, q] = fma(D[r, 2], cov[i, 2, q], fma(D[r, 1], cov[i, 1, q], D[r, 0] * cov[i, 0, q]))
         for r in range(4):
             for q in range(4):
-                out[i, r, q] = _fma(DC[r, 2], D[q, 2], _fma(DC[r, 1], D[q, 1], DC[r, 0] * D[q, 0]))
+                out[i, r, q] = fma(DC[r, 2], D[q, 2], fma(DC[r, 1], D[q, 1], DC[r, 0] * D[q, 0]))
     return out
 
 

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from crossfield import blas_order as bo
 from crossfield.imaging import eccentricity as ecc
 from crossfield.simulator.scenarios import build_scene
 
@@ -31,7 +32,7 @@ def _fma_products(A, B):
             for c in range(B.shape[2]):
                 acc = A[i, r, 0] * B[i, 0, c]
                 for k in range(1, kk):
-                    acc = ecc._fma(A[i, r, k], B[i, k, c], acc)
+                    acc = bo.fma(A[i, r, k], B[i, k, c], acc)
                 out[i, r, c] = acc
     return out
 
