@@ -13,6 +13,11 @@ tuple of one module of this package, each module filling it the same way:
 :data:`COMMANDS` is their union (name -> command), in that order; :func:`main` parses
 the arguments, runs the command with the ``crossfield`` loggers on stderr, and turns
 a :class:`~crossfield.errors.CrossfieldError` into one line and exit status 2.
+
+The command modules import at their top only what their parsers need; each command
+imports the pipeline, Dask, Rerun and the rest inside its ``run`` function, so that
+building the parser (``crossfield --help``, ``--version``, a mistyped flag) loads none of
+them: ``import crossfield.cli`` took 2.7 s with everything at the top, 0.5 s now.
 """
 
 from __future__ import annotations

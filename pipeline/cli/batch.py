@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 
 from crossfield.batch.engine import Engine, add_engine_flags, engine_from_args
-from crossfield.batch.run import run_batch
 from crossfield.cli.common import Command, add_stage_flags, stage_choices, verbosity_flags
 
 __all__ = ["COMMANDS"]
@@ -32,6 +31,7 @@ def add_batch_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def cmd_batch(args: argparse.Namespace) -> int:
+    from crossfield.batch.run import run_batch
     plugins, options = stage_choices(args) if args.batch_kind != "audit" else ({}, [])
     report = run_batch(
         args.batch_kind,

@@ -10,36 +10,11 @@ import tempfile
 from dataclasses import replace
 from pathlib import Path
 
-from crossfield.calibration.boards import Board, board_from_dict, read_board_file
-from crossfield.calibration.coverage import coverage_line
-from crossfield.calibration.crossval import summary_line
-from crossfield.calibration.file import write_calibration_result
-from crossfield.calibration.images import read_image_pairs, write_image_pairs
-from crossfield.calibration.live import (
-    CoverageLog,
-    CoverageWindow,
-    KeyEvents,
-    capture_live,
-    print_pair,
-    window_available,
-    write_provisional_calibration,
-)
-from crossfield.calibration.record import read_calibration_recording, record_calibration
-from crossfield.calibration.report import write_report
-from crossfield.calibration.solve import CalibrationSettings, calibrate_images, settings_from_dict
-from crossfield.camera.calibration_io import read_stereo_calibration
 from crossfield.chain.registry import get_implementation, make_plugin_manager
 from crossfield.cli.common import Command
 from crossfield.config import DEFAULT_PLUGINS, load_config, parse_option
 from crossfield.errors import ConfigError, CrossfieldError
 from crossfield.recording.seal import load_private_key
-from crossfield.report.vocabulary import verdict_word
-from crossfield.simulator.board_views import cached_calibration_views
-from crossfield.simulator.scenarios import SCENARIOS, station_calibration
-from crossfield.verification.procedure import create_stages, evaluate, simulate_positions
-from crossfield.verification.record import read_verification_recording, record_verification
-from crossfield.verification.report import write_verification
-from crossfield.viz.view import spawn_live_viewer
 
 __all__ = ["COMMANDS"]
 
@@ -174,6 +149,8 @@ def add_verify_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _board_and_settings(path: str | None, distortion: str | None):
+    from crossfield.calibration.boards import Board, board_from_dict, read_board_file
+    from crossfield.calibration.solve import CalibrationSettings, settings_from_dict
     board, settings = Board(), CalibrationSettings()
     if path:
         data = read_board_file(path)
@@ -185,6 +162,13 @@ def _board_and_settings(path: str | None, distortion: str | None):
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
+    from crossfield.calibration.crossval import summary_line
+    from crossfield.calibration.file import write_calibration_result
+    from crossfield.calibration.images import read_image_pairs, write_image_pairs
+    from crossfield.calibration.record import read_calibration_recording, record_calibration
+    from crossfield.calibration.report import write_report
+    from crossfield.calibration.solve import calibrate_images
+    from crossfield.simulator.board_views import cached_calibration_views
     board, settings = _board_and_settings(args.board, args.distortion)
     if not args.source:
         live_only = {"--config": args.config, "--option": args.option, "--every": args.every is not None,
@@ -306,6 +290,9 @@ def _live_options(args: argparse.Namespace) -> dict:
 def _live_pairs(args: argparse.Namespace, board, settings):
     """Open the live source, take pairs (crossfield.calibration.live), close it:
     (images, bit_depth, names, source text)."""
+    from crossfield.calibration.coverage import coverage_line
+    from crossfield.calibration.live import CoverageLog, CoverageWindow, KeyEvents, capture_live, print_pair, window_available, write_provisional_calibration
+    from crossfield.viz.view import spawn_live_viewer
 
     if args.pairs < 0:
         raise ConfigError(f"--pairs must be >= 0, got {args.pairs}")
@@ -374,6 +361,12 @@ def _live_pairs(args: argparse.Namespace, board, settings):
 def cmd_verify(args: argparse.Namespace) -> int:
     """``crossfield verify``: the simulated bar of ``--scenario`` (default station) or the
     pairs of ``--recording``; ``--record`` writes the session."""
+    from crossfield.camera.calibration_io import read_stereo_calibration
+    from crossfield.report.vocabulary import verdict_word
+    from crossfield.simulator.scenarios import SCENARIOS, station_calibration
+    from crossfield.verification.procedure import create_stages, evaluate, simulate_positions
+    from crossfield.verification.record import read_verification_recording, record_verification
+    from crossfield.verification.report import write_verification
 
     if args.recording and args.scenario:
         raise CrossfieldError("--recording and --scenario: give one (the recording holds its own pairs)")

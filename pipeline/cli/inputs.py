@@ -21,7 +21,7 @@ from pathlib import Path
 
 from crossfield.errors import CrossfieldError
 from crossfield.recording import layout as L
-from crossfield.recording.reader import open_recording
+from crossfield.recording import layout as L
 
 __all__ = ["KINDS", "InputError", "kind_of", "require"]
 
@@ -85,6 +85,7 @@ def _json_kind(path: Path) -> str:
 
 def _file_kind(path: Path) -> str:
     """The kind of a regular file by its first bytes (and an MCAP file's profile)."""
+    from crossfield.recording.reader import open_recording
     try:
         with open(path, "rb") as f:
             head = f.read(len(MCAP_MAGIC))

@@ -11,13 +11,7 @@ import numpy as np
 
 from crossfield.batch.engine import add_engine_flags, client, engine_from_args
 from crossfield.cli.common import Command
-from crossfield.cli.inputs import require
 from crossfield.errors import ConfigError
-from crossfield.planning.report import write_report
-from crossfield.planning.routes import camera_model, predict
-from crossfield.planning.station import load_station, station_from_scenario
-from crossfield.planning.sweeps import recommend, run_sweeps
-from crossfield.precision.chain import chain_bound
 
 __all__ = ["COMMANDS"]
 
@@ -51,6 +45,8 @@ def add_station_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _station(args: argparse.Namespace):
+    from crossfield.cli.inputs import require
+    from crossfield.planning.station import load_station, station_from_scenario
     import dataclasses
 
     if bool(args.station) == bool(args.scenario):
@@ -71,6 +67,9 @@ def _station(args: argparse.Namespace):
 
 def cmd_plan(args: argparse.Namespace) -> int:
 
+    from crossfield.planning.report import write_report
+    from crossfield.planning.routes import predict
+    from crossfield.planning.sweeps import recommend, run_sweeps
     station = _station(args)
     if args.sessions < 2 or args.sweep_sessions < 2:
         raise ConfigError("--sessions and --sweep-sessions must be >= 2")
@@ -123,6 +122,8 @@ def cmd_plan(args: argparse.Namespace) -> int:
 
 
 def cmd_crb(args: argparse.Namespace) -> int:
+    from crossfield.planning.routes import camera_model
+    from crossfield.precision.chain import chain_bound
     station = _station(args)
     model = camera_model(station)
     T = len(station.target_ids)

@@ -11,11 +11,8 @@ import logging
 import sys
 from pathlib import Path
 
-from crossfield.audit import audit, format_report, to_json
 from crossfield.batch.engine import add_engine_flags, engine_from_args
-from crossfield.catalog import commands as catalog
 from crossfield.chain.registry import STAGES, get_implementation, implementations
-from crossfield.chain.runner import run_session
 from crossfield.cli.common import (
     Command,
     add_stage_flags,
@@ -24,20 +21,10 @@ from crossfield.cli.common import (
     print_session_files,
     stage_choices,
 )
-from crossfield.cli.inputs import require
-from crossfield.compare import compare, format_table
 from crossfield.config import SIMULATOR_OPTIONS, Config, session_config
 from crossfield.errors import ConfigError
-from crossfield.export import characteristic_rows, load_report, to_csv, write_csv
-from crossfield.progress import Progress
 from crossfield.recording.layout import IMAGE_TOPICS
 from crossfield.recording.seal import generate_key
-from crossfield.replay import load_recorded_session, replay_session
-from crossfield.session import STOP_INTERRUPTED
-from crossfield.report.qif import write_qif
-from crossfield.uncertainty.montecarlo import on_dask
-from crossfield.viz.rerun_log import RerunLogger
-from crossfield.viz.view import parse_window_size, spawn_live_viewer, view
 
 __all__ = ["COMMANDS", "resolve_run_config"]
 
@@ -53,6 +40,7 @@ TOML_TEXT = ("other",)  # not a recording, report, seal or folder: the TOML read
 
 
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
+    from crossfield.catalog import commands as catalog
     parser.add_argument("-c", "--config", metavar="FILE", help="session config (TOML); defaults apply otherwise")
     parser.add_argument("--scenario", help="simulator scenario: station, table3, camera-limited, mismatch-cmm, mismatch-camera or mismatch-mixed")
     parser.add_argument("--frames", type=int, help="number of stereo pairs (simulator)")
@@ -96,6 +84,7 @@ def add_compare_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def add_audit_arguments(parser: argparse.ArgumentParser) -> None:
+    from crossfield.catalog import commands as catalog
     parser.add_argument("recording", metavar="SESSION.mcap")
     parser.add_argument("--json", action="store_true", help="machine-readable output")
     parser.add_argument("--no-replay", action="store_true", help="skip the reproduction check")
@@ -155,6 +144,14 @@ def resolve_run_config(args: argparse.Namespace) -> Config:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    from crossfield.catalog import commands as catalog
+    from crossfield.chain.runner import run_session
+    from crossfield.cli.inputs import require
+    from crossfield.progress import Progress
+    from crossfield.session import STOP_INTERRUPTED
+    from crossfield.uncertainty.montecarlo import on_dask
+    from crossfield.viz.rerun_log import RerunLogger
+    from crossfield.viz.view import spawn_live_viewer
     for flag, path in (("--config", args.config), ("--plan", args.plan)):
         if path:
             require(path, TOML_TEXT, "run", f"a TOML file for {flag}", recording=False)
@@ -223,6 +220,9 @@ def cmd_plugins(args: argparse.Namespace) -> int:
 
 def cmd_replay(args: argparse.Namespace) -> int:
 
+    from crossfield.cli.inputs import require
+    from crossfield.progress import Progress
+    from crossfield.replay import load_recorded_session, replay_session
     pm = plugin_manager()
     require(args.recording, SESSION_RECORDING, "replay", "a session recording (session.mcap)")
     logger.info("replaying %s", args.recording)
@@ -273,6 +273,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
+    from crossfield.cli.inputs import require
+    from crossfield.compare import compare, format_table
     for path in (args.a, args.b):
         require(path, SESSION_RECORDING, "compare", "two session recordings (session.mcap)")
     result = compare(args.a, args.b)
@@ -284,6 +286,9 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
 
 def cmd_audit(args: argparse.Namespace) -> int:
+    from crossfield.audit import audit, format_report, to_json
+    from crossfield.catalog import commands as catalog
+    from crossfield.cli.inputs import require
     require(args.recording, ANY_RECORDING, "audit", "a session, calibration or verification recording (.mcap)")
     if args.catalog:  # the outside anchor: the head, SHA-256 and signature the catalog keeps
         report = catalog.audit_command(args, plugin_manager())
@@ -307,6 +312,8 @@ def cmd_keygen(args: argparse.Namespace) -> int:
 
 
 def cmd_view(args: argparse.Namespace) -> int:
+    from crossfield.cli.inputs import require
+    from crossfield.viz.view import parse_window_size, view
     require(args.session, VIEWABLE, "view", "a session folder, session.rrd or session.mcap")
     return view(
         args.session,
@@ -321,6 +328,9 @@ def cmd_view(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
+    from crossfield.cli.inputs import require
+    from crossfield.export import characteristic_rows, load_report, to_csv, write_csv
+    from crossfield.report.qif import write_qif
     if not (args.csv or args.qif):
         raise ConfigError("crossfield export: give --csv FILE and/or --qif FILE")
     require(args.session, SESSION_REPORT, "export", "a session folder or its report.json", recording=False)

@@ -31,6 +31,19 @@ def test_version(capsys):
     assert capsys.readouterr().out.strip() == f"crossfield {crossfield.__version__}"
 
 
+def test_the_parser_loads_no_pipeline():
+    """``crossfield --help`` and ``--version`` build the parser of every command without
+    importing what the commands run: the chain, Dask, Rerun, the recording's codecs,
+    scipy.stats (each command imports those when it runs; crossfield/cli/__init__.py)."""
+    heavy = ("crossfield.chain.runner", "crossfield.recording.codec", "distributed", "rerun", "scipy.stats")
+    probe = (
+        "import sys; from crossfield.cli import build_parser; build_parser(); "
+        f"print(' '.join(m for m in {heavy!r} if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120, check=True)
+    assert out.stdout.split() == []
+
+
 def test_closed_pipe_ends_quietly():
     """The reader is gone before the first line is written: no traceback, the
     status of a command stopped by SIGPIPE."""
