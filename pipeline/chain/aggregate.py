@@ -96,55 +96,38 @@ class RunningStats:
     digits). ``x - k`` is exact for values within a factor 2 of each other
     (Sterbenz), the usual case for repeated measurements.
 
-    ``shape`` () keeps Python floats (fast, the same IEEE operations); any
-    other shape keeps float64 arrays, updated element by element.
+    ``shape`` () keeps Python floats; a vector shape (k,) keeps a list of Python floats per
+    component (a station session updates one per control per frame: NumPy's per-call cost
+    was ~2.6 us an update for 3 values, issue 25); any other shape keeps float64 arrays,
+    updated element by element. All three make the same IEEE operations, so their results
+    are the same bit for bit; ``mean``, ``m2`` and ``variance()`` of a vector are (k,) arrays.
     """
 
-    __slots__ = ("_mean", "_scalar", "_shift", "m2", "n")
+    __slots__ = ("_m2", "_mean", "_mode", "_shift", "n")
 
     def __init__(self, shape: tuple[int, ...] = ()) -> None:
-        self._scalar = shape == ()
+        self._mode = "scalar" if shape == () else "list" if len(shape) == 1 else "array"
         self.n = 0
-        zero: float | np.ndarray = 0.0 if self._scalar else np.zeros(shape)
-        self._shift = self._mean = self.m2 = zero
+        zero: float | list[float] | np.ndarray = (
+            0.0 if self._mode == "scalar" else [0.0] * shape[0] if self._mode == "list" else np.zeros(shape)
+        )
+        self._shift = self._mean = self._m2 = zero
 
     def add(self, x: float | np.ndarray) -> None:
-        x = float(x) if self._scalar else np.asarray(x, dtype=np.float64)
+        if self._mode == "list":
+            self._add_components(np.asarray(x, dtype=np.float64).tolist())
+            return
+        x = float(x) if self._mode == "scalar" else np.asarray(x, dtype=np.float64)
         if self.n == 0:
             self._shift = x
         self.n += 1
         y = x - self._shift
         delta = y - self._mean
         self._mean = self._mean + delta / self.n
-        self.m2 = self.m2 + delta * (y - self._mean)
+        self._m2 = self._m2 + delta * (y - self._mean)
 
-    @property
-    def mean(self) -> float | np.ndarray:
-        """The mean of the values added (0 before the first)."""
-        return self._shift + self._mean
-
-    def variance(self) -> float | np.ndarray:
-        """Sample variance (ddof = 1); 0 for fewer than two values."""
-        if self.n > 1:
-            return self.m2 / (self.n - 1)
-        return 0.0 if self._scalar else np.zeros_like(self.m2)
-
-
-class VectorStats:
-    """:class:`RunningStats` of a short vector (k,), kept as Python floats: per component the
-    same IEEE operations as ``RunningStats((k,))`` (NumPy's elementwise ones, in the same
-    order), without NumPy's per-call cost (~2.6 us an update for 3 values; a station session
-    updates one per control per frame, issue 25). ``mean``, ``m2`` and ``variance()`` are (k,)
-    float64 arrays as RunningStats'."""
-
-    __slots__ = ("_m2", "_mean", "_shift", "n")
-
-    def __init__(self, k: int) -> None:
-        self.n = 0
-        self._shift = self._mean = self._m2 = [0.0] * k
-
-    def add(self, x) -> None:
-        values = np.asarray(x, dtype=np.float64).tolist()
+    def _add_components(self, values: list[float]) -> None:
+        """:meth:`add` of a vector, component by component on Python floats."""
         if self.n == 0:
             self._shift = values
         self.n += 1
@@ -159,20 +142,22 @@ class VectorStats:
         self._mean, self._m2 = means, m2s
 
     @property
-    def mean(self) -> np.ndarray:
-        """The mean (k,) of the vectors added (0 before the first)."""
-        return np.array([shift + mean for shift, mean in zip(self._shift, self._mean)])
+    def mean(self) -> float | np.ndarray:
+        """The mean of the values added (0 before the first)."""
+        if self._mode == "list":
+            return np.array([shift + mean for shift, mean in zip(self._shift, self._mean)])
+        return self._shift + self._mean
 
     @property
-    def m2(self) -> np.ndarray:
-        """The sums (k,) of squared deviations."""
-        return np.array(self._m2)
+    def m2(self) -> float | np.ndarray:
+        """The sum of squared deviations from the mean."""
+        return np.array(self._m2) if self._mode == "list" else self._m2
 
-    def variance(self) -> np.ndarray:
-        """Sample variance (k,) (ddof = 1); 0 for fewer than two vectors."""
+    def variance(self) -> float | np.ndarray:
+        """Sample variance (ddof = 1); 0 for fewer than two values."""
         if self.n > 1:
-            return np.array(self._m2) / (self.n - 1)
-        return np.zeros(len(self._m2))
+            return self.m2 / (self.n - 1)
+        return 0.0 if self._mode == "scalar" else np.zeros_like(self.m2)
 
 
 # --------------------------------------------------------------------------
@@ -407,7 +392,7 @@ class _ControlRun:
     __slots__ = ("max_norm", "norm_sq", "residual")
 
     def __init__(self) -> None:
-        self.residual = VectorStats(3)
+        self.residual = RunningStats((3,))
         self.norm_sq = RunningStats()
         self.max_norm = -math.inf
 
@@ -430,7 +415,7 @@ class _RegistrationRun:
 
     def __init__(self) -> None:
         self.R = RunningStats((3, 3))
-        self.t = VectorStats(3)
+        self.t = RunningStats((3,))
         self.scale = RunningStats()
         self.rms = RunningStats()
         self.rms_sq = RunningStats()
