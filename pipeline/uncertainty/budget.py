@@ -86,16 +86,13 @@ def scaled(t: BudgetTerm, factor: float) -> BudgetTerm:
 
 def merge(variances: Mapping[str, tuple[float, str, float]]) -> tuple[BudgetTerm, ...]:
     """Budget terms from ``source -> (u, unit, variance mm^2)``, in :data:`SOURCES` order (other
-    keys are left out): :func:`term` of ``u`` and ``sqrt(max(variance, 0))``, made inline (the
-    measure stage makes ~30 terms per stereo pair, issue 25)."""
+    keys are left out): :func:`term` of ``u`` and ``sqrt(max(variance, 0))``."""
     out = []
     for source in SOURCES:
         entry = variances.get(source)
         if entry is not None:
             u, unit, variance = entry
-            u_mm = abs(float(math.sqrt(max(variance, 0.0))))
-            u = abs(float(u))
-            out.append(BudgetTerm(source, u, unit, u_mm / u if u > 0 else 0.0, u_mm))
+            out.append(term(source, u, unit, math.sqrt(max(variance, 0.0))))
     return tuple(out)
 
 
